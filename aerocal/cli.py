@@ -1,0 +1,184 @@
+"""The ``aerocal`` command line.
+
+Engine commands (``simulate``, ...) live here. Platform commands (``db``, ``certificates``, ``runs``,
+``process``, ``campaign``, ``serve``) live in :mod:`flows` and are imported lazily, only when invoked,
+so that the engine never imports Prefect or SQLAlchemy (this module is the one exception allowed to
+import ``flows``).
+
+Every error a user can cause is one line naming what is wrong and the fix, with a non-zero exit code.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+from pathlib import Path
+
+import click
+import typer
+from rich.console import Console
+from rich.table import Table
+from typer.core import TyperGroup
+
+console = Console()
+err_console = Console(stderr=True)
+
+#: platform command groups: name -> (module, typer app attribute, one-line help)
+LAZY_GROUPS: dict[str, tuple[str, str, str]] = {
+    "db": ("flows.commands_storage", "db_app", "Database migrations: upgrade, downgrade, current."),
+    "certificates": ("flows.commands_storage", "certificates_app",
+                     "Calibration certificates: list, show, export, import."),
+    "runs": ("flows.commands_storage", "runs_app", "Processing runs and their provenance."),
+}
+
+
+class LazyGroup(TyperGroup):
+    """A click group that imports platform sub-commands only when they are used."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(set(super().list_commands(ctx)) | set(LAZY_GROUPS))
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name in LAZY_GROUPS:
+            module, attr, help_text = LAZY_GROUPS[name]
+            try:
+                sub = getattr(importlib.import_module(module), attr)
+            except (ImportError, AttributeError) as exc:
+                return click.Command(name, help=help_text, callback=_unavailable(name, exc))
+            cmd = typer.main.get_command(sub)
+            cmd.help = cmd.help or help_text
+            return cmd
+        return super().get_command(ctx, name)
+
+
+def _unavailable(name: str, exc: Exception):
+    def run() -> None:
+        err_console.print(f"[red]error:[/red] the '{name}' commands are not available in this installation "
+                          f"({exc}); install aerocal with its platform dependencies: pip install -e .")
+        raise SystemExit(2)
+
+    return run
+
+
+app = typer.Typer(
+    cls=LazyGroup,
+    help="aerocal: photogrammetry for cameras whose interior orientation is not stable.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+
+
+def fail(message: str, code: int = 2) -> None:
+    """Print one error line and exit non-zero."""
+    err_console.print(f"[red]error:[/red] {message}", highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+@app.command()
+def simulate(
+    preset: str = typer.Argument(..., help="Flight preset: conte-city, conte-calibration, daakir-uav, "
+                                            "mitishita-block."),
+    out: Path = typer.Option(..., "--out", help="Flight folder to write (must not exist or be empty)."),
+    seed: int = typer.Option(0, help="Random seed; the same seed gives the same flight."),
+    mode: str = typer.Option("observations", help="observations (image measurements, fast) or images "
+                                                  "(rendered frames)."),
+    effect: list[str] = typer.Option([], "--effect", help="Hidden effect NAME=VALUE, repeatable, e.g. "
+                                                          "thermal_focal=0.075 or boresight=0.01,0,0."),
+    max_images: int | None = typer.Option(None, "--max-images", help="Keep only the N frames nearest the "
+                                                                      "block centre."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+) -> None:
+    """Simulate a flight and write a flight folder (and truth.json, for tests and studies only).
+
+    Example: aerocal simulate conte-calibration --out flight --seed 3 --effect thermal_focal=0.05
+    """
+    from aerocal.effects import EffectError, parse_effect
+    from aerocal.simulate import (
+        MODES,
+        PresetError,
+        SimulationError,
+        get_preset,
+        simulate_flight,
+        write_flight,
+    )
+    from aerocal.simulate.simulator import spec_summary
+
+    try:
+        get_preset(preset)
+        if mode not in MODES:
+            raise SimulationError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
+        effects = dict(parse_effect(e) for e in effect)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            raise SimulationError(f"output folder {out} exists and is not empty; choose a new --out or remove it")
+        sim = simulate_flight(preset, seed=seed, effects=effects, max_images=max_images)
+        with _progress(f"writing {mode}", sim.images.num_rows if mode == "images" else 0) as advance:
+            write_flight(sim, out, mode=mode, progress=advance)
+    except (PresetError, EffectError, SimulationError) as exc:
+        fail(str(exc))
+    summary = spec_summary(sim)
+    summary["out"] = str(out)
+    if as_json:
+        console.print_json(json.dumps(summary))
+    else:
+        _print_summary(f"simulated {preset} (seed {seed})", summary)
+
+
+class _progress:
+    """A rich progress bar for ``total`` steps (no bar when total is 0); yields an ``advance(done, total)``."""
+
+    def __init__(self, label: str, total: int) -> None:
+        self.label, self.total = label, total
+
+    def __enter__(self):
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeRemainingColumn
+
+        if not self.total:
+            return lambda done, total: None
+        self.bar = Progress("[progress.description]{task.description}", BarColumn(), MofNCompleteColumn(),
+                            TimeRemainingColumn(), console=err_console, transient=True)
+        self.bar.__enter__()
+        task = self.bar.add_task(self.label, total=self.total)
+        return lambda done, total: self.bar.update(task, completed=done, total=total)
+
+    def __exit__(self, *exc) -> None:
+        if self.total:
+            self.bar.__exit__(*exc)
+
+
+def _print_summary(title: str, summary: dict) -> None:
+    table = Table(title=title, show_header=False)
+    for key, value in summary.items():
+        table.add_row(key, json.dumps(value) if isinstance(value, list | dict) else str(value))
+    console.print(table)
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("demo-output"), "--out", help="Folder for everything the demo writes."),
+    seed: int = typer.Option(7, help="Random seed of the simulated flight."),
+) -> None:
+    """Simulate a small thermal flight with one hidden effect and show what was made.
+
+    Example: aerocal demo --out demo-output
+    """
+    from aerocal.simulate import simulate_flight, write_flight
+    from aerocal.simulate.simulator import spec_summary
+
+    flight = out / "flight"
+    if flight.exists():
+        fail(f"{flight} exists; remove it or choose another --out")
+    sim = simulate_flight("conte-calibration", seed=seed, effects={"thermal_focal": 0.06})
+    write_flight(sim, flight, mode="observations")
+    summary = spec_summary(sim)
+    summary["out"] = str(flight)
+    _print_summary("demo: simulated thermal calibration flight (one hidden effect)", summary)
+    console.print(f"flight folder: {flight.resolve()}")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

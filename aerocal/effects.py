@@ -1,0 +1,193 @@
+"""The catalogue of systematic effects: names, units, parameters, and how each displaces image points.
+
+The simulator applies these effects (:mod:`aerocal.simulate`); the diagnosis tests for them. The
+diagnosis imports this module, never the simulator. Every formula that moves an image point lives here
+once, so that the two cannot disagree.
+
+Magnitudes are given on the command line as ``NAME=VALUE`` with VALUE a number, a comma-separated
+vector, or ``on``/``off`` for switches (see :func:`parse_effect`).
+
+Frames and signs
+----------------
+* ``boresight`` angles (degrees) are a rotation about the *camera* axes x, y, z (x right, y down,
+  z forward): ``R_cw_true = Rot(boresight) @ R_cw_recorded``. A positive angle about x moves image
+  points up (towards smaller v) by about ``f * angle`` pixels.
+* ``lever_arm`` (metres) is the GNSS antenna position in the *camera* frame: ``antenna = C + R_cw^T
+  lever``. Its component along the optical axis is constant in the world for a nadir block and cannot
+  be told from a vertical ``gnss_bias``.
+* ``gnss_bias`` (metres east, north, up) is a constant offset of all recorded positions (e.g. a height
+  read against the wrong reference).
+* ``gnss_time_offset`` (seconds): the recorded position is the true position ``dt`` seconds later,
+  ``C_recorded = C(t + dt)``, i.e. shifted by ``v dt`` along the track.
+* ``rolling_shutter`` (seconds of readout): row ``v`` is exposed at ``t + readout (v / height - 0.5)``,
+  so the middle row is exposed at the recorded time.
+* ``refraction`` (on/off): standard-atmosphere radial refraction, displacement outwards
+  ``dr = K (r + r^3 / f^2)`` (pixels, r from the principal point) with ``K`` from Bertram's formula.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Effect:
+    """One systematic effect of the catalogue."""
+
+    name: str
+    units: str
+    labels: tuple[str, ...]  # one per value
+    kind: str  # "interior" | "exterior" | "atmosphere"
+    depends_on: tuple[str, ...]  # metadata the effect varies with
+    description: str
+    switch: bool = False  # True: the value is on/off (1.0 / 0.0)
+
+    @property
+    def size(self) -> int:
+        return len(self.labels)
+
+
+CATALOGUE: dict[str, Effect] = {
+    e.name: e
+    for e in (
+        Effect("thermal_focal", "px/degC", ("df_dT",), "interior", ("temperature",),
+               "focal length changes linearly with sensor temperature"),
+        Effect("thermal_principal_point", "px/degC", ("dcx_dT", "dcy_dT"), "interior", ("temperature",),
+               "principal point moves linearly with sensor temperature"),
+        Effect("rolling_shutter", "s", ("readout",), "interior", ("image row", "velocity"),
+               "rows are read out one after the other while the camera moves"),
+        Effect("boresight", "deg", ("about_x", "about_y", "about_z"), "exterior", ("attitude",),
+               "misalignment between the IMU and the camera axes"),
+        Effect("lever_arm", "m", ("x", "y", "z"), "exterior", ("attitude", "flight direction"),
+               "unmodelled offset between the GNSS antenna and the projection centre (camera frame)"),
+        Effect("gnss_bias", "m", ("east", "north", "up"), "exterior", (),
+               "constant offset of the recorded positions (datum or height reference)"),
+        Effect("gnss_time_offset", "s", ("dt",), "exterior", ("velocity", "flight direction"),
+               "clock offset between camera and GNSS: positions shifted along the track"),
+        Effect("affinity_skew", "px", ("b1", "b2"), "interior", ("image position",),
+               "affinity (different x and y scale) and skew of the pixel grid"),
+        Effect("radial_k3", "1", ("k3",), "interior", ("radius",),
+               "unmodelled third radial distortion term (r^6)"),
+        Effect("refraction", "on/off", ("on",), "atmosphere", ("radius", "flying height"),
+               "standard-atmosphere refraction: radial displacement outwards", switch=True),
+    )
+}
+
+
+class EffectError(ValueError):
+    """An effect given by the user is unknown or malformed; the message lists the valid choices."""
+
+
+def parse_effect(text: str) -> tuple[str, tuple[float, ...]]:
+    """Parse ``NAME=VALUE`` (``VALUE`` a number, comma-separated numbers, or on/off for switches)."""
+    if "=" not in text:
+        raise EffectError(f"effect {text!r} must be NAME=VALUE; valid names: {', '.join(CATALOGUE)}")
+    name, _, raw = text.partition("=")
+    name = name.strip()
+    return name, effect_values(name, raw.strip())
+
+
+def effect_values(name: str, raw: object) -> tuple[float, ...]:
+    """Validate a magnitude for effect ``name`` (string, number or sequence) and return its values."""
+    if name not in CATALOGUE:
+        raise EffectError(f"unknown effect {name!r}; valid effects: {', '.join(CATALOGUE)}")
+    effect = CATALOGUE[name]
+    if effect.switch:
+        if isinstance(raw, str):
+            low = raw.lower()
+            if low in ("on", "true", "1", "yes"):
+                return (1.0,)
+            if low in ("off", "false", "0", "no"):
+                return (0.0,)
+        elif isinstance(raw, bool | int | float) and raw in (0, 1):
+            return (float(raw),)
+        raise EffectError(f"effect {name} is a switch: give {name}=on or {name}=off, not {raw!r}")
+    if isinstance(raw, str):
+        parts = [p for p in raw.replace(" ", "").split(",") if p != ""]
+    elif isinstance(raw, int | float):
+        parts = [raw]
+    else:
+        parts = list(raw)  # type: ignore[call-overload]
+    try:
+        values = tuple(float(p) for p in parts)
+    except (TypeError, ValueError):
+        raise EffectError(
+            f"effect {name} takes {effect.size} number(s) in {effect.units} "
+            f"({', '.join(effect.labels)}), got {raw!r}"
+        ) from None
+    if len(values) != effect.size or not all(math.isfinite(v) for v in values):
+        raise EffectError(
+            f"effect {name} takes {effect.size} finite number(s) in {effect.units} "
+            f"({', '.join(effect.labels)}), got {raw!r}"
+        )
+    return values
+
+
+def normalise_effects(effects: dict[str, object] | None) -> dict[str, tuple[float, ...]]:
+    """Validate a ``{name: magnitude}`` mapping; returns values as float tuples."""
+    return {name: effect_values(name, value) for name, value in (effects or {}).items()}
+
+
+# ------------------------------------------------------------------------------ refraction
+def bertram_refraction_k(flying_height_m: float, ground_height_m: float = 0.0) -> float:
+    """Refraction constant K (radians per unit tan) of the standard atmosphere (Bertram 1969).
+
+    ``K = (2410 H / (H^2 - 6 H + 250) - 2410 h^2 / ((h^2 - 6 h + 250) H)) 1e-6`` with H the flying
+    height and h the ground height above sea level in kilometres.
+    """
+    H = flying_height_m / 1000.0
+    h = ground_height_m / 1000.0
+    if H <= 0:
+        return 0.0
+    return (2410.0 * H / (H * H - 6.0 * H + 250.0) - 2410.0 * h * h / ((h * h - 6.0 * h + 250.0) * H)) * 1e-6
+
+
+def refract(xy: np.ndarray, k: float) -> np.ndarray:
+    """Apply radial refraction to undistorted normalised coordinates: ``r' = r (1 + K (1 + r^2))``.
+
+    In pixels this is ``dr = K (r + r^3 / f^2)`` (Kraus, Photogrammetry Vol. 1).
+    """
+    xy = np.asarray(xy, dtype=float)
+    r2 = np.sum(xy * xy, axis=-1, keepdims=True)
+    return xy * (1.0 + k * (1.0 + r2))
+
+
+def unrefract(xy: np.ndarray, k: float, iterations: int = 6) -> np.ndarray:
+    """Inverse of :func:`refract` by fixed-point iteration (K ~ 1e-5: converges to 1e-15 in 3 steps)."""
+    xy = np.asarray(xy, dtype=float)
+    out = xy.copy()
+    for _ in range(iterations):
+        r2 = np.sum(out * out, axis=-1, keepdims=True)
+        out = xy / (1.0 + k * (1.0 + r2))
+    return out
+
+
+def refraction_displacement_px(r_px: np.ndarray, f_px: float, k: float) -> np.ndarray:
+    """Radial refraction displacement (pixels, outwards) at radius ``r_px`` from the principal point."""
+    r = np.asarray(r_px, dtype=float)
+    return k * (r + r**3 / f_px**2)
+
+
+# ------------------------------------------------------------------------------ rolling shutter
+def row_time_offset(v: np.ndarray, height: int, readout_s: float) -> np.ndarray:
+    """Exposure time of image row ``v`` (pixels, top-left convention) relative to the recorded time (s)."""
+    return readout_s * (np.asarray(v, dtype=float) / float(height) - 0.5)
+
+
+def rolling_shutter_shift_px(speed_m_s: float, readout_s: float, gsd_m: float) -> float:
+    """Displacement between the first and the last row of a frame (pixels): ``v t_readout / GSD``."""
+    return speed_m_s * readout_s / gsd_m
+
+
+# ------------------------------------------------------------------------------ sizes for reports
+def boresight_shift_px(f_px: float, angle_deg: float) -> float:
+    """Image shift at the principal point of a rotation ``angle_deg`` about a camera x or y axis."""
+    return f_px * math.radians(angle_deg)
+
+
+def focal_shift_px(df_px: float, r_px: float, f_px: float) -> float:
+    """Radial displacement at radius ``r_px`` when the focal length changes by ``df_px``."""
+    return df_px * r_px / f_px

@@ -1,0 +1,54 @@
+"""Dependencies point one way: the engine never imports the platform."""
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+FORBIDDEN = {"prefect", "prefect_dask", "sqlalchemy", "alembic", "psycopg", "flows", "tasks", "storage"}
+
+
+def _imports(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(), filename=str(path))
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_engine_does_not_import_platform():
+    offenders = {}
+    for path in (ROOT / "aerocal").rglob("*.py"):
+        if path.name == "cli.py" and path.parent.name == "aerocal":
+            continue  # the one module allowed to reach flows, and only lazily (checked below)
+        bad = _imports(path) & FORBIDDEN
+        if bad:
+            offenders[str(path.relative_to(ROOT))] = sorted(bad)
+    assert not offenders, f"engine modules import the platform layer: {offenders}"
+
+
+def test_cli_imports_flows_only_lazily():
+    tree = ast.parse((ROOT / "aerocal" / "cli.py").read_text())
+    top_level = set()
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            top_level.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module:
+            top_level.add(node.module.split(".")[0])
+    assert not (top_level & FORBIDDEN), f"aerocal/cli.py imports {top_level & FORBIDDEN} at module level"
+
+
+def test_tasks_do_not_import_flows_and_storage_does_not_import_tasks_or_flows():
+    for folder, bad in (("tasks", {"flows"}), ("storage", {"flows", "tasks"})):
+        for path in (ROOT / folder).rglob("*.py"):
+            assert not (_imports(path) & bad), f"{path.relative_to(ROOT)} imports {_imports(path) & bad}"
+
+
+def test_processing_code_never_reads_the_truth():
+    for folder in ("aerocal", "flows", "tasks", "storage"):
+        for path in (ROOT / folder).rglob("*.py"):
+            if "simulate" in path.parts or path.name == "cli.py":
+                continue
+            assert "truth.json" not in path.read_text(), f"{path.relative_to(ROOT)} mentions truth.json"
