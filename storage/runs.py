@@ -1,0 +1,203 @@
+"""The run repository: one row per flow run, with its configuration, code version, timings and certificate.
+
+These functions add and change rows in the caller's session; the caller commits (a flow commits at the
+end of each step, so a crash loses at most the step in progress).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import json
+import math
+import subprocess
+from collections.abc import Mapping
+from datetime import date, datetime
+from importlib import metadata
+from pathlib import Path, PurePath
+from typing import Any
+
+import sqlalchemy as sa
+from sqlalchemy.orm import Session
+
+from storage.errors import NotFoundError, StorageError
+from storage.models import RUN_STATUSES, Campaign, Certificate, Flight, Run, utcnow
+
+
+@functools.lru_cache(maxsize=1)
+def current_code_version() -> str:
+    """``aerocal <version>`` plus the git commit (``+g<hash>``, ``-dirty``) when run from a checkout."""
+    try:
+        version = metadata.version("aerocal")
+    except metadata.PackageNotFoundError:
+        version = "unknown"
+    repo = Path(__file__).resolve().parents[1]
+    try:
+        out = subprocess.run(
+            ["git", "-C", str(repo), "describe", "--always", "--dirty", "--abbrev=12"],
+            capture_output=True,
+            text=True,
+            timeout=5,
+            check=False,
+        )
+    except (OSError, subprocess.SubprocessError):
+        return f"aerocal {version}"
+    commit = out.stdout.strip() if out.returncode == 0 else ""
+    return f"aerocal {version}+g{commit}" if commit else f"aerocal {version}"
+
+
+def to_json(value: Any) -> Any:
+    """``value`` as plain JSON types: dataclasses and mappings become objects, paths and dates strings,
+    numpy scalars and arrays numbers and lists, enums their value; NaN and infinities become ``None``.
+    """
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_json(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, Mapping):
+        return {str(k): to_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [to_json(v) for v in value]
+    if isinstance(value, enum.Enum):
+        return to_json(value.value)
+    if isinstance(value, PurePath):
+        return str(value)
+    if isinstance(value, datetime | date):
+        return value.isoformat()
+    if isinstance(value, bool) or value is None or isinstance(value, str | int):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if hasattr(value, "tolist"):  # numpy
+        return to_json(value.tolist())
+    raise StorageError(
+        f"configuration value of type {type(value).__name__} cannot be stored as JSON: {value!r}"
+    )
+
+
+def get_run(session: Session, run_id: str) -> Run:
+    """The run with this id; :class:`NotFoundError` when there is none."""
+    run = session.get(Run, str(run_id))
+    if run is None:
+        raise NotFoundError(f"run {run_id!r} not found; list them with `aerocal runs list`")
+    return run
+
+
+def _flight_id(session: Session, flight: Flight | int | str | None) -> int | None:
+    if flight is None or isinstance(flight, int):
+        return flight
+    if isinstance(flight, Flight):
+        return flight.id
+    found = session.scalars(sa.select(Flight.id).where(Flight.name == flight)).first()
+    if found is None:
+        raise NotFoundError(f"flight {flight!r} not found; register it first")
+    return found
+
+
+def _campaign_id(session: Session, campaign: Campaign | int | str | None) -> int | None:
+    if campaign is None or isinstance(campaign, int):
+        return campaign
+    if isinstance(campaign, Campaign):
+        return campaign.id
+    found = session.scalars(sa.select(Campaign.id).where(Campaign.name == campaign)).first()
+    if found is None:
+        raise NotFoundError(f"campaign {campaign!r} not found; create it first")
+    return found
+
+
+def start_run(
+    session: Session,
+    run_id: str,
+    kind: str,
+    configuration: Any = None,
+    code_version: str | None = None,
+    flight: Flight | int | str | None = None,
+    campaign: Campaign | int | str | None = None,
+    started: datetime | None = None,
+) -> Run:
+    """Record that run ``run_id`` (the flow-run id) of ``kind`` (e.g. ``"process_flight"``) started.
+
+    ``configuration`` (a dataclass or mapping) is stored in full as JSON; ``code_version`` defaults
+    to :func:`current_code_version`. Starting a run id that exists again (a retried flow run) marks it
+    running again and replaces its configuration; its timings, artifacts and lineage are kept.
+    """
+    config = to_json(configuration) if configuration is not None else {}
+    if not isinstance(config, dict):
+        config = {"value": config}
+    run = session.get(Run, str(run_id))
+    version = code_version or current_code_version()
+    if run is None:
+        run = Run(
+            id=str(run_id),
+            kind=kind,
+            status="running",
+            configuration=config,
+            code_version=version,
+            started=started or utcnow(),
+            timings={},
+        )
+        session.add(run)
+    else:
+        run.kind, run.status, run.configuration, run.code_version = kind, "running", config, version
+        run.ended, run.error = None, None
+    if flight is not None:
+        run.flight_id = _flight_id(session, flight)
+    if campaign is not None:
+        run.campaign_id = _campaign_id(session, campaign)
+    session.flush()
+    return run
+
+
+def finish_run(
+    session: Session,
+    run_id: str,
+    status: str = "completed",
+    error: str | None = None,
+    ended: datetime | None = None,
+) -> Run:
+    """Record the end of a run: ``status`` is ``completed``, ``failed`` or ``cancelled``."""
+    if status not in RUN_STATUSES or status == "running":
+        raise ValueError(f"run status {status!r}: use one of completed, failed, cancelled")
+    run = get_run(session, run_id)
+    run.status, run.error, run.ended = status, error, ended or utcnow()
+    session.flush()
+    return run
+
+
+def record_timing(session: Session, run_id: str, step: str, seconds: float) -> None:
+    """Record that ``step`` of the run took ``seconds`` (wall time); a repeated step is overwritten."""
+    run = get_run(session, run_id)
+    run.timings = {
+        **(run.timings or {}),
+        str(step): float(seconds),
+    }  # reassign: plain JSON is not mutation-tracked
+    session.flush()
+
+
+def record_certificate(session: Session, run_id: str, certificate: Certificate | str, reason: str) -> None:
+    """Record the certificate the run uses and why it was chosen."""
+    run = get_run(session, run_id)
+    if isinstance(certificate, str):
+        found = session.get(Certificate, certificate)
+        if found is None:
+            raise NotFoundError(f"certificate {certificate!r} not found")
+        certificate = found
+    run.certificate_id = certificate.id
+    run.certificate_reason = reason
+    session.flush()
+
+
+def list_runs(
+    session: Session, limit: int = 50, kind: str | None = None, status: str | None = None
+) -> list[Run]:
+    """The newest runs first, optionally of one ``kind`` or ``status``."""
+    query = sa.select(Run).order_by(Run.started.desc(), Run.id)
+    if kind:
+        query = query.where(Run.kind == kind)
+    if status:
+        query = query.where(Run.status == status)
+    return list(session.scalars(query.limit(limit)))
+
+
+def configuration_text(run: Run) -> str:
+    """The run's configuration as indented JSON."""
+    return json.dumps(run.configuration, indent=2, sort_keys=True)
