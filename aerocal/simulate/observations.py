@@ -65,6 +65,9 @@ def observe_points(
     min_views: int = 2,
 ) -> Measurements:
     """Project ``points`` (P, 3) into every frame that sees them; keep points seen ``min_views`` times."""
+    if len(points) == 0:
+        empty = np.zeros((0, 2))
+        return Measurements(np.zeros(0, np.int32), np.zeros(0, np.int64), empty, empty, np.zeros((0, 3)))
     img, pid, uv = _frame_measurements(exposures, points, ground_radius_m, margin_px)
     counts = np.bincount(pid, minlength=len(points))
     keep = counts[pid] >= min_views
@@ -83,8 +86,12 @@ def sample_surface_points(scene, bounds: tuple[float, float, float, float], n: i
 
 
 def place_control(scene, bounds: tuple[float, float, float, float], n: int, rng: np.random.Generator,
-                  inset: float = 0.08) -> np.ndarray:
-    """``n`` well-spread ground points (stratified over a grid with jitter) on the terrain (not roofs)."""
+                  inset: float = 0.08, avoid: np.ndarray | None = None, min_separation_m: float = 10.0) -> np.ndarray:
+    """``n`` well-spread ground points (stratified over a grid with jitter) on the terrain (not roofs).
+
+    Points keep ``min_separation_m`` from each other and from ``avoid`` (M, 2 or 3), so that their
+    signalised targets never overlap.
+    """
     if n <= 0:
         return np.zeros((0, 3))
     e0, n0, e1, n1 = bounds
@@ -100,5 +107,20 @@ def place_control(scene, bounds: tuple[float, float, float, float], n: int, rng:
         v = (j + 0.5 + rng.uniform(-0.3, 0.3)) / rows
         pts.append((e0 + w * (inset + (1 - 2 * inset) * u), n0 + h * (inset + (1 - 2 * inset) * v)))
     pts_arr = np.asarray(pts)
+    if hasattr(scene, "open_ground_positions"):
+        # signalised targets stand on open ground: move each to the nearest open cell (no roof or tree)
+        cand = scene.open_ground_positions(40 * n, rng, clearance_m=4.0)
+        inside = (cand[:, 0] >= e0) & (cand[:, 0] <= e1) & (cand[:, 1] >= n0) & (cand[:, 1] <= n1)
+        cand = cand[inside] if inside.sum() >= n else cand
+        taken = [] if avoid is None else [tuple(a[:2]) for a in np.atleast_2d(avoid)]
+        chosen = []
+        for p in pts_arr:  # greedy: nearest open cell not too close to a point already taken
+            order = np.argsort(np.hypot(*(cand - p).T))
+            for k in order:
+                if all(np.hypot(cand[k, 0] - q[0], cand[k, 1] - q[1]) >= min_separation_m for q in taken):
+                    break
+            chosen.append(cand[k])
+            taken.append(tuple(cand[k]))
+        pts_arr = np.asarray(chosen)
     z = scene.ground_height_at(pts_arr[:, 0], pts_arr[:, 1])
     return np.column_stack([pts_arr, z])

@@ -172,7 +172,7 @@ def simulate_flight(
     gb = (max(bounds[0], cover[0] + across), max(bounds[1], cover[1] + across),
           min(bounds[2], cover[2] - across), min(bounds[3], cover[3] - across))
     ctrl = place_control(scene, gb, spec.n_gcp, rng_gcp)
-    check = place_control(scene, gb, spec.n_check, rng_gcp, inset=0.15)
+    check = place_control(scene, gb, spec.n_check, rng_gcp, inset=0.15, avoid=ctrl)
     gcp_true = np.vstack([ctrl, check])
     roles = ["control"] * len(ctrl) + ["check"] * len(check)
     names = [f"GCP{i + 1:02d}" for i in range(len(ctrl))] + [f"CHK{i + 1:02d}" for i in range(len(check))]

@@ -1,0 +1,311 @@
+"""The top-level bundle adjustment: tables in, :class:`AdjustmentResult` out.
+
+Inputs are the Arrow tables of :mod:`aerocal.tables` (images with recorded GNSS/IMU and sensor
+temperature, tie-point observations, GCPs and their image observations), a starting :class:`Camera`
+and an :class:`AdjustConfig`. Initial values: poses from the recorded GNSS/IMU, tie points by
+multi-ray triangulation with those poses and the starting camera, control GCPs at their surveyed
+coordinates. Check points stay out of the adjustment and are triangulated afterwards.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+
+from aerocal import tables
+from aerocal.adjust.covariance import (
+    accuracy_ratio,
+    correlation,
+    global_covariance,
+    global_names,
+    t_values,
+    triangulate_check_points,
+)
+from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block, build_block
+from aerocal.adjust.projection import IDX, THERMAL_PARAMS
+from aerocal.adjust.selection import select_parameters
+from aerocal.adjust.solver import Problem, Solution, State, solve
+from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
+from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
+from aerocal.geometry import quat_wxyz_from_matrix
+
+
+@dataclass
+class AdjustmentResult:
+    """Everything an adjustment estimated, with its precision; world coordinates in the flight CRS.
+
+    * ``camera``: IO at the reference temperature ``t0`` (degC); ``thermal`` the estimated linear model
+      (``None`` without thermal slopes).
+    * ``names``: the free global unknowns (IO names, thermal slopes as ``df/dT``, ``dcx/dT``, ...);
+      ``covariance`` / ``correlation`` in that order; ``sigmas`` / ``t_values`` per name; ``significant``
+      = t above the two-sided 95 % critical value. t is measured against the starting camera's value
+      for f, cx, cy and against zero for the other parameters and the slopes.
+    * ``residuals``: predicted minus observed pixels (M, 2) aligned with the rows of the observations
+      table (NaN for observations of tracks that could not be triangulated).
+    * check points: ``check_errors`` triangulated minus surveyed (K, 3) metres (E, N, Up);
+      ``check_sigma`` predicted std per axis (marginal covariance scaled by sigma0^2, plus survey
+      variance); ``rho`` = RMSE / sqrt(mean predicted variance) per axis.
+    """
+
+    camera: Camera
+    thermal: LinearThermalModel | None
+    t0: float
+    names: list[str]
+    sigmas: dict[str, float]
+    covariance: np.ndarray
+    correlation: np.ndarray
+    t_values: np.ndarray
+    significant: dict[str, bool]
+    thermal_slopes: dict[str, float]
+    thermal_sigmas: dict[str, float]
+    poses: pa.Table
+    points: pa.Table
+    sigma0: float
+    reprojection_rms: float
+    dof: int
+    iterations: int
+    converged: bool
+    residuals: np.ndarray
+    control_ids: list[str]
+    control_errors: np.ndarray
+    check_ids: list[str]
+    check_errors: np.ndarray
+    check_sigma: np.ndarray
+    check_rmse: np.ndarray
+    rho: np.ndarray
+    config: AdjustConfig
+    selection: list[str] = field(default_factory=list)
+    crs: str | None = None
+
+    def summary(self) -> dict:
+        """Figures a user checks, JSON-serialisable."""
+        return {
+            "camera": self.camera.to_dict(),
+            "t0": self.t0,
+            "sigmas": self.sigmas,
+            "t_values": dict(zip(self.names, np.round(self.t_values, 3).tolist(), strict=True)),
+            "thermal_slopes": self.thermal_slopes,
+            "thermal_sigmas": self.thermal_sigmas,
+            "sigma0": self.sigma0,
+            "reprojection_rms_px": self.reprojection_rms,
+            "dof": self.dof,
+            "check_rmse_m": self.check_rmse.tolist(),
+            "rho": self.rho.tolist(),
+            "selection": self.selection,
+        }
+
+
+def _drop_points(block: Block, keep: np.ndarray) -> Block:
+    """The block without the points where ``keep`` is False (and their observations)."""
+    new_index = np.cumsum(keep) - 1
+    obs_keep = keep[block.obs_point]
+    n_tie = int(keep[: block.n_tie].sum())
+    return dataclasses.replace(
+        block,
+        obs_image=block.obs_image[obs_keep],
+        obs_point=new_index[block.obs_point[obs_keep]],
+        obs_uv=block.obs_uv[obs_keep],
+        obs_sigma=block.obs_sigma[obs_keep],
+        obs_is_tie=block.obs_is_tie[obs_keep],
+        obs_row=block.obs_row[obs_keep],
+        n_tie=n_tie,
+        track_ids=block.track_ids[keep[: block.n_tie]],
+    )
+
+
+def initial_state(block: Block, camera: Camera) -> tuple[Block, State]:
+    """Poses from the recorded GNSS/IMU, tie points triangulated, control GCPs at their surveyed position."""
+    io = camera.params()
+    slopes = np.zeros(3)
+    i, j = block.obs_image, block.obs_point
+    tie = block.obs_is_tie
+    rays = pixels_to_rays(io, slopes, np.zeros(int(tie.sum())), block.R_rec[i[tie]], block.obs_uv[tie])
+    X, ok = triangulate_linear(j[tie], block.n_tie, block.gnss[i[tie]], rays)
+    # points must lie in front of every camera that sees them
+    if ok.any():
+        depth = np.einsum(
+            "mk,mk->m", block.R_rec[i[tie]][:, 2], np.nan_to_num(X[j[tie]]) - block.gnss[i[tie]]
+        )
+        front = np.ones(block.n_tie, bool)
+        np.logical_and.at(front, j[tie], depth > 0)
+        ok &= front
+    keep = np.concatenate([ok, np.ones(len(block.control_ids), bool)])
+    if not ok.any():
+        raise AdjustmentError("observations: no tie track could be triangulated from the recorded poses")
+    if not keep.all():
+        block = _drop_points(block, keep)
+        X = X[ok]
+    Xall = np.vstack([X, block.control_xyz]) if len(block.control_ids) else X
+    return block, State(io=io, slopes=slopes, R=block.R_rec.copy(), C=block.gnss.copy(), X=Xall)
+
+
+def _poses_table(block: Block, st: State) -> pa.Table:
+    q = quat_wxyz_from_matrix(st.R)
+    C = st.C + block.origin
+    return tables.from_columns(
+        "poses",
+        {
+            "image_id": block.image_ids,
+            "qw": q[:, 0],
+            "qx": q[:, 1],
+            "qy": q[:, 2],
+            "qz": q[:, 3],
+            "X": C[:, 0],
+            "Y": C[:, 1],
+            "Z": C[:, 2],
+        },
+        crs=block.crs,
+    )
+
+
+def _points_table(block: Block, sol: Solution) -> pa.Table:
+    tie = block.obs_is_tie
+    j = block.obs_point[tie]
+    err = np.linalg.norm(sol.obs_residual_px[tie], axis=1)
+    n = np.bincount(j, minlength=block.n_tie)
+    mean_err = np.bincount(j, weights=err, minlength=block.n_tie) / np.maximum(n, 1)
+    X = sol.state.X[: block.n_tie] + block.origin
+    return tables.from_columns(
+        "points",
+        {
+            "track_id": block.track_ids,
+            "X": X[:, 0],
+            "Y": X[:, 1],
+            "Z": X[:, 2],
+            "n_obs": n.astype(np.int32),
+            "error": mean_err,
+        },
+        crs=block.crs,
+    )
+
+
+def _result(
+    block: Block, sol: Solution, camera: Camera, config: AdjustConfig, n_obs_rows: int
+) -> AdjustmentResult:
+    st = sol.state
+    names = global_names(sol)
+    cov = global_covariance(sol, scale=config.scale_covariance)
+    sig = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    est = np.concatenate([st.io[sol.layout.io_free], st.slopes[sol.layout.slope_free]])
+    start = camera.params()
+    ref = np.array(
+        [start[IDX[n]] if n in ("f", "cx", "cy") else 0.0 for n in names[: len(sol.layout.io_free)]]
+        + [0.0] * len(sol.layout.slope_free)
+    )
+    t = t_values(est, ref, sig)
+    from aerocal.adjust.covariance import t_critical
+
+    tcrit = t_critical(sol.dof)
+    cam = camera.with_params(st.io)
+    thermal = None
+    slopes: dict[str, float] = {}
+    slope_sig: dict[str, float] = {}
+    if sol.layout.slope_free:
+        for k, idx in enumerate(sol.layout.slope_free):
+            name = f"d{THERMAL_PARAMS[idx]}/dT"
+            slopes[name] = float(st.slopes[idx])
+            slope_sig[name] = float(sig[len(sol.layout.io_free) + k])
+        temps = block.temperature[np.isfinite(block.temperature)]
+        thermal = LinearThermalModel(
+            t0=sol.t0,
+            df_dt=float(st.slopes[0]),
+            dcx_dt=float(st.slopes[1]),
+            dcy_dt=float(st.slopes[2]),
+            valid_range=(float(temps.min()), float(temps.max())),
+        )
+    # residuals aligned with the observations table
+    res = np.full((n_obs_rows, 2), np.nan)
+    rows = block.obs_row
+    res[rows[rows >= 0]] = sol.obs_residual_px[rows >= 0]
+    tie_res = sol.obs_residual_px[block.obs_is_tie]
+    rms = float(np.sqrt(np.mean(np.sum(tie_res**2, axis=1)) / 2.0)) if len(tie_res) else float("nan")
+    # control points: adjusted minus surveyed
+    ctrl_err = (st.X[block.n_tie :] - block.control_xyz) if block.control_ids else np.zeros((0, 3))
+    # check points
+    chk = triangulate_check_points(block, sol, scale=config.scale_covariance)
+    err = chk.xyz - block.check_xyz
+    var = np.einsum("kii->ki", chk.cov) + block.check_sigma**2 if len(chk.ids) else np.zeros((0, 3))
+    good = np.isfinite(err).all(axis=1)
+    rmse = np.sqrt(np.mean(err[good] ** 2, axis=0)) if good.any() else np.full(3, np.nan)
+    return AdjustmentResult(
+        camera=cam,
+        thermal=thermal,
+        t0=sol.t0,
+        names=names,
+        sigmas=dict(zip(names, sig.tolist(), strict=True)),
+        covariance=cov,
+        correlation=correlation(cov),
+        t_values=t,
+        significant={n: bool(v > tcrit) for n, v in zip(names, t, strict=True)},
+        thermal_slopes=slopes,
+        thermal_sigmas=slope_sig,
+        poses=_poses_table(block, st),
+        points=_points_table(block, sol),
+        sigma0=sol.sigma0,
+        reprojection_rms=rms,
+        dof=sol.dof,
+        iterations=sol.iterations,
+        converged=sol.converged,
+        residuals=res,
+        control_ids=list(block.control_ids),
+        control_errors=ctrl_err,
+        check_ids=list(chk.ids),
+        check_errors=err,
+        check_sigma=np.sqrt(var),
+        check_rmse=rmse,
+        rho=accuracy_ratio(err, var),
+        config=config,
+        crs=block.crs,
+    )
+
+
+def adjust(
+    images: pa.Table,
+    observations: pa.Table,
+    camera: Camera,
+    config: AdjustConfig | None = None,
+    gcps: pa.Table | None = None,
+    gcp_observations: pa.Table | None = None,
+    thermal_correction: LinearThermalModel | None = None,
+) -> AdjustmentResult:
+    """Bundle adjustment with self-calibration (IO free or fixed per parameter) and an optional thermal model.
+
+    ``thermal_correction``: correct tie-point and GCP measurements to the model's reference temperature
+    before adjusting (Daakir 2019), ``camera`` then being the IO at that temperature.
+    With ``config.adaptive`` insignificant or near-singular parameters are dropped one at a time and the
+    block re-adjusted; ``result.selection`` says why each was dropped.
+    """
+    config = config or AdjustConfig()
+    block0 = build_block(
+        images,
+        observations,
+        gcps,
+        gcp_observations,
+        config,
+        thermal_correction=thermal_correction,
+        correction_camera=camera,
+    )
+    if config.thermal_t0 is not None:
+        t0 = float(config.thermal_t0)
+    elif np.isfinite(block0.temperature).any():
+        t0 = float(np.nanmedian(block0.temperature))
+    else:
+        t0 = 0.0
+    block, start = initial_state(block0, camera)
+    n_rows = observations.num_rows
+
+    def run(cfg: AdjustConfig) -> AdjustmentResult:
+        sol = solve(Problem(block, cfg, t0), start)
+        return _result(block, sol, camera, cfg, n_rows)
+
+    if not config.adaptive:
+        return run(config)
+    result, reasons, _ = select_parameters(run, config)
+    result.selection = reasons
+    return result
+
+
+__all__ = ["PARAM_NAMES", "AdjustConfig", "AdjustmentResult", "adjust"]

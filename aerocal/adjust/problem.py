@@ -1,0 +1,263 @@
+"""The adjustment problem: configuration, and the arrays built from the Arrow tables.
+
+Everything is solved in a local frame: world coordinates (the flight's projected CRS, metres) minus a
+local origin (the mean recorded GNSS position), so that the normal equations stay well conditioned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+
+from aerocal import tables
+from aerocal.adjust.projection import THERMAL_PARAMS
+from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel, correct_measurements
+from aerocal.geometry import attitude_to_R_cw
+
+
+class AdjustmentError(ValueError):
+    """Input the adjustment cannot use; the message names the table, the field and the fix."""
+
+
+ROBUST_LOSSES = ("none", "huber", "cauchy")
+
+
+@dataclass(frozen=True)
+class AdjustConfig:
+    """Configuration of a bundle adjustment (all defaults documented).
+
+    * ``free``: IO parameters estimated (names of :data:`aerocal.camera.PARAM_NAMES`); the others are
+      held at the starting camera's values. Default: focal length, principal point, k1..k3, p1, p2.
+    * ``thermal``: IO parameters given a linear temperature slope estimated jointly
+      (``f_i = f0 + a (T_i - T0)``), a subset of ("f", "cx", "cy"); default none.
+    * ``thermal_t0``: reference temperature T0 (degC) of the estimated camera; ``None`` = median of the
+      images' ``temperature_c``.
+    * ``gnss_sigma_m``: a-priori std (east, north, up), metres, of the recorded projection centres used
+      as weighted observations; ``None`` = GNSS not used. Default (0.10, 0.10, 0.15).
+    * ``attitude_sigma_deg``: a-priori std of the recorded attitude about the camera x, y, z axes,
+      degrees; ``None`` (default) = attitude not used as an observation (only as starting value).
+    * ``use_gcps``: GCPs with role "control" enter as weighted observations with their survey sigmas.
+    * ``robust_loss``: "none" (default), "huber" or "cauchy", on tie-point observations only, with
+      ``robust_scale`` in units of the observation's sigma (default 3).
+    * ``max_iterations`` / ``tolerance``: Levenberg-Marquardt stops when the relative decrease of the
+      cost falls below ``tolerance`` (default 1e-10) or after ``max_iterations`` (default 50).
+    * ``scale_covariance``: multiply the covariance by the a-posteriori variance factor sigma0^2
+      (default True).
+    * ``adaptive``: drop insignificant or near-singular parameters and re-adjust (default False);
+      ``corr_limit`` (0.95) and ``t_limit`` (1.96, 95 % two-sided) are the thresholds and
+      ``always_keep`` (f, cx, cy) the parameters never dropped for insignificance.
+    """
+
+    free: tuple[str, ...] = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
+    thermal: tuple[str, ...] = ()
+    thermal_t0: float | None = None
+    gnss_sigma_m: tuple[float, float, float] | None = (0.10, 0.10, 0.15)
+    attitude_sigma_deg: tuple[float, float, float] | None = None
+    use_gcps: bool = True
+    robust_loss: str = "none"
+    robust_scale: float = 3.0
+    max_iterations: int = 50
+    tolerance: float = 1e-10
+    scale_covariance: bool = True
+    adaptive: bool = False
+    corr_limit: float = 0.95
+    t_limit: float = 1.96
+    always_keep: tuple[str, ...] = ("f", "cx", "cy")
+
+    def __post_init__(self) -> None:
+        bad = [n for n in self.free if n not in PARAM_NAMES]
+        if bad:
+            raise AdjustmentError(f"AdjustConfig.free has unknown parameter(s) {bad}; valid: {PARAM_NAMES}")
+        bad = [n for n in self.thermal if n not in THERMAL_PARAMS]
+        if bad:
+            raise AdjustmentError(
+                f"AdjustConfig.thermal has unknown parameter(s) {bad}; valid: {THERMAL_PARAMS}"
+            )
+        if self.robust_loss not in ROBUST_LOSSES:
+            raise AdjustmentError(
+                f"AdjustConfig.robust_loss {self.robust_loss!r} unknown; valid: {ROBUST_LOSSES}"
+            )
+
+
+@dataclass
+class Block:
+    """The arrays of one adjustment, in the local frame (``origin`` subtracted), indices 0-based.
+
+    Image observations of tie points and of control GCPs share one point array: tie tracks first
+    (``n_tie`` of them), then the control GCPs. Check-point observations are kept apart.
+    """
+
+    crs: str | None
+    origin: np.ndarray  # (3,) local origin, world metres
+    image_ids: np.ndarray  # (N,)
+    R_rec: np.ndarray  # (N, 3, 3) recorded world-to-camera rotations
+    gnss: np.ndarray  # (N, 3) recorded positions, local metres (NaN where missing)
+    temperature: np.ndarray  # (N,) degC (NaN where missing)
+    obs_image: np.ndarray  # (M,) image index of each image observation
+    obs_point: np.ndarray  # (M,) point index
+    obs_uv: np.ndarray  # (M, 2) pixels
+    obs_sigma: np.ndarray  # (M,) pixels
+    obs_is_tie: np.ndarray  # (M,) bool
+    obs_row: np.ndarray  # (M,) row of the observations table (-1 for GCP observations)
+    n_tie: int
+    track_ids: np.ndarray  # (n_tie,) track id of each tie point
+    control_ids: list[str]
+    control_xyz: np.ndarray  # (G, 3) surveyed, local
+    control_sigma: np.ndarray  # (G, 3)
+    check_ids: list[str]
+    check_xyz: np.ndarray  # (K, 3) surveyed, local
+    check_sigma: np.ndarray  # (K, 3)
+    check_image: np.ndarray  # (Mk,)
+    check_point: np.ndarray  # (Mk,)
+    check_uv: np.ndarray  # (Mk, 2)
+    check_sigma_px: np.ndarray  # (Mk,)
+    n_tie_obs: int = field(default=0)
+
+    @property
+    def n_images(self) -> int:
+        return len(self.image_ids)
+
+    @property
+    def n_points(self) -> int:
+        return self.n_tie + len(self.control_ids)
+
+
+def _col(table: pa.Table, name: str, what: str) -> np.ndarray:
+    if name not in table.schema.names:
+        raise AdjustmentError(f"{what} table lacks column {name!r}")
+    return table.column(name).to_numpy(zero_copy_only=False)
+
+
+def build_block(
+    images: pa.Table,
+    observations: pa.Table,
+    gcps: pa.Table | None = None,
+    gcp_observations: pa.Table | None = None,
+    config: AdjustConfig | None = None,
+    thermal_correction: LinearThermalModel | None = None,
+    correction_camera: Camera | None = None,
+) -> Block:
+    """Validate the tables and build the :class:`Block` arrays.
+
+    With ``thermal_correction`` the tie-point and GCP measurements are first corrected to the model's
+    reference temperature (Daakir 2019's workflow) using ``correction_camera`` (IO at T0).
+    """
+    config = config or AdjustConfig()
+    images = tables.validate(images, "images", source="images")
+    observations = tables.validate(observations, "observations", source="observations")
+    gcps = tables.validate(gcps, "gcps", source="gcps") if gcps is not None else tables.empty("gcps")
+    gcp_observations = (
+        tables.validate(gcp_observations, "gcp_observations", source="gcp_observations")
+        if gcp_observations is not None
+        else tables.empty("gcp_observations")
+    )
+
+    image_ids = _col(images, "image_id", "images").astype(np.int64)
+    if len(np.unique(image_ids)) != len(image_ids):
+        raise AdjustmentError("images.image_id has duplicate values; every image needs a unique id")
+    index = {int(v): i for i, v in enumerate(image_ids)}
+    N = len(image_ids)
+    conv = images.column("attitude_convention").to_pylist()
+    roll, pitch, yaw = (_col(images, n, "images").astype(float) for n in ("roll", "pitch", "yaw"))
+    R_rec = np.empty((N, 3, 3))
+    for i in range(N):
+        if conv[i] is None or not np.isfinite([roll[i], pitch[i], yaw[i]]).all():
+            raise AdjustmentError(
+                f"images row {i} (image_id {image_ids[i]}): attitude (roll/pitch/yaw/attitude_convention) is "
+                "missing; the adjustment starts from the recorded attitude, so every image needs one"
+            )
+        R_rec[i] = attitude_to_R_cw(conv[i], roll[i], pitch[i], yaw[i])
+    gnss = np.column_stack([_col(images, n, "images").astype(float) for n in ("gnss_x", "gnss_y", "gnss_z")])
+    if not np.isfinite(gnss).all():
+        bad = int(np.flatnonzero(~np.isfinite(gnss).all(axis=1))[0])
+        raise AdjustmentError(
+            f"images row {bad} (image_id {image_ids[bad]}): gnss_x/gnss_y/gnss_z missing; "
+            "the adjustment starts from the recorded positions"
+        )
+    origin = gnss.mean(axis=0)
+    temperature = _col(images, "temperature_c", "images").astype(float)
+    if (config.thermal or thermal_correction is not None) and not np.isfinite(temperature).all():
+        bad = int(np.flatnonzero(~np.isfinite(temperature))[0])
+        raise AdjustmentError(
+            f"images row {bad} (image_id {image_ids[bad]}): temperature_c is missing; a "
+            "thermal model needs every image's sensor temperature"
+        )
+
+    def image_index(ids: np.ndarray, what: str) -> np.ndarray:
+        out = np.array([index.get(int(v), -1) for v in ids], dtype=np.int64)
+        if (out < 0).any():
+            bad = int(np.flatnonzero(out < 0)[0])
+            raise AdjustmentError(f"{what} row {bad}: image_id {int(ids[bad])} is not in the images table")
+        return out
+
+    o_img = image_index(_col(observations, "image_id", "observations"), "observations")
+    track = _col(observations, "track_id", "observations").astype(np.int64)
+    track_ids, o_pt = np.unique(track, return_inverse=True)
+    o_uv = np.column_stack([_col(observations, "x", "observations"), _col(observations, "y", "observations")])
+    o_sig = _col(observations, "sigma", "observations").astype(float)
+    if not (o_sig > 0).all():
+        bad = int(np.flatnonzero(~(o_sig > 0))[0])
+        raise AdjustmentError(f"observations row {bad}: sigma must be a positive number of pixels")
+
+    g_id = gcps.column("gcp_id").to_pylist()
+    g_xyz = np.column_stack([_col(gcps, n, "gcps") for n in ("X", "Y", "Z")]) - origin
+    g_sig = np.column_stack([_col(gcps, n, "gcps") for n in ("sigma_x", "sigma_y", "sigma_z")])
+    role = gcps.column("role").to_pylist()
+    ctrl = [i for i, r in enumerate(role) if r == "control" and config.use_gcps]
+    chk = [i for i, r in enumerate(role) if r == "check"]
+    if ctrl and not (g_sig[ctrl] > 0).all():
+        raise AdjustmentError("gcps: sigma_x/sigma_y/sigma_z of control points must be positive metres")
+    go_gid = gcp_observations.column("gcp_id").to_pylist()
+    go_img = image_index(_col(gcp_observations, "image_id", "gcp_observations"), "gcp_observations")
+    go_uv = np.column_stack(
+        [_col(gcp_observations, "x", "gcp_observations"), _col(gcp_observations, "y", "gcp_observations")]
+    ).reshape(-1, 2)
+    go_sig = _col(gcp_observations, "sigma", "gcp_observations").astype(float)
+    known = set(g_id)
+    unknown = [g for g in go_gid if g not in known]
+    if unknown:
+        raise AdjustmentError(f"gcp_observations: gcp_id {unknown[0]!r} is not in the gcps table")
+
+    if thermal_correction is not None:
+        if correction_camera is None:
+            raise AdjustmentError("a thermal correction needs the camera (IO at the model's T0)")
+        o_uv = correct_measurements(correction_camera, o_uv, temperature[o_img], thermal_correction)
+        go_uv = correct_measurements(correction_camera, go_uv, temperature[go_img], thermal_correction)
+
+    ctrl_pos = {g_id[i]: k for k, i in enumerate(ctrl)}
+    chk_pos = {g_id[i]: k for k, i in enumerate(chk)}
+    sel_c = np.array([g in ctrl_pos for g in go_gid], dtype=bool)
+    sel_k = np.array([g in chk_pos for g in go_gid], dtype=bool)
+    n_tie = len(track_ids)
+    c_pt = n_tie + np.array([ctrl_pos[g] for g, s in zip(go_gid, sel_c, strict=True) if s], dtype=np.int64)
+    k_pt = np.array([chk_pos[g] for g, s in zip(go_gid, sel_k, strict=True) if s], dtype=np.int64)
+
+    return Block(
+        crs=tables.crs_of(images),
+        origin=origin,
+        image_ids=image_ids,
+        R_rec=R_rec,
+        gnss=gnss - origin,
+        temperature=temperature,
+        obs_image=np.concatenate([o_img, go_img[sel_c]]),
+        obs_point=np.concatenate([o_pt, c_pt]),
+        obs_uv=np.vstack([o_uv, go_uv[sel_c]]),
+        obs_sigma=np.concatenate([o_sig, go_sig[sel_c]]),
+        obs_is_tie=np.concatenate([np.ones(len(o_pt), bool), np.zeros(int(sel_c.sum()), bool)]),
+        obs_row=np.concatenate([np.arange(len(o_pt)), np.full(int(sel_c.sum()), -1)]),
+        n_tie=n_tie,
+        track_ids=track_ids,
+        control_ids=[g_id[i] for i in ctrl],
+        control_xyz=g_xyz[ctrl].reshape(-1, 3),
+        control_sigma=g_sig[ctrl].reshape(-1, 3),
+        check_ids=[g_id[i] for i in chk],
+        check_xyz=g_xyz[chk].reshape(-1, 3),
+        check_sigma=g_sig[chk].reshape(-1, 3),
+        check_image=go_img[sel_k],
+        check_point=k_pt,
+        check_uv=go_uv[sel_k],
+        check_sigma_px=go_sig[sel_k],
+        n_tie_obs=len(o_pt),
+    )

@@ -1,0 +1,146 @@
+"""Vectorised projection of world points into frames with per-frame interior orientation, and its Jacobians.
+
+The model is :class:`aerocal.camera.Camera`'s Brown model (Metashape convention, pixels, origin at the
+top-left corner of the image) with the focal length and principal point of each observation allowed to
+differ (the thermal model: ``f_i = f0 + a_f (T_i - T0)``, likewise ``cx``, ``cy``).
+
+Poses are world-to-camera: ``p = R (X - C)`` with ``X`` and ``C`` in a local frame (metres). Rotation
+updates are applied on the left, ``R <- exp([w]) R``, so ``dp/dw = -[p]_x``.
+
+The analytic Jacobians here are checked against central differences in ``tests/test_adjust_core.py``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from aerocal.camera import PARAM_NAMES
+
+#: Index of each IO parameter in the parameter vector (order of :data:`aerocal.camera.PARAM_NAMES`).
+IDX = {n: i for i, n in enumerate(PARAM_NAMES)}
+#: IO parameters a thermal slope can act on.
+THERMAL_PARAMS: tuple[str, ...] = ("f", "cx", "cy")
+
+
+@dataclass
+class Projection:
+    """Predicted pixels and the Jacobians of one batch of observations (M observations).
+
+    ``uv`` (M, 2) pixels; ``d_point`` (M, 2, 3) d(uv)/dX; ``d_centre`` = -d_point; ``d_rot`` (M, 2, 3)
+    d(uv)/dw; ``d_io`` (M, 2, 10) d(uv)/d(IO) in PARAM_NAMES order; ``d_slope`` (M, 2, 3) d(uv)/d(slope of
+    f, cx, cy); ``depth`` (M,) the point's depth along the optical axis (metres).
+    """
+
+    uv: np.ndarray
+    d_point: np.ndarray
+    d_rot: np.ndarray
+    d_io: np.ndarray
+    d_slope: np.ndarray
+    depth: np.ndarray
+
+
+def project(
+    io: np.ndarray,
+    slopes: np.ndarray,
+    dtemp: np.ndarray,
+    R: np.ndarray,
+    C: np.ndarray,
+    X: np.ndarray,
+    jacobians: bool = True,
+) -> Projection:
+    """Project points ``X`` (M, 3) through poses ``R`` (M, 3, 3), ``C`` (M, 3), one row per observation.
+
+    ``io`` is the IO vector at the reference temperature (PARAM_NAMES order), ``slopes`` the thermal
+    slopes of (f, cx, cy) in pixels per degC, ``dtemp`` (M,) the frame temperature minus the reference.
+    """
+    f0, cx0, cy0, k1, k2, k3, p1, p2, b1, b2 = (float(v) for v in io)
+    f = f0 + slopes[0] * dtemp
+    cx = cx0 + slopes[1] * dtemp
+    cy = cy0 + slopes[2] * dtemp
+    p = np.einsum("mij,mj->mi", R, X - C)
+    z = p[:, 2]
+    x = p[:, 0] / z
+    y = p[:, 1] / z
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
+    yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
+    fx = f + b1
+    uv = np.stack([cx + xd * fx + yd * b2, cy + yd * f], axis=-1)
+    M = len(z)
+    if not jacobians:
+        empty = np.zeros((M, 2, 0))
+        return Projection(uv, empty, empty, empty, empty, z)
+
+    # distortion Jacobian d(xd, yd)/d(x, y)
+    dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    a = radial + 2 * x * x * dr + 6 * p1 * x + 2 * p2 * y
+    b = 2 * x * y * dr + 2 * p1 * y + 2 * p2 * x
+    c = 2 * x * y * dr + 2 * p2 * x + 2 * p1 * y
+    e = radial + 2 * y * y * dr + 6 * p2 * y + 2 * p1 * x
+    # d(uv)/d(x, y): pixel mapping [[fx, b2], [0, f]] times the distortion Jacobian
+    m00 = fx * a + b2 * c
+    m01 = fx * b + b2 * e
+    m10 = f * c
+    m11 = f * e
+    iz = 1.0 / z
+    # d(uv)/dp = M @ [[1/z, 0, -x/z], [0, 1/z, -y/z]]
+    A = np.empty((M, 2, 3))
+    A[:, 0, 0] = m00 * iz
+    A[:, 0, 1] = m01 * iz
+    A[:, 0, 2] = -(m00 * x + m01 * y) * iz
+    A[:, 1, 0] = m10 * iz
+    A[:, 1, 1] = m11 * iz
+    A[:, 1, 2] = -(m10 * x + m11 * y) * iz
+    d_point = np.einsum("mij,mjk->mik", A, R)
+    # dp/dw = -[p]_x
+    px = np.zeros((M, 3, 3))
+    px[:, 0, 1], px[:, 0, 2] = p[:, 2], -p[:, 1]
+    px[:, 1, 0], px[:, 1, 2] = -p[:, 2], p[:, 0]
+    px[:, 2, 0], px[:, 2, 1] = p[:, 1], -p[:, 0]
+    d_rot = np.einsum("mij,mjk->mik", A, px)
+
+    d_io = np.zeros((M, 2, len(PARAM_NAMES)))
+    d_io[:, 0, 0], d_io[:, 1, 0] = xd, yd
+    d_io[:, 0, 1] = 1.0
+    d_io[:, 1, 2] = 1.0
+    for i, power in ((3, 1), (4, 2), (5, 3)):
+        rp = r2**power
+        d_io[:, 0, i] = fx * x * rp + b2 * y * rp
+        d_io[:, 1, i] = f * y * rp
+    t1x, t1y = r2 + 2 * x * x, 2 * x * y  # d(xd, yd)/dp1
+    t2x, t2y = 2 * x * y, r2 + 2 * y * y  # d(xd, yd)/dp2
+    d_io[:, 0, 6], d_io[:, 1, 6] = fx * t1x + b2 * t1y, f * t1y
+    d_io[:, 0, 7], d_io[:, 1, 7] = fx * t2x + b2 * t2y, f * t2y
+    d_io[:, 0, 8] = xd
+    d_io[:, 0, 9] = yd
+    d_slope = np.zeros((M, 2, 3))
+    d_slope[:, 0, 0], d_slope[:, 1, 0] = xd * dtemp, yd * dtemp
+    d_slope[:, 0, 1] = dtemp
+    d_slope[:, 1, 2] = dtemp
+    return Projection(uv, d_point, d_rot, d_io, d_slope, z)
+
+
+def rotation_update(R: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``exp([w]) R`` for stacks of rotations (N, 3, 3) and rotation vectors (N, 3), radians."""
+    theta = np.linalg.norm(w, axis=1)
+    safe = np.where(theta < 1e-15, 1.0, theta)
+    k = w / safe[:, None]
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2] = -k[:, 2], k[:, 1]
+    K[:, 1, 0], K[:, 1, 2] = k[:, 2], -k[:, 0]
+    K[:, 2, 0], K[:, 2, 1] = -k[:, 1], k[:, 0]
+    s = np.sin(theta)[:, None, None]
+    c = (1 - np.cos(theta))[:, None, None]
+    E = np.eye(3)[None] + s * K + c * np.einsum("nij,njk->nik", K, K)
+    E[theta < 1e-15] = np.eye(3)
+    return np.einsum("nij,njk->nik", E, R)
+
+
+def rotation_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (N, 3), radians, of a stack of rotation matrices."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_rotvec()

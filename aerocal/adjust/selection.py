@@ -1,0 +1,75 @@
+"""Adaptive selection of the self-calibration parameters by significance and correlation.
+
+After each adjustment one parameter at most is dropped, then the block is adjusted again:
+
+1. a near-singular pair (|correlation| > ``corr_limit``): the member with the smaller t value is
+   dropped (never one of ``always_keep`` unless both are);
+2. otherwise the least significant parameter with t < ``t_limit`` (not one of ``always_keep``).
+
+It stops when every remaining parameter is significant and no pair is near-singular. Every decision is
+recorded as one sentence naming the parameters and the numbers.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import numpy as np
+
+from aerocal.adjust.problem import AdjustConfig
+
+
+def _drop(config: AdjustConfig, name: str) -> AdjustConfig:
+    if name.startswith("d") and name.endswith("/dT"):
+        base = name[1:-3]
+        return dataclasses.replace(config, thermal=tuple(n for n in config.thermal if n != base))
+    return dataclasses.replace(config, free=tuple(n for n in config.free if n != name))
+
+
+def choose_drop(
+    names: list[str], corr: np.ndarray, t: np.ndarray, config: AdjustConfig
+) -> tuple[str | None, str]:
+    """The parameter to drop next and why (``None`` and a summary when every parameter stays)."""
+    keep = set(config.always_keep)
+    n = len(names)
+    if n >= 2:
+        c = np.abs(np.asarray(corr, dtype=float)).copy()
+        np.fill_diagonal(c, 0.0)
+        while True:
+            a, b = np.unravel_index(int(np.argmax(c)), c.shape)
+            if c[a, b] <= config.corr_limit:
+                break
+            options = [k for k in (a, b) if names[k] not in keep]
+            if options:
+                k = min(options, key=lambda q: t[q])
+                other = b if k == a else a
+                return names[k], (
+                    f"dropped {names[k]}: |corr({names[a]}, {names[b]})| = {c[a, b]:.3f} "
+                    f"> {config.corr_limit} "
+                    f"(t({names[k]}) = {t[k]:.2f}, t({names[other]}) = {t[other]:.2f})"
+                )
+            c[a, b] = c[b, a] = 0.0  # both must stay: leave the pair and look at the next one
+    cand = [k for k in range(n) if names[k] not in keep and t[k] < config.t_limit]
+    if cand:
+        k = min(cand, key=lambda q: t[q])
+        return names[k], f"dropped {names[k]}: t = {t[k]:.2f} < {config.t_limit} (not significant at 95 %)"
+    summary = ", ".join(f"{nm} t={tv:.1f}" for nm, tv in zip(names, t, strict=True))
+    return None, f"kept {summary}: all significant, no |correlation| above {config.corr_limit}"
+
+
+def select_parameters(run: Callable[[AdjustConfig], object], config: AdjustConfig):
+    """Adjust with ``run(config)`` repeatedly, dropping parameters; returns the last result and the reasons.
+
+    ``run`` returns an object with ``names`` (free parameter names), ``correlation`` and ``t_values``.
+    """
+    reasons: list[str] = []
+    cfg = config
+    for _ in range(len(config.free) + len(config.thermal) + 1):
+        result = run(cfg)
+        name, why = choose_drop(list(result.names), result.correlation, np.asarray(result.t_values), cfg)
+        reasons.append(why)
+        if name is None:
+            return result, reasons, cfg
+        cfg = _drop(cfg, name)
+    return result, reasons, cfg

@@ -1,0 +1,93 @@
+"""Conte 2018's calibration strategies and Daakir 2019's thermally corrected full-block adjustment.
+
+* ``"fixed"`` (STR1): the whole block with IO fixed at a given camera (a laboratory calibration or a
+  certificate), measurements corrected for temperature when a thermal model is given.
+* ``"self"`` (STR2): self-calibration of the whole block.
+* ``"certificate"``: self-calibration on a calibration sub-block (image ids given, e.g. from
+  :func:`aerocal.subset.propose_subset`), then the whole block with that IO fixed (and its thermal
+  model applied to the measurements, when one was estimated).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from aerocal.adjust.bundle import AdjustmentResult, adjust
+from aerocal.adjust.problem import AdjustConfig, AdjustmentError
+from aerocal.camera import Camera, LinearThermalModel
+
+STRATEGIES = ("fixed", "self", "certificate")
+
+
+@dataclass
+class StrategyResult:
+    """The full-block adjustment of a strategy and, for "certificate", the calibration it used."""
+
+    strategy: str
+    block: AdjustmentResult
+    calibration: AdjustmentResult | None = None
+
+
+def select_images(table: pa.Table, image_ids) -> pa.Table:
+    """Rows of ``table`` (any table with an ``image_id`` column) whose image is in ``image_ids``."""
+    ids = pa.array(np.asarray(list(image_ids), dtype=np.int32))
+    return table.filter(pc.is_in(table.column("image_id"), value_set=ids))
+
+
+def adjust_fixed_io(
+    images: pa.Table,
+    observations: pa.Table,
+    camera: Camera,
+    config: AdjustConfig | None = None,
+    gcps: pa.Table | None = None,
+    gcp_observations: pa.Table | None = None,
+    thermal: LinearThermalModel | None = None,
+) -> AdjustmentResult:
+    """Full-block adjustment with IO fixed at ``camera`` (IO at ``thermal.t0`` when a model is given).
+
+    With ``thermal`` the tie-point and GCP measurements are corrected to T0 before adjusting (Daakir 2019).
+    """
+    config = dataclasses.replace(config or AdjustConfig(), free=(), thermal=(), adaptive=False)
+    return adjust(images, observations, camera, config, gcps, gcp_observations, thermal_correction=thermal)
+
+
+def run_strategy(
+    strategy: str,
+    images: pa.Table,
+    observations: pa.Table,
+    camera: Camera,
+    config: AdjustConfig | None = None,
+    gcps: pa.Table | None = None,
+    gcp_observations: pa.Table | None = None,
+    thermal: LinearThermalModel | None = None,
+    subset_image_ids=None,
+    subset_config: AdjustConfig | None = None,
+) -> StrategyResult:
+    """Run one of :data:`STRATEGIES` on a block (see the module docstring)."""
+    config = config or AdjustConfig()
+    if strategy == "fixed":
+        return StrategyResult(
+            "fixed", adjust_fixed_io(images, observations, camera, config, gcps, gcp_observations, thermal)
+        )
+    if strategy == "self":
+        return StrategyResult("self", adjust(images, observations, camera, config, gcps, gcp_observations))
+    if strategy == "certificate":
+        if subset_image_ids is None:
+            raise AdjustmentError("strategy 'certificate' needs subset_image_ids (the calibration sub-block)")
+        gobs = select_images(gcp_observations, subset_image_ids) if gcp_observations is not None else None
+        cal = adjust(
+            select_images(images, subset_image_ids),
+            select_images(observations, subset_image_ids),
+            camera,
+            subset_config or config,
+            gcps,
+            gobs,
+        )
+        block = adjust_fixed_io(images, observations, cal.camera, config, gcps, gcp_observations, cal.thermal)
+        return StrategyResult("certificate", block, cal)
+    raise AdjustmentError(f"strategy {strategy!r} unknown; valid: {', '.join(STRATEGIES)}")

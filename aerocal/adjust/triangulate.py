@@ -1,0 +1,90 @@
+"""Multi-ray triangulation of tracks from known poses: linear least squares, then Gauss-Newton.
+
+All tracks are solved at once (vectorised over tracks with ``np.add.at`` on 3x3 normal matrices).
+The linear step minimises the sum of squared perpendicular distances from the point to the rays
+(metres), the refinement minimises the weighted reprojection error (pixels) with the cameras held fixed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from aerocal.adjust.projection import project
+from aerocal.camera import Camera
+
+
+def pixels_to_rays(
+    io: np.ndarray, slopes: np.ndarray, dtemp: np.ndarray, R: np.ndarray, uv: np.ndarray
+) -> np.ndarray:
+    """Unit viewing rays in the world frame (M, 3) of pixels ``uv`` (M, 2) seen by frames ``R`` (M, 3, 3)."""
+    f = io[0] + slopes[0] * dtemp
+    cx = io[1] + slopes[1] * dtemp
+    cy = io[2] + slopes[2] * dtemp
+    b1, b2 = io[8], io[9]
+    yd = (uv[:, 1] - cy) / f
+    xd = (uv[:, 0] - cx - yd * b2) / (f + b1)
+    cam = Camera(width=1, height=1, f=1.0, cx=0.0, cy=0.0, k1=io[3], k2=io[4], k3=io[5], p1=io[6], p2=io[7])
+    xy = cam.undistort(np.stack([xd, yd], axis=-1))
+    d_cam = np.column_stack([xy, np.ones(len(xy))])
+    d = np.einsum("mji,mj->mi", R, d_cam)  # R^T d_cam
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def triangulate_linear(
+    point_idx: np.ndarray, n_points: int, centres: np.ndarray, rays: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares intersection of rays (origins ``centres`` (M, 3), unit ``rays`` (M, 3)) per point.
+
+    Returns the points (P, 3) and a boolean mask of points with a well-conditioned intersection
+    (at least two rays and a normal matrix with condition number below 1e8).
+    """
+    proj = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]
+    A = np.zeros((n_points, 3, 3))
+    b = np.zeros((n_points, 3))
+    np.add.at(A, point_idx, proj)
+    np.add.at(b, point_idx, np.einsum("mij,mj->mi", proj, centres))
+    count = np.bincount(point_idx, minlength=n_points)
+    ok = count >= 2
+    eig = np.linalg.eigvalsh(np.where(ok[:, None, None], A, np.eye(3)[None]))
+    ok &= eig[:, 0] > 1e-8 * eig[:, 2]
+    A[~ok] = np.eye(3)
+    X = np.linalg.solve(A, b[:, :, None])[:, :, 0]
+    X[~ok] = np.nan
+    return X, ok
+
+
+def refine_points(
+    io: np.ndarray,
+    slopes: np.ndarray,
+    dtemp: np.ndarray,
+    R: np.ndarray,
+    C: np.ndarray,
+    point_idx: np.ndarray,
+    uv: np.ndarray,
+    sigma: np.ndarray,
+    X: np.ndarray,
+    iterations: int = 5,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on the weighted reprojection error of each point with the cameras fixed.
+
+    Per-observation arrays (``dtemp``, ``R``, ``C``, ``point_idx``, ``uv``, ``sigma``) are aligned; returns
+    the refined points and their normal matrices ``A^T A`` (P, 3, 3) in units of 1/sigma^2.
+    """
+    X = np.array(X, dtype=float, copy=True)
+    P = len(X)
+    N = np.zeros((P, 3, 3))
+    for _ in range(iterations):
+        pr = project(io, slopes, dtemp, R, C, X[point_idx])
+        r = (pr.uv - uv) / sigma[:, None]
+        J = pr.d_point / sigma[:, None, None]
+        N = np.zeros((P, 3, 3))
+        g = np.zeros((P, 3))
+        np.add.at(N, point_idx, np.einsum("mki,mkj->mij", J, J))
+        np.add.at(g, point_idx, np.einsum("mki,mk->mi", J, r))
+        good = np.isfinite(N).all(axis=(1, 2)) & (np.linalg.det(np.nan_to_num(N)) > 0)
+        Ns = np.where(good[:, None, None], N, np.eye(3)[None])
+        step = -np.linalg.solve(Ns, np.where(good[:, None], g, 0.0)[:, :, None])[:, :, 0]
+        X += step
+        if np.nanmax(np.abs(step), initial=0.0) < 1e-9:
+            break
+    return X, N

@@ -1,0 +1,153 @@
+"""Bundle adjustment on simulated flights: Jacobians, recovered IO within its sigma, honest sigmas, rho."""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow.compute as pc
+import pytest
+
+from aerocal import tables
+from aerocal.adjust import AdjustConfig, AdjustmentError, adjust
+from aerocal.adjust.covariance import rho_band
+from aerocal.adjust.projection import project, rotation_update
+from aerocal.camera import PARAM_NAMES, Camera
+from aerocal.simulate import simulate_flight
+
+FREE = ("f", "cx", "cy", "k1", "k2", "p1", "p2")
+N_SEEDS = 20
+
+
+def _config(sim, **kw) -> AdjustConfig:
+    s = sim.spec.sensors
+    return AdjustConfig(
+        gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m),
+        attitude_sigma_deg=s.imu_sigma_deg,
+        free=FREE,
+        **kw,
+    )
+
+
+def test_projection_jacobians_match_central_differences():
+    rng = np.random.default_rng(11)
+    M = 40
+    io = Camera(640, 480, 1670.0, 322.0, 238.0, -0.08, 0.12, 0.3, 2e-4, -1.5e-4, 0.7, 0.3).params()
+    slopes = np.array([0.05, 0.02, -0.03])
+    dT = rng.uniform(-3, 3, M)
+    R = rotation_update(np.repeat(np.diag([1.0, -1.0, -1.0])[None], M, 0), rng.normal(0, 0.05, (M, 3)))
+    C = rng.normal(0, 20, (M, 3)) + [0, 0, 850]
+    X = rng.normal(0, 60, (M, 3))
+    pr = project(io, slopes, dT, R, C, X)
+    h = 1e-6
+
+    def num(fn):
+        cols = []
+        for k in range(3):
+            e = np.zeros(3)
+            e[k] = h
+            cols.append((fn(e) - fn(-e)) / (2 * h))
+        return np.stack(cols, axis=-1)
+
+    dX = num(lambda e: project(io, slopes, dT, R, C, X + e, False).uv)
+    dw = num(
+        lambda e: project(io, slopes, dT, rotation_update(R, np.broadcast_to(e, (M, 3))), C, X, False).uv
+    )
+    dS = num(lambda e: project(io, slopes + e, dT, R, C, X, False).uv)
+    assert np.allclose(pr.d_point, dX, atol=1e-4, rtol=1e-5), "seed 11: d(uv)/dX"
+    assert np.allclose(pr.d_rot, dw, atol=1e-3, rtol=1e-5), "seed 11: d(uv)/dw"
+    assert np.allclose(pr.d_slope, dS, atol=1e-5, rtol=1e-5), "seed 11: d(uv)/d(slope)"
+    for k, name in enumerate(PARAM_NAMES):
+        step = 1e-4 if name in ("f", "cx", "cy", "b1", "b2") else 1e-7
+        e = np.zeros(10)
+        e[k] = step
+        d = (
+            project(io + e, slopes, dT, R, C, X, False).uv - project(io - e, slopes, dT, R, C, X, False).uv
+        ) / (2 * step)
+        assert np.allclose(pr.d_io[:, :, k], d, atol=1e-4 * max(1.0, np.abs(d).max()), rtol=1e-5), name
+
+
+@pytest.fixture(scope="module")
+def conte_runs():
+    """Self-calibration of conte-calibration (no effects) over N_SEEDS seeds."""
+    runs = []
+    for seed in range(N_SEEDS):
+        sim = simulate_flight("conte-calibration", seed=seed)
+        res = adjust(
+            sim.images, sim.observations, sim.camera_nominal, _config(sim), sim.gcps, sim.gcp_observations
+        )
+        runs.append((seed, sim, res))
+    return runs
+
+
+def test_conte_calibration_recovers_io_within_three_sigma(conte_runs):
+    seed, sim, res = conte_runs[0]
+    true = sim.spec.camera_true
+    for name in ("f", "cx", "cy"):
+        err = getattr(res.camera, name) - getattr(true, name)
+        assert abs(err) < 3 * res.sigmas[name], (
+            f"seed {seed}: {name} off by {err:.3f} px, sigma {res.sigmas[name]:.3f}"
+        )
+    assert res.converged and abs(res.sigma0 - 1.0) < 0.05, f"seed {seed}: sigma0 {res.sigma0:.3f}"
+    # outputs a user opens: poses and points validate, residuals align with the observations table
+    tables.validate(res.poses, "poses")
+    tables.validate(res.points, "points")
+    assert res.residuals.shape == (sim.observations.num_rows, 2)
+    assert np.sqrt(np.nanmean(res.residuals**2)) < 0.5, (
+        f"seed {seed}: reprojection RMS above the 0.5 px noise"
+    )
+    assert res.correlation.shape == (len(FREE), len(FREE))
+    assert np.allclose(np.diag(res.correlation), 1.0)
+
+
+def test_io_sigmas_are_honest_over_seeds(conte_runs):
+    z = {n: [] for n in ("f", "cx", "cy")}
+    for _, sim, res in conte_runs:
+        for n in z:
+            z[n].append((getattr(res.camera, n) - getattr(sim.spec.camera_true, n)) / res.sigmas[n])
+    for n, v in z.items():
+        sd = float(np.std(v, ddof=1))
+        print(f"{n}: std of normalised errors over {len(v)} seeds = {sd:.3f}, mean {np.mean(v):+.3f}")
+        assert 0.7 <= sd <= 1.4, (
+            f"seeds 0..{N_SEEDS - 1}: {n} normalised errors have std {sd:.3f} ({np.round(v, 2)})"
+        )
+
+
+def test_check_point_rho_inside_chi_square_band(conte_runs):
+    errs, var = [], []
+    for _, _, res in conte_runs:
+        good = np.isfinite(res.check_errors).all(axis=1)
+        errs.append(res.check_errors[good])
+        var.append(res.check_sigma[good] ** 2)
+    e, v = np.vstack(errs), np.vstack(var)
+    rho = np.sqrt(np.mean(e**2, axis=0) / np.mean(v, axis=0))
+    lo, hi = rho_band(len(e))
+    print(
+        f"pooled rho over {len(e)} check points (seeds 0..{N_SEEDS - 1}): {np.round(rho, 3)}, "
+        f"band [{lo:.3f}, {hi:.3f}]"
+    )
+    assert np.all((rho > lo) & (rho < hi)), f"seeds 0..{N_SEEDS - 1}: rho {rho} outside [{lo:.3f}, {hi:.3f}]"
+
+
+def test_thermal_model_without_temperatures_names_the_column():
+    sim = simulate_flight("conte-calibration", seed=1)
+    images = sim.images.set_column(
+        sim.images.schema.get_field_index("temperature_c"),
+        "temperature_c",
+        pc.if_else(pc.equal(sim.images.column("image_id"), 5), None, sim.images.column("temperature_c")),
+    )
+    with pytest.raises(AdjustmentError, match=r"image_id 5\): temperature_c is missing"):
+        adjust(
+            images,
+            sim.observations,
+            sim.camera_nominal,
+            _config(sim, thermal=("f",)),
+            sim.gcps,
+            sim.gcp_observations,
+        )
+
+
+def test_no_datum_is_refused_with_the_fix():
+    sim = simulate_flight("conte-calibration", seed=1)
+    with pytest.raises(AdjustmentError, match="gnss_sigma_m=None"):
+        adjust(
+            sim.images, sim.observations, sim.camera_nominal, AdjustConfig(gnss_sigma_m=None, use_gcps=False)
+        )
