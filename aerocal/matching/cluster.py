@@ -1,0 +1,101 @@
+"""Running matching work on a Dask cluster, or serially when there is none.
+
+The science functions know nothing of Dask: they are plain functions of arrays. This module submits
+them to a ``distributed.Client`` (imported lazily, so the engine works without Dask installed) and
+reports progress through an optional ``progress(done, total)`` callback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator, Sequence
+
+Progress = Callable[[int, int], None]
+
+
+@contextlib.contextmanager
+def local_client(n_workers: int = 2, threads_per_worker: int = 1) -> Iterator[object]:
+    """A ``distributed.Client`` on a fresh ``LocalCluster`` of worker processes, closed on exit.
+
+    One thread per worker process: OpenCV and numpy then use one core each (the workers call
+    ``cv2.setNumThreads(1)``), and the GIL does not serialise the Python parts. No dashboard.
+    """
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(
+        n_workers=n_workers, threads_per_worker=threads_per_worker, dashboard_address=None, processes=True
+    )
+    try:
+        client = Client(cluster)
+        try:
+            yield client
+        finally:
+            client.close()
+    finally:
+        cluster.close()
+
+
+def n_workers(client: object) -> int:
+    """Number of workers currently attached to ``client`` (at least 1)."""
+    info = client.scheduler_info()  # type: ignore[attr-defined]
+    return max(1, len(info.get("workers", {})))
+
+
+_WORKER_READY = False
+
+
+def single_threaded_opencv() -> None:
+    """``cv2.setNumThreads(1)`` once per Dask worker process: parallelism comes from the cluster.
+
+    Outside a worker (serial runs) nothing is changed: the caller keeps its OpenCV threads.
+    """
+    global _WORKER_READY
+    if _WORKER_READY:
+        return
+    try:
+        from distributed import get_worker
+
+        get_worker()
+    except (ImportError, ValueError):
+        return
+    import cv2
+
+    cv2.setNumThreads(1)
+    _WORKER_READY = True
+
+
+def run_all(
+    fn: Callable,
+    args: Sequence[tuple],
+    client: object | None = None,
+    progress: Progress | None = None,
+    weights: Sequence[int] | None = None,
+) -> list:
+    """``[fn(*a) for a in args]``, on ``client`` when given; results in the order of ``args``.
+
+    Arguments may hold Dask futures (they are resolved on the workers). ``progress(done, total)`` is
+    called after every finished call; each call counts 1, or ``weights[i]`` (e.g. the number of pairs
+    in a batch) when given.
+    """
+    w = [1] * len(args) if weights is None else [int(v) for v in weights]
+    total = sum(w)
+    results: list = [None] * len(args)
+    done = 0
+    if client is None:
+        for i, a in enumerate(args):
+            results[i] = fn(*a)
+            done += w[i]
+            if progress is not None:
+                progress(done, total)
+        return results
+    from distributed import as_completed
+
+    futures = [client.submit(fn, *a, pure=False) for a in args]  # type: ignore[attr-defined]
+    index = {f.key: i for i, f in enumerate(futures)}
+    for fut in as_completed(futures):
+        i = index[fut.key]
+        results[i] = fut.result()
+        done += w[i]
+        if progress is not None:
+            progress(done, total)
+    return results
