@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import shutil
 from pathlib import Path
 
 import click
@@ -154,6 +155,43 @@ def _print_summary(title: str, summary: dict) -> None:
 
 
 @app.command()
+def diagnose(
+    flight: Path = typer.Argument(..., help="A processed flight folder (observations/*.parquet, flight.json)."),
+    certificate: Path | None = typer.Option(None, "--certificate", help="Certificate file (aerocal JSON, "
+                                            "OpenCV YAML, COLMAP, OpenSfM, Metashape): IO fixed from it."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object (effects, gain, hypotheses)."),
+) -> None:
+    """Name the systematic effects the block's model misses, with magnitudes and the gain on check points.
+
+    Without --certificate the baseline self-calibrates f, cx, cy, k1, k2, p1, p2 from camera.json.
+
+    Example: aerocal diagnose flight --certificate cam.json --json
+    """
+    from aerocal.diagnose.run import DiagnoseInputError, diagnose_folder
+
+    try:
+        result = diagnose_folder(flight, certificate)
+    except DiagnoseInputError as exc:
+        fail(str(exc))
+    if as_json:
+        console.print_json(json.dumps(result.to_dict()))
+        return
+    table = Table(title=f"diagnosis of {flight}")
+    for col in ("hypothesis", "round", "statistic", "p (adjusted)", "estimate", "sigma", "units"):
+        table.add_column(col)
+    for h in result.hypotheses:
+        table.add_row(h.name, str(h.round), f"{h.statistic:.1f}", f"{h.p_adjusted:.2g}",
+                      ", ".join(f"{v:.4g}" for v in h.estimate), ", ".join(f"{v:.2g}" for v in h.sigma), h.units)
+    console.print(table)
+    console.print(f"[bold]verdict:[/bold] {result.summary()}")
+    if result.gain:
+        g = result.gain
+        console.print(f"gain on check points: RMSE {g.before:.3f} m -> {g.after:.3f} m (x{g.ratio:.2f})")
+    for note in result.notes:
+        console.print(f"note: {note}")
+
+
+@app.command()
 def demo(
     out: Path = typer.Option(Path("demo-output"), "--out", help="Folder for everything the demo writes."),
     seed: int = typer.Option(7, help="Random seed of the simulated flight."),
@@ -167,7 +205,9 @@ def demo(
 
     flight = out / "flight"
     if flight.exists():
-        fail(f"{flight} exists; remove it or choose another --out")
+        if not (flight / "flight.json").exists():
+            fail(f"{flight} exists and is not a demo flight; remove it or choose another --out")
+        shutil.rmtree(flight)  # the demo's own previous output
     sim = simulate_flight("conte-calibration", seed=seed, effects={"thermal_focal": 0.06})
     write_flight(sim, flight, mode="observations")
     summary = spec_summary(sim)

@@ -1,0 +1,273 @@
+"""Find what the model gets wrong: score every hypothesis, name the winner, extend the model, measure.
+
+Method
+------
+1. Start from the adjusted block (the baseline model) and its linearisation.
+2. Score every hypothesis of :data:`~aerocal.diagnose.hypotheses.HYPOTHESES` against one reduced system:
+   the chi-square drop of freeing its parameters given every parameter of the block (and of effects
+   already accepted), in units of the baseline's variance factor; its p-value from the chi-square
+   distribution; Bonferroni over the hypotheses of a round (family-wise false alarm ``family_alpha``).
+3. Among the significant ones, the winner maximises the BIC gain ``statistic - k ln(n)``: a
+   one-parameter thermal drift beats twelve per-strip IO offsets that could mimic it.
+4. Extend the model: remove the estimated effect from the measurements, re-adjust, re-estimate; iterate
+   until the estimate settles. Then look for a further effect in the corrected block.
+5. Measure the gain on data the fit did not use: the check points, triangulated from their image
+   measurements with the baseline and with the extended model.
+
+The formal statistics assume the a-priori sigmas are right up to the variance factor. On real blocks
+correlated matching errors make them optimistic; :func:`permutation_null` calibrates a hypothesis's
+statistic on the block itself by shuffling its covariate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyarrow as pa
+from scipy import stats
+
+from aerocal.adjust.problem import AdjustConfig
+from aerocal.adjust.solver import inverse_spd
+from aerocal.camera import Camera, LinearThermalModel
+from aerocal.diagnose import hypotheses as hyp
+from aerocal.diagnose.model import Baseline, check_rmse, conditional, fit_baseline, linearise, reduce, refit
+
+
+@dataclass(frozen=True)
+class DiagnoseConfig:
+    """How the diagnosis decides. Defaults are documented inline."""
+
+    hypotheses: tuple[str, ...] = hyp.HYPOTHESES  # what to test
+    family_alpha: float = 0.01  # family-wise false-alarm probability per round (Bonferroni)
+    max_effects: int = 3  # stop after this many named effects
+    refine_iterations: int = 4  # correct-and-refit iterations for an accepted effect
+    reference_temperature: float | None = None  # T0 of thermal hypotheses (a certificate's); None = mean
+    confusion_ratio: float = 0.8  # a significant rival with this fraction of the winner's statistic is reported
+
+
+@dataclass
+class Evidence:
+    """The evidence for one hypothesis in one round."""
+
+    name: str
+    round: int
+    k: int
+    statistic: float  # chi-square drop / sigma0^2 (chi-square with k dof under the null)
+    p_value: float
+    p_adjusted: float
+    estimate: list[float]
+    sigma: list[float]
+    bic_gain: float
+    significant: bool
+    units: str
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass
+class NamedEffect:
+    name: str
+    magnitude: list[float]
+    sigma: list[float]
+    units: str
+    statistic: float
+    p_value: float
+    alternatives: list[str] = field(default_factory=list)  # explain the data almost as well: not told apart
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        if len(self.magnitude) == 1:  # scalars as numbers, vectors as lists
+            d["magnitude"], d["sigma"] = self.magnitude[0], self.sigma[0]
+        return d
+
+
+@dataclass
+class Gain:
+    metric: str
+    before: float
+    after: float
+
+    @property
+    def ratio(self) -> float:
+        return self.before / self.after if self.after > 0 else float("nan")
+
+    def to_dict(self) -> dict:
+        return {"metric": self.metric, "before": self.before, "after": self.after, "ratio": self.ratio}
+
+
+@dataclass
+class Diagnosis:
+    effects: list[NamedEffect]
+    hypotheses: list[Evidence]
+    gain: Gain | None
+    sigma0_before: float
+    sigma0_after: float
+    reference_temperature: float
+    extended_model: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return {
+            "effects": [e.to_dict() for e in self.effects],
+            "gain": self.gain.to_dict() if self.gain else None,
+            "hypotheses": [h.to_dict() for h in self.hypotheses],
+            "sigma0": {"before": self.sigma0_before, "after": self.sigma0_after},
+            "extended_model": self.extended_model,
+            "notes": self.notes,
+        }
+
+    def summary(self) -> str:
+        if not self.effects:
+            return "no systematic effect found"
+        parts = []
+        for e in self.effects:
+            mag = ", ".join(f"{m:.4g}" for m in e.magnitude)
+            sig = ", ".join(f"{s:.2g}" for s in e.sigma)
+            alt = f" (or {', '.join(e.alternatives)}: not separable here)" if e.alternatives else ""
+            parts.append(f"{e.name} = {mag} +- {sig} {e.units}{alt}")
+        return "; ".join(parts)
+
+
+def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str], round_no: int,
+          family_alpha: float) -> list[Evidence]:
+    """Evidence for each of ``names`` given the block and the ``accepted`` effects' parameters."""
+    lin = linearise(base)
+    all_names = list(accepted) + [n for n in names if n not in accepted]
+    cols = [hyp.columns(n, lin, base, ctx) for n in all_names]
+    offsets = np.cumsum([0] + [c.shape[1] for c in cols])
+    red = reduce(lin, np.hstack(cols) if cols else np.zeros((len(lin.r), 0)))
+    nc = red.n_camera
+    base_idx = np.concatenate([np.arange(nc)] + [nc + np.arange(offsets[k], offsets[k + 1])
+                                                 for k in range(len(accepted))])
+    s02 = max(base.solution.sigma0, 1e-12) ** 2
+    n_obs = len(lin.r)
+    m = max(1, len([n for n in names if n not in accepted]))
+    out = []
+    for k, name in enumerate(all_names):
+        if name in accepted:
+            continue
+        idx = nc + np.arange(offsets[k], offsets[k + 1])
+        dof = len(idx)
+        if dof == 0 or not np.any(cols[k]):
+            out.append(Evidence(name, round_no, dof, 0.0, 1.0, 1.0, [0.0] * dof, [float("inf")] * dof, 0.0, False,
+                                hyp.UNITS[name]))
+            continue
+        info, grad = conditional(red, base_idx, idx)
+        inv = inverse_spd(info)
+        theta = -inv @ grad
+        stat = float(grad @ inv @ grad) / s02
+        p = float(stats.chi2.sf(stat, dof))
+        sigma = np.sqrt(np.maximum(np.diag(inv), 0.0) * s02)
+        bic = stat - dof * np.log(n_obs)
+        p_adj = min(1.0, p * m)
+        out.append(Evidence(name, round_no, dof, stat, p, p_adj, theta.tolist(), sigma.tolist(), float(bic),
+                            p_adj < family_alpha, hyp.UNITS[name]))
+    return out
+
+
+def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], iterations: int,
+            round_no: int, alpha: float) -> tuple[Baseline, np.ndarray, Evidence]:
+    """Remove effect ``name`` from the data by correct-and-refit iterations; the total estimate."""
+    total = None
+    first = None
+    for _ in range(iterations):
+        ev = score(base, ctx, [name], accepted, round_no, alpha)[0]
+        first = first or ev
+        theta = np.asarray(ev.estimate)
+        total = theta if total is None else total + theta
+        lin = linearise(base)
+        base = refit(base, hyp.correct(name, theta, base, lin, ctx))
+        if np.all(np.abs(theta) <= 1e-3 * np.maximum(np.abs(total), 1e-15)):
+            break
+    return base, total, first
+
+
+def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) -> Diagnosis:
+    """Diagnose an adjusted block (see the module docstring for the method)."""
+    config = config or DiagnoseConfig()
+    unknown = [n for n in config.hypotheses if n not in hyp.HYPOTHESES]
+    if unknown:
+        raise ValueError(f"unknown hypothesis {unknown[0]!r}; valid: {', '.join(hyp.HYPOTHESES)}")
+    ctx = hyp.make_context(baseline, config.reference_temperature)
+    names = list(config.hypotheses)
+    notes: list[str] = []
+    free = set(baseline.config.free)
+    if {"cx", "cy"} & free:
+        notes.append("the principal point is self-calibrated: it absorbs a boresight about the camera x/y axes "
+                     "and a thermal drift of the principal point's mean; fix IO from a certificate to test them")
+    if {"f", "k1"} <= free:
+        notes.append("f and k1 are self-calibrated: they absorb refraction at a constant flying height")
+    if baseline.config.free:
+        names = [n for n in names if not (n == "radial_k3" and "k3" in baseline.config.free)
+                 and not (n == "affinity_skew" and {"b1", "b2"} <= set(baseline.config.free))]
+    evidence: list[Evidence] = []
+    effects: list[NamedEffect] = []
+    accepted: list[str] = []
+    current = baseline
+    for round_no in range(1, config.max_effects + 1):
+        remaining = [n for n in names if n not in accepted]
+        if not remaining:
+            break
+        ev = score(current, ctx, remaining, accepted, round_no, config.family_alpha)
+        evidence.extend(ev)
+        candidates = [e for e in ev if e.significant and e.bic_gain > 0]
+        if not candidates:
+            break
+        best = max(candidates, key=lambda e: e.bic_gain)
+        current, total, first = _extend(current, ctx, best.name, accepted, config.refine_iterations, round_no,
+                                        config.family_alpha)
+        accepted.append(best.name)
+        alternatives = [e.name for e in candidates
+                        if e is not best and e.statistic >= config.confusion_ratio * best.statistic]
+        effects.append(NamedEffect(best.name, [float(v) for v in total], best.sigma, best.units, best.statistic,
+                                   best.p_value, alternatives))
+        if alternatives:
+            notes.append(f"{best.name} could not be told apart from {', '.join(alternatives)} on this block")
+    before, _ = check_rmse(baseline)
+    after, _ = check_rmse(current)
+    gain = Gain("check_point_rmse_m", before, after) if np.isfinite(before) else None
+    if gain is None:
+        notes.append("no check points: the gain on held-out data was not measured")
+    extended = _extended_model(effects, ctx, current.camera)
+    return Diagnosis(effects, evidence, gain, baseline.solution.sigma0, current.solution.sigma0, ctx.t_ref,
+                     extended, notes)
+
+
+def _extended_model(effects: list[NamedEffect], ctx: hyp.Context, camera: Camera) -> dict:
+    model: dict = {"camera": camera.to_dict()}
+    thermal = {e.name: e.magnitude for e in effects if e.name in ("thermal_focal", "thermal_principal_point")}
+    if thermal:
+        df = thermal.get("thermal_focal", [0.0])[0]
+        dcx, dcy = thermal.get("thermal_principal_point", [0.0, 0.0])
+        model["thermal"] = LinearThermalModel(t0=ctx.t_ref, df_dt=df, dcx_dt=dcx, dcy_dt=dcy).to_dict()
+    for e in effects:
+        if e.name not in ("thermal_focal", "thermal_principal_point"):
+            model[e.name] = e.magnitude
+    return model
+
+
+def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_config: AdjustConfig,
+             gcps: pa.Table | None = None, gcp_observations: pa.Table | None = None,
+             config: DiagnoseConfig | None = None) -> Diagnosis:
+    """Adjust the block with ``adjust_config`` and diagnose it."""
+    base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations)
+    return diagnose_baseline(base, config)
+
+
+def permutation_null(baseline: Baseline, name: str, n: int = 20, seed: int = 0) -> np.ndarray:
+    """Statistics of hypothesis ``name`` with its covariate shuffled across images (an empirical null).
+
+    Temperature (thermal hypotheses) is permuted; for the other hypotheses the image order is, which
+    scrambles velocities and strips. Compare the observed statistic with these.
+    """
+    rng = np.random.default_rng(seed)
+    ctx = hyp.make_context(baseline)
+    out = []
+    for _ in range(n):
+        perm = rng.permutation(baseline.block.n_images)
+        c = dataclasses.replace(ctx, dT=ctx.dT[perm], velocity=ctx.velocity[perm])
+        out.append(score(baseline, c, [name], [], 0, 1.0)[0].statistic)
+    return np.asarray(out)

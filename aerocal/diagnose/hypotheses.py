@@ -1,0 +1,184 @@
+"""Hypotheses: each catalogue effect as columns of the block's Jacobian, and as a correction of the data.
+
+For an effect with parameters theta, :func:`columns` gives d(whitened residuals)/d(theta) at theta = 0:
+its *signature*, how the image measurements, GNSS positions or IMU attitudes would move. The image
+signatures are exactly linear in theta for the interior effects (the pixel is linear in f, cx, cy, b1,
+b2 and k3) and to first order in the readout time and the refraction constant, so :func:`correct`
+removes an estimated effect by subtracting ``signature * theta`` from the measurements: Daakir 2019's
+workflow (correct tie points and GCP measurements, not pixels), which is how the model is extended.
+
+Signs and units follow :mod:`aerocal.effects` (the simulator's conventions), so an estimate is directly
+the effect's magnitude. The diagnosis never imports the simulator.
+
+What a block can and cannot separate (say so when reporting): with IO free, a focal length constant in
+time absorbs the mean of a thermal drift, and refraction (``K (r + r^3/f^2)``) is absorbed by f and k1
+unless the flying height varies; the vertical lever arm is a vertical GNSS bias for a nadir block; at a
+constant speed an along-track lever arm and a GNSS time offset have the same signature.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from aerocal.adjust.problem import Block
+from aerocal.adjust.projection import project
+from aerocal.camera import PARAM_NAMES
+from aerocal.diagnose.model import Baseline, Linear, triangulate_checks
+from aerocal.effects import CATALOGUE, bertram_refraction_k
+from aerocal.geometry import small_rotation
+
+PER_STRIP = "per_strip_io"
+#: hypotheses the diagnosis tests: the effect catalogue plus per-strip interior orientation
+HYPOTHESES: tuple[str, ...] = (*CATALOGUE, PER_STRIP)
+UNITS = {**{k: v.units for k, v in CATALOGUE.items()}, PER_STRIP: "px"}
+IMAGE_EFFECTS = ("thermal_focal", "thermal_principal_point", "affinity_skew", "radial_k3", "rolling_shutter",
+                 "refraction", PER_STRIP)
+
+
+@dataclass(frozen=True)
+class Context:
+    """Per-image covariates of the signatures, from the measurements and the baseline solution."""
+
+    dT: np.ndarray  # (N,) temperature minus the reference temperature (0 where unknown)
+    t_ref: float
+    velocity: np.ndarray  # (N, 3) m/s, from the adjusted centres and the image times
+    refraction_k: np.ndarray  # (N,) Bertram's K for each image's height above the block's median ground
+    strips: np.ndarray  # strip numbers that get their own IO offsets (all but the first)
+
+
+def make_context(base: Baseline, reference_temperature: float | None = None) -> Context:
+    b, st = base.block, base.state
+    T = b.temperature
+    if reference_temperature is not None:
+        t_ref = float(reference_temperature)
+    else:
+        t_ref = float(np.nanmean(T)) if np.isfinite(T).any() else 0.0
+    dT = np.where(np.isfinite(T), T - t_ref, 0.0)
+    V = velocities(st.C, base.covariates.time_s, base.covariates.strip)
+    ground = float(np.nanmedian(st.X[: b.n_tie, 2])) + b.origin[2]
+    K = np.array([bertram_refraction_k(float(c + b.origin[2]), ground) for c in st.C[:, 2]])
+    strips = np.unique(base.covariates.strip[base.covariates.strip >= 0])
+    return Context(dT=dT, t_ref=t_ref, velocity=V, refraction_k=K, strips=strips[1:])
+
+
+def velocities(C: np.ndarray, t: np.ndarray, strip: np.ndarray, max_gap_s: float = 30.0) -> np.ndarray:
+    """Velocity (m/s) of each station from its neighbours in time within the same strip."""
+    order = np.argsort(t, kind="stable")
+    V = np.zeros_like(C)
+    for a, i in enumerate(order):
+        nb = [order[b] for b in (a - 1, a + 1) if 0 <= b < len(order)]
+        nb = [j for j in nb if strip[j] == strip[i] and 0 < abs(t[j] - t[i]) < max_gap_s]
+        if len(nb) == 2:
+            V[i] = (C[nb[1]] - C[nb[0]]) / (t[nb[1]] - t[nb[0]])
+        elif len(nb) == 1:
+            V[i] = (C[nb[0]] - C[i]) / (t[nb[0]] - t[i])
+    return V
+
+
+def size(name: str, ctx: Context) -> int:
+    return 3 * len(ctx.strips) if name == PER_STRIP else CATALOGUE[name].size
+
+
+def image_signature(name: str, base: Baseline, ctx: Context, img: np.ndarray, uv: np.ndarray, xn: np.ndarray,
+                    pc: np.ndarray, duv_dpc: np.ndarray) -> np.ndarray:
+    """d(pixels)/d(theta) of image measurements (M, 2, k) for an image-space hypothesis."""
+    cam = base.camera
+    col = PARAM_NAMES.index
+    if name in ("thermal_focal", "thermal_principal_point", "affinity_skew", "radial_k3", PER_STRIP):
+        Jio = cam.param_jacobian(xn)
+        dT = ctx.dT[img][:, None, None]
+        if name == "thermal_focal":
+            return Jio[:, :, [col("f")]] * dT
+        if name == "thermal_principal_point":
+            return Jio[:, :, [col("cx"), col("cy")]] * dT
+        if name == "affinity_skew":
+            return Jio[:, :, [col("b1"), col("b2")]]
+        if name == "radial_k3":
+            return Jio[:, :, [col("k3")]]
+        sub = Jio[:, :, [col("f"), col("cx"), col("cy")]]
+        strip = base.covariates.strip[img]
+        blocks = [sub * (strip == s)[:, None, None] for s in ctx.strips]
+        return np.concatenate(blocks, axis=2) if blocks else np.zeros((len(img), 2, 0))
+    if name == "rolling_shutter":
+        frac = uv[:, 1] / cam.height - 0.5
+        dC = np.einsum("mab,mb->ma", base.state.R[img], ctx.velocity[img])  # camera motion in its frame
+        return (-np.einsum("mab,mb->ma", duv_dpc, dC) * frac[:, None])[:, :, None]
+    if name == "refraction":
+        duv_dxn = duv_dpc[:, :, :2] * pc[:, 2][:, None, None]
+        r2 = np.sum(xn**2, axis=1)
+        dxn = xn * (ctx.refraction_k[img] * (1.0 + r2))[:, None]
+        return np.einsum("mab,mb->ma", duv_dxn, dxn)[:, :, None]
+    raise KeyError(name)
+
+
+def columns(name: str, lin: Linear, base: Baseline, ctx: Context) -> np.ndarray:
+    """d(whitened residuals)/d(effect parameters) at zero effect: (rows, k)."""
+    b, st = base.block, base.state
+    k = size(name, ctx)
+    out = np.zeros((len(lin.r), k))
+    if name in IMAGE_EFFECTS:
+        J = image_signature(name, base, ctx, b.obs_image, b.obs_uv, lin.xn, lin.pc, lin.duv_dpc)
+        M = len(b.obs_image)
+        out[: 2 * M] = (J / b.obs_sigma[:, None, None]).reshape(2 * M, k)
+        return out
+    if name in ("gnss_bias", "gnss_time_offset", "lever_arm"):
+        g = lin.groups.get("gnss")
+        if g is None:
+            return out
+        inv = 1.0 / np.asarray(base.config.gnss_sigma_m, dtype=float)
+        N = b.n_images
+        if name == "gnss_bias":
+            blk = np.broadcast_to(np.diag(inv), (N, 3, 3))
+        elif name == "gnss_time_offset":
+            blk = (ctx.velocity * inv)[:, :, None]
+        else:  # lever arm in the camera frame: antenna = C + R^T l
+            blk = np.transpose(st.R, (0, 2, 1)) * inv[None, :, None]
+        out[g] = blk.reshape(3 * N, k)
+        return out
+    if name == "boresight":
+        g = lin.groups.get("imu")
+        if g is None:
+            return out
+        sig = np.radians(np.asarray(base.config.attitude_sigma_deg, dtype=float))
+        out[g] = np.tile(-np.diag(np.radians(1.0) / sig), (b.n_images, 1))
+        return out
+    raise KeyError(f"unknown hypothesis {name!r}; valid: {', '.join(HYPOTHESES)}")
+
+
+def _check_geometry(base: Baseline, block: Block):
+    """xn, pc, duv_dpc of the check-point measurements at their triangulated positions."""
+    st = base.state
+    X = triangulate_checks(base, block)
+    i, j = block.check_image, block.check_point
+    Xj = np.nan_to_num(X[j])
+    pr = project(st.io, st.slopes, np.zeros(len(i)), st.R[i], st.C[i], Xj)
+    pc = np.einsum("mab,mb->ma", st.R[i], Xj - st.C[i])
+    duv_dpc = np.einsum("mab,mcb->mac", pr.d_point, st.R[i])
+    return pc[:, :2] / pc[:, 2:], pc, duv_dpc
+
+
+def correct(name: str, theta: np.ndarray, base: Baseline, lin: Linear, ctx: Context) -> Block:
+    """The block's measurements with an estimated effect removed (the extended model's data)."""
+    theta = np.asarray(theta, dtype=float)
+    b, st = base.block, base.state
+    if name in IMAGE_EFFECTS:
+        J = image_signature(name, base, ctx, b.obs_image, b.obs_uv, lin.xn, lin.pc, lin.duv_dpc)
+        new = dataclasses.replace(b, obs_uv=b.obs_uv - J @ theta)
+        if len(b.check_image):
+            xn, pc, duv = _check_geometry(base, b)
+            Jk = image_signature(name, base, ctx, b.check_image, b.check_uv, xn, pc, duv)
+            new = dataclasses.replace(new, check_uv=b.check_uv - np.nan_to_num(Jk @ theta))
+        return new
+    if name == "gnss_bias":
+        return dataclasses.replace(b, gnss=b.gnss - theta)
+    if name == "gnss_time_offset":
+        return dataclasses.replace(b, gnss=b.gnss - ctx.velocity * theta[0])
+    if name == "lever_arm":
+        return dataclasses.replace(b, gnss=b.gnss - np.einsum("nji,j->ni", st.R, theta))
+    if name == "boresight":
+        B = small_rotation(np.radians(theta))
+        return dataclasses.replace(b, R_rec=np.einsum("ab,nbc->nac", B, b.R_rec))
+    raise KeyError(f"unknown hypothesis {name!r}; valid: {', '.join(HYPOTHESES)}")

@@ -1,0 +1,172 @@
+"""The baseline block and its linearisation, on the bundle adjustment of :mod:`aerocal.adjust`.
+
+The diagnosis reasons about the adjusted block's residuals and Jacobian: which residuals would move if
+an effect's parameter moved (its columns, :mod:`aerocal.diagnose.hypotheses`), and how much of that the
+block's own unknowns (poses, points, interior orientation) already absorb. Eliminating the points
+(Schur complement) once for the camera columns *and* every hypothesis's columns lets all hypotheses be
+scored against one reduced system.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import pyarrow as pa
+import scipy.sparse as sp
+
+from aerocal.adjust.bundle import initial_state
+from aerocal.adjust.problem import AdjustConfig, Block, build_block
+from aerocal.adjust.projection import project
+from aerocal.adjust.solver import Problem, Solution, State, inverse_spd, schur_complement, solve
+from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
+from aerocal.camera import Camera
+
+
+@dataclass
+class Covariates:
+    """Per-image metadata the hypotheses depend on (aligned with ``Block.image_ids``)."""
+
+    time_s: np.ndarray  # seconds after the first image
+    strip: np.ndarray  # strip number (-1 = none)
+
+
+@dataclass
+class Baseline:
+    """An adjusted block: the measurements, the model they were fitted with, and the solution."""
+
+    block: Block
+    covariates: Covariates
+    config: AdjustConfig
+    solution: Solution
+    template: Camera  # image size and pixel pitch; IO values come from the solution
+
+    @property
+    def state(self) -> State:
+        return self.solution.state
+
+    @property
+    def camera(self) -> Camera:
+        return self.template.with_params(self.solution.state.io)
+
+
+@dataclass
+class Linear:
+    """Whitened residuals and Jacobian of a block at a state, and what the signatures need."""
+
+    r: np.ndarray
+    Jc: sp.csr_matrix  # camera-side columns (free IO + 6 per image)
+    Jp: sp.csr_matrix  # point columns
+    Hpp: np.ndarray  # (P, 3, 3) point blocks of J^T J
+    groups: dict[str, slice]
+    xn: np.ndarray  # (M, 2) undistorted normalised coordinates of each image measurement
+    pc: np.ndarray  # (M, 3) measured point in its camera frame
+    duv_dpc: np.ndarray  # (M, 2, 3) d(pixels)/d(camera-frame point)
+
+    @property
+    def chi2(self) -> float:
+        return float(self.r @ self.r)
+
+
+def covariates_from_images(images: pa.Table, block: Block) -> Covariates:
+    ids = images.column("image_id").to_numpy()
+    pos = {int(v): k for k, v in enumerate(ids)}
+    rows = np.array([pos[int(v)] for v in block.image_ids])
+    t = images.column("time").to_numpy(zero_copy_only=False)
+    if len(t) and not np.isnat(t).any():
+        secs = (t - t.min()).astype("timedelta64[us]").astype(float) / 1e6
+    else:
+        secs = np.arange(len(ids), dtype=float)  # no times: assume the table is in acquisition order
+    strip = np.array([-1 if v is None else v for v in images.column("strip").to_pylist()], dtype=np.int64)
+    return Covariates(time_s=secs[rows], strip=strip[rows])
+
+
+def fit_baseline(images: pa.Table, observations: pa.Table, camera: Camera, config: AdjustConfig,
+                 gcps: pa.Table | None = None, gcp_observations: pa.Table | None = None) -> Baseline:
+    """Adjust the block with ``config`` (the model whose shortcomings the diagnosis looks for)."""
+    block0 = build_block(images, observations, gcps, gcp_observations, config)
+    block, start = initial_state(block0, camera)
+    sol = solve(Problem(block, config, 0.0), start)
+    return Baseline(block, covariates_from_images(images, block), config, sol, camera)
+
+
+def refit(base: Baseline, block: Block) -> Baseline:
+    """Re-adjust corrected measurements of the same block, starting from the previous solution."""
+    sol = solve(Problem(block, base.config, 0.0), base.state.copy())
+    return dataclasses.replace(base, block=block, solution=sol)
+
+
+def linearise(base: Baseline, state: State | None = None) -> Linear:
+    state = state or base.state
+    problem = Problem(base.block, base.config, 0.0)
+    _, _, _, r, Jc, Jp, Hpp = problem.residuals(state, jac=True)
+    b = base.block
+    i, j = b.obs_image, b.obs_point
+    pr = project(state.io, state.slopes, np.zeros(len(i)), state.R[i], state.C[i], state.X[j])
+    pc = np.einsum("mab,mb->ma", state.R[i], state.X[j] - state.C[i])
+    duv_dpc = np.einsum("mab,mcb->mac", pr.d_point, state.R[i])  # d_point = duv_dpc R
+    M, N, G = len(i), b.n_images, len(b.control_ids)
+    groups = {"image": slice(0, 2 * M)}
+    row = 2 * M
+    if base.config.gnss_sigma_m is not None:
+        groups["gnss"] = slice(row, row + 3 * N)
+        row += 3 * N
+    if base.config.attitude_sigma_deg is not None:
+        groups["imu"] = slice(row, row + 3 * N)
+        row += 3 * N
+    if G:
+        groups["control"] = slice(row, row + 3 * G)
+    return Linear(r, Jc, Jp, Hpp, groups, pc[:, :2] / pc[:, 2:], pc, duv_dpc)
+
+
+@dataclass
+class Reduced:
+    """Reduced normal equations (points eliminated) of [camera | extra] columns at the solution."""
+
+    S: np.ndarray
+    g: np.ndarray  # reduced gradient J^T r (after elimination)
+    n_camera: int
+
+
+def reduce(lin: Linear, extra: np.ndarray) -> Reduced:
+    Jc = sp.hstack([lin.Jc, sp.csr_matrix(extra)], format="csr") if extra.shape[1] else lin.Jc
+    S, rhs, *_ = schur_complement(Jc, lin.Jp, lin.Hpp, lin.r, 0.0)
+    return Reduced(S, -np.asarray(rhs).ravel(), lin.Jc.shape[1])
+
+
+def conditional(red: Reduced, base: np.ndarray, test: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For columns ``test`` given free columns ``base`` (indices into S): (information matrix, gradient).
+
+    The chi-square drop of freeing ``test`` is ``g^T I^-1 g``; the Gauss-Newton estimate ``-I^-1 g``.
+    """
+    S, g = red.S, red.g
+    Sbb = S[np.ix_(base, base)]
+    Sbt = S[np.ix_(base, test)]
+    X = inverse_spd(Sbb) @ np.column_stack([Sbt, g[base]])
+    info = S[np.ix_(test, test)] - Sbt.T @ X[:, :-1]
+    grad = g[test] - Sbt.T @ X[:, -1]
+    return 0.5 * (info + info.T), grad
+
+
+def triangulate_checks(base: Baseline, block: Block | None = None) -> np.ndarray:
+    """Check points triangulated from their image measurements with the adjusted block (local frame)."""
+    b = block or base.block
+    st = base.state
+    if not len(b.check_ids) or not len(b.check_image):
+        return np.zeros((0, 3))
+    rays = pixels_to_rays(st.io, st.slopes, np.zeros(len(b.check_image)), st.R[b.check_image], b.check_uv)
+    X, ok = triangulate_linear(b.check_point, len(b.check_ids), st.C[b.check_image], rays)
+    X[~ok] = np.nan
+    return X
+
+
+def check_rmse(base: Baseline, block: Block | None = None) -> tuple[float, np.ndarray]:
+    """3D RMSE (metres) of the check points against their surveyed coordinates, and the errors."""
+    b = block or base.block
+    X = triangulate_checks(base, b)
+    if not len(X):
+        return float("nan"), np.zeros((0, 3))
+    err = X - b.check_xyz
+    ok = np.isfinite(err).all(axis=1)
+    return float(np.sqrt(np.mean(np.sum(err[ok] ** 2, axis=1)))), err
