@@ -1,0 +1,548 @@
+"""Ray-casting renderer: images of a simulated scene seen through a simulated exposure.
+
+Every pixel is integrated from ``supersample x supersample`` sub-pixel rays (a box filter over the pixel
+area, so edges are anti-aliased and target centroids are exact), each ray given by ``exposure.rays`` (all
+geometric effects live there: distortion, refraction, rolling shutter...) and intersected with the
+scene's DSM. Then optics and sensor act on the image: vignetting, Gaussian optical blur, sensor noise
+(the NETD in kelvin for thermal frames).
+
+Pixel convention: origin at the top-left corner of the top-left pixel, x right, y down; the centre of
+pixel ``(row, col)`` is ``(col + 0.5, row + 0.5)``.
+
+Ray-DSM intersection (:func:`intersect_dsm`)
+--------------------------------------------
+The DSM surface is bilinear between cell centres. Vectorised over rays; Python loops only over march
+steps, and rays that have hit leave the active set at every step:
+
+1. each ray starts where it descends through the DSM's maximum height and must hit before it passes
+   below the minimum (the surface is continuous, edges extended);
+2. empty space is skipped with conservative maximum grids (blocks of 16 and 4 cells, each block holding
+   the maximum over itself and its neighbours): a ray advances as far as it provably stays above;
+3. then it marches one DSM patch (the square between four cell centres) per step, in the order the ray
+   crosses them (a 2D DDA, Amanatides & Woo 1987). Along the ray, the bilinear patch is a quadratic in
+   the ray parameter, so the first crossing inside a patch is the smallest root of that quadratic in
+   the patch's interval: exact, nothing thin is stepped over, and no iterative refinement is needed
+   (the height error of a hit is ~1e-9 m, measured in tests/test_render.py).
+
+Rays that point upwards from above the DSM, or leave the grid's extent (plus one cell) without hitting,
+see the sky: a frame that looks past the edge of the scene shows the sky there, which a flight plan
+should avoid (keep footprints inside the scene).
+
+Acceleration (``RenderConfig.accelerate``, on by default)
+---------------------------------------------------------
+Sub-pixel rays vary smoothly across a pixel, so ``exposure.rays`` is evaluated at pixel centres (with a
+one-pixel border) and the sub-pixel rays are interpolated bilinearly; a sample of them is compared with
+``exposure.rays`` in every batch and the batch falls back to exact rays if they differ by more than
+1e-4 px (or 0.1 mm of origin). Pixel-centre rays are traced fully; where a pixel and its 8 neighbours
+hit coherently (no step in distance, hits less than a cell apart horizontally, so no DSM feature fits
+between them unseen) its sub-pixel rays are intersected exactly starting 0.3 cell before their
+interpolated distance; all other sub-pixel rays are traced fully. Measured on a 640 x 480 frame with
+3 x 3 sub-pixels (one core of a shared 2-core machine, CPU time): 0.9 s over a flat block and 1.8 s over
+a city with 30 m buildings, against 2.3 s and 4.1 s tracing every sub-pixel ray; the two images differ
+by < 1e-3 K on 99.9 % of the pixels (tests/test_render.py).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import cv2
+import numpy as np
+
+from aerocal.camera import Camera
+from aerocal.simulate.scene import SKY_KELVIN, SKY_RGB, Scene
+
+
+class ExposureLike(Protocol):
+    """What the renderer needs of an exposure (``aerocal.simulate.exposure.Exposure`` provides it)."""
+
+    camera: Camera
+
+    def rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixels (N, 2) -> ray origins (N, 3) and unit directions (N, 3), world E, N, Up metres."""
+        ...
+
+    def project(self, X: np.ndarray) -> np.ndarray:
+        """World points (N, 3) -> pixels (N, 2), NaN behind the camera."""
+        ...
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """How a frame is rendered. Lengths in metres, temperatures in kelvin, image values in DN."""
+
+    modality: Literal["thermal", "rgb"] = "thermal"
+    supersample: int = 3  #: sub-pixel rays per pixel along each axis (3 -> 3 x 3, box-filtered)
+    netd_k: float = 0.06  #: thermal sensor noise, 1 sigma, kelvin (added after blur); 0 = noiseless
+    dn_per_kelvin: float = 100.0  #: thermal DN = round(dn_per_kelvin * T) (radiometric 0.01 K counts)
+    rgb_noise_dn: float = 1.5  #: RGB sensor noise, 1 sigma, DN of 0-255
+    vignetting: float = 0.0  #: relative signal fall-off at the image corner, ``1 - v (r / r_corner)^2``
+    blur_sigma_px: float = 0.5  #: Gaussian optical blur, pixels; 0 = none
+    chunk_rays: int = 1 << 17  #: sub-pixel rays traced per batch (bounds memory; ~150 MB per million)
+    accelerate: bool = True  #: derive sub-pixel rays and hits from pixel-centre rays where exact enough
+
+    def __post_init__(self) -> None:
+        if self.modality not in ("thermal", "rgb"):
+            raise ValueError(f"RenderConfig.modality must be 'thermal' or 'rgb', got {self.modality!r}")
+        if int(self.supersample) < 1:
+            raise ValueError(f"RenderConfig.supersample must be >= 1, got {self.supersample}")
+        if self.netd_k < 0 or self.rgb_noise_dn < 0 or self.blur_sigma_px < 0:
+            raise ValueError("RenderConfig: netd_k, rgb_noise_dn and blur_sigma_px must be >= 0")
+
+
+# ============================================================================================ intersection
+@dataclass(frozen=True)
+class RayHits:
+    """Result of :func:`intersect_dsm` for N rays."""
+
+    points: np.ndarray  #: (N, 3) hit points, world metres; NaN where the ray sees the sky
+    t: np.ndarray  #: (N,) distance from the ray origin to the hit, metres; inf for the sky
+    hit: np.ndarray  #: (N,) bool
+
+
+_LEVELS = (16, 4)  # block sizes (cells) of the empty-space-skipping grids, coarse to fine
+
+
+def _padded_dsm(scene: Scene) -> np.ndarray:
+    """The DSM with one edge-replicated cell on each side, flattened (cached on the scene)."""
+    cache = getattr(scene, "_render_padded_dsm", None)
+    if cache is None:
+        cache = np.pad(scene.dsm, 1, mode="edge").reshape(-1)
+        object.__setattr__(scene, "_render_padded_dsm", cache)  # a cache on the frozen scene (derived data)
+    return cache
+
+
+def _max_grids(scene: Scene) -> list[tuple[int, np.ndarray]]:
+    """Per level: (block size b, float32 grid bounding the bilinear surface over each block of b x b
+    patches and its 8 neighbouring blocks). Patch (r, c) is the square between the centres of cells
+    (r, c) and (r + 1, c + 1); the surface inside it is at most the maximum of its four corners. A ray
+    point in block B that moves at most b cells horizontally stays inside B's 3 x 3 neighbourhood."""
+    cache = getattr(scene, "_render_max_grids", None)
+    if cache is not None:
+        return cache
+    rows, cols = scene.shape
+    padded = np.pad(scene.dsm, ((0, 1), (0, 1)), mode="edge")
+    patch_max = np.maximum(np.maximum(padded[:-1, :-1], padded[:-1, 1:]),
+                           np.maximum(padded[1:, :-1], padded[1:, 1:]))
+    out = []
+    for b in _LEVELS:
+        pr, pc = -(-rows // b) * b, -(-cols // b) * b
+        grid = np.pad(patch_max, ((0, pr - rows), (0, pc - cols)), mode="edge")
+        blocks = grid.reshape(pr // b, b, pc // b, b).max(axis=(1, 3))
+        dil = cv2.dilate(blocks, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        out.append((b, dil.astype(np.float32) + np.float32(1e-3)))
+    object.__setattr__(scene, "_render_max_grids", out)  # a cache on the frozen scene (derived data)
+    return out
+
+
+def intersect_dsm(
+    scene: Scene, origins: np.ndarray, directions: np.ndarray, t_start: np.ndarray | None = None,
+    skip_empty: bool = True,
+) -> RayHits:
+    """First intersection of rays with the scene's DSM (bilinear surface), vectorised over rays.
+
+    ``origins`` (N, 3) and unit ``directions`` (N, 3) are world E, N, Up metres. A ray that starts below
+    the surface hits at its start; a ray that leaves the grid's extent (plus one cell) without hitting
+    does not hit (``hit`` False, ``t`` inf).
+
+    ``t_start`` (N,) optionally starts each ray that far from its origin (metres), the caller vouching
+    that the ray is above the surface before it; ``skip_empty=False`` turns the max-grid skipping off
+    (for rays started just above their hit).
+    """
+    o = np.asarray(origins, dtype=float)
+    d = np.asarray(directions, dtype=float)
+    n_rays = len(d)
+    cell = scene.config.cell_m
+    rows, cols = scene.shape
+    zmin, zmax = scene.height_range
+    zmin -= 1e-3
+    zmax += 1e-3
+    # rays in grid units: col(t) = c0 + t dc, row(t) = r0 + t dr (cells), z(t) = z0 + t dz, t in metres
+    c0, r0 = scene.grid_coords(o[:, 0], o[:, 1])
+    dc = d[:, 0] / cell
+    dr = -d[:, 1] / cell
+    z0 = o[:, 2]
+    dz = d[:, 2]
+    t_first = np.zeros(n_rays) if t_start is None else np.maximum(np.asarray(t_start, dtype=float), 0.0)
+
+    t_hit = np.full(n_rays, np.inf)
+    z_first = z0 + t_first * dz
+    low = np.nonzero(z_first <= zmax)[0]
+    tl = t_first[low]
+    under = z_first[low] - scene.height_at_grid(c0[low] + tl * dc[low], r0[low] + tl * dr[low]) <= 0
+    below = low[under]  # starts under the surface
+    t_hit[below] = t_first[below]
+    down = dz < -1e-12
+    start_ok = np.ones(n_rays, dtype=bool)
+    start_ok[below] = False
+    cand = np.nonzero(start_ok & (down | (z_first <= zmax)))[0]  # the others point up from above: sky
+    if len(cand) == 0:
+        return _hits(o, d, t_hit)
+    c0, r0, z0, dc, dr, dz, down = c0[cand], r0[cand], z0[cand], dc[cand], dr[cand], dz[cand], down[cand]
+    t_first, z_first = t_first[cand], z_first[cand]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(down & (z_first > zmax), (zmax - z0) / dz, t_first)
+        t_end = np.where(down, (zmin - z0) / dz, np.inf)
+        t_end = np.where(~down & (dz > 0), (zmax - z0) / np.where(dz > 0, dz, 1.0), t_end)
+        t_end = np.minimum(t_end, _t_leave_grid(c0, r0, dc, dr, rows, cols))
+    h_len = np.maximum(np.hypot(dc, dr), 1e-12)  # cells per metre, horizontally
+    skip_levels = [(b, gmax, b / h_len) for b, gmax in _max_grids(scene)] if skip_empty else []
+    dsm = _padded_dsm(scene)
+
+    # state of the active rays: t, the patch (pr, pc) holding the point at t, and whether it is known
+    pc = np.zeros(len(cand), dtype=np.int64)
+    pr = np.zeros(len(cand), dtype=np.int64)
+    located = np.zeros(len(cand), dtype=bool)
+    result = np.full(len(cand), np.inf)
+    active = np.arange(len(cand))
+    while len(active):
+        ta = t[active]
+        pending = np.arange(len(active))
+        # 1. skip: the longest step on the coarsest max grid that provably stays above the surface
+        if len(skip_levels):
+            za = z0[active] + ta * dz[active]
+            cc = c0[active] + ta * dc[active]
+            rr = r0[active] + ta * dr[active]
+            for b, gmax, h_limit in skip_levels:
+                gr, gc = gmax.shape
+                k = active[pending]
+                bc = np.clip(cc[pending] // b, 0, gc - 1).astype(np.int64)  # patch index = floor(grid coord)
+                br = np.clip(rr[pending] // b, 0, gr - 1).astype(np.int64)
+                clearance = za[pending] - gmax[br, bc]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    safe = np.where(down[k], clearance / -dz[k], np.inf)
+                s = np.where(clearance > 0, np.minimum(h_limit[k], safe), 0.0)
+                go = s >= 0.5 * cell
+                kg = k[go]
+                t[kg] = ta[pending[go]] + s[go]
+                located[kg] = False
+                pending = pending[~go]
+                if not len(pending):
+                    break
+        # 2. one patch: exit parameter, quadratic f(s) = z - h along the ray inside it, first root
+        if len(pending):
+            k = active[pending]
+            relocate = k[~located[k]]
+            pc[relocate] = np.floor(c0[relocate] + t[relocate] * dc[relocate]).astype(np.int64)
+            pr[relocate] = np.floor(r0[relocate] + t[relocate] * dr[relocate]).astype(np.int64)
+            located[relocate] = True
+            t_root, t_out, pc[k], pr[k] = _patch_step(
+                dsm, rows, cols, c0[k], r0[k], z0[k], dc[k], dr[k], dz[k], ta[pending], pc[k], pr[k], t_end[k]
+            )
+            hit = np.isfinite(t_root)
+            result[k[hit]] = t_root[hit]
+            t[k] = np.where(hit, np.inf, t_out)
+        finished = (t[active] >= t_end[active]) | np.isfinite(result[active])
+        active = active[~finished]
+    t_hit[cand] = result
+    return _hits(o, d, t_hit)
+
+
+def _patch_step(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t, pc, pr, t_end):
+    """Intersect rays with the patch (pr, pc) they are in at ``t``: returns (hit parameter or inf, exit
+    parameter, next patch col, next patch row). Rays in grid units as in :func:`intersect_dsm`."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_col = np.where(dc != 0, (pc + (dc > 0) - c0) / dc, np.inf)
+        t_row = np.where(dr != 0, (pr + (dr > 0) - r0) / dr, np.inf)
+    t_out = np.maximum(np.minimum(np.minimum(t_col, t_row), t_end), t)
+    s_root = _first_root_in_patch(dsm, rows, cols, pc, pr, c0 + t * dc - pc, r0 + t * dr - pr, dc, dr,
+                                  z0 + t * dz, dz, t_out - t)
+    pc_next = pc + np.where(t_col <= t_out, np.where(dc > 0, 1, -1), 0)
+    pr_next = pr + np.where(t_row <= t_out, np.where(dr > 0, 1, -1), 0)
+    return t + s_root, t_out, pc_next, pr_next
+
+
+def _hits_near(scene: Scene, o: np.ndarray, d: np.ndarray, t_start: np.ndarray, max_patches: int = 3):
+    """Hit distances of rays known to be above the surface up to ``t_start`` and to hit soon after:
+    the patches from ``t_start`` on are tested, at most ``max_patches`` of them. inf where the ray is
+    not above the surface at ``t_start`` or no hit was found (trace those with :func:`intersect_dsm`)."""
+    cell = scene.config.cell_m
+    rows, cols = scene.shape
+    c0, r0 = scene.grid_coords(o[:, 0], o[:, 1])
+    dc = d[:, 0] / cell
+    dr = -d[:, 1] / cell
+    z0, dz = o[:, 2], d[:, 2]
+    t = np.asarray(t_start, dtype=float)
+    dsm = _padded_dsm(scene)
+    pc = np.floor(c0 + t * dc).astype(np.int64)
+    pr = np.floor(r0 + t * dr).astype(np.int64)
+    t_end = np.full(len(t), np.inf)
+    t_root, t, pc, pr = _patch_step(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t, pc, pr, t_end)
+    under = t_root <= t_start  # under the surface at the start (or exactly on it): not resolved here
+    result = np.where(under, np.inf, t_root)
+    active = np.nonzero(~np.isfinite(t_root) & (t > t_start))[0]
+    pc, pr = pc[active], pr[active]
+    for _ in range(max_patches - 1):
+        if not len(active):
+            break
+        k = active
+        t_root, t_out, pc, pr = _patch_step(dsm, rows, cols, c0[k], r0[k], z0[k], dc[k], dr[k], dz[k], t[k],
+                                            pc, pr, t_end[k])
+        hit = np.isfinite(t_root)
+        result[k[hit]] = t_root[hit]
+        t[k] = t_out
+        active, pc, pr = k[~hit], pc[~hit], pr[~hit]
+    return result
+
+
+def _first_root_in_patch(dsm, rows, cols, pc, pr, u0, v0, du, dv, z_in, dz, length) -> np.ndarray:
+    """Smallest s in [0, length] where a ray crosses below the bilinear surface of patch (pr, pc), else inf.
+
+    ``u0, v0`` are the ray's position in the patch (0..1 across it, cells) at s = 0, ``du, dv`` cells per
+    metre, ``z_in`` its height at s = 0 and ``dz`` its vertical rate. ``dsm`` is :func:`_padded_dsm`
+    (edge extension, as :func:`aerocal.simulate.scene._bilinear`).
+    """
+    # dsm is the DSM padded by one edge cell on each side, flattened: patch (pr, pc) has its top-left
+    # corner at padded (pr + 1, pc + 1); patches further out are clamped to the padding (edge extension)
+    stride = cols + 2
+    i00 = (np.clip(pr, -1, rows - 1) + 1) * stride + np.clip(pc, -1, cols - 1) + 1
+    h00 = dsm[i00].astype(float)
+    h01 = dsm[i00 + 1]
+    h10 = dsm[i00 + stride]
+    h11 = dsm[i00 + stride + 1]
+    a = h01 - h00  # h = h00 + a u + b v + c u v
+    b = h10 - h00
+    c = h00 - h01 - h10 + h11
+    # f(s) = z_in + s dz - h(u0 + s du, v0 + s dv) = C + B s + A s^2
+    C = z_in - (h00 + a * u0 + b * v0 + c * u0 * v0)
+    B = dz - (a * du + b * dv + c * (u0 * dv + v0 * du))
+    A = -c * du * dv
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        disc = B * B - 4.0 * A * C
+        sq = np.sqrt(np.maximum(disc, 0.0))
+        q = -0.5 * (B + np.where(B >= 0, sq, -sq))  # stable roots: q / A and C / q
+        r1 = np.where(A != 0, q / A, np.inf)
+        r2 = np.where(q != 0, C / q, np.inf)
+        lin = np.abs(A) * length < 1e-12 * np.maximum(np.abs(B), 1e-300)
+        r_lin = np.where(B < 0, -C / B, np.inf)
+    r1 = np.where(lin, r_lin, r1)
+    r2 = np.where(lin, np.inf, r2)
+    slack = 1e-9 * (1.0 + length)  # a root on the exit boundary, within rounding, belongs to this patch
+    r1 = np.where((disc >= 0) & (r1 >= 0) & (r1 <= length + slack), r1, np.inf)
+    r2 = np.where((disc >= 0) & (r2 >= 0) & (r2 <= length + slack), r2, np.inf)
+    root = np.minimum(r1, r2)
+    root = np.where(np.isfinite(root), np.minimum(root, length), np.inf)
+    return np.where(C <= 0, 0.0, root)  # already on or under the surface at the entry point
+
+
+def _t_leave_grid(c0, r0, dc, dr, rows: int, cols: int) -> np.ndarray:
+    """Ray parameter (metres) where a ray leaves the grid's extent (plus one cell) horizontally."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tc = np.where(dc > 0, (cols + 1 - c0) / dc, np.where(dc < 0, (-2 - c0) / dc, np.inf))
+        tr = np.where(dr > 0, (rows + 1 - r0) / dr, np.where(dr < 0, (-2 - r0) / dr, np.inf))
+    return np.maximum(np.minimum(tc, tr), 0.0)
+
+
+def _hits(o: np.ndarray, d: np.ndarray, t: np.ndarray) -> RayHits:
+    hit = np.isfinite(t)
+    pts = o + np.where(hit, t, np.nan)[:, None] * d
+    return RayHits(points=pts, t=t, hit=hit)
+
+
+def _upsample(grid: np.ndarray, ss: int) -> np.ndarray:
+    """Bilinear interpolation of a grid of pixel-centre values with a one-pixel border, (H + 2, W + 2,
+    ...), at the ``ss x ss`` sub-pixel centres of the inner pixels: (H ss, W ss, ...). Sub-pixel k of a
+    pixel sits (k + 0.5) / ss - 0.5 pixels from its centre; slices per phase, no gathers."""
+    h, w = grid.shape[0] - 2, grid.shape[1] - 2
+    cols = np.empty((grid.shape[0], w * ss) + grid.shape[2:], dtype=grid.dtype)
+    for k in range(ss):
+        x = (k + 0.5) / ss + 0.5  # position in border-grid units, relative to the pixel's left neighbour
+        x0 = int(np.floor(x))
+        fx = x - x0
+        cols[:, k::ss] = grid[:, x0:x0 + w] * (1.0 - fx) + grid[:, x0 + 1:x0 + 1 + w] * fx
+    out = np.empty((h * ss,) + cols.shape[1:], dtype=grid.dtype)
+    for k in range(ss):
+        y = (k + 0.5) / ss + 0.5
+        y0 = int(np.floor(y))
+        fy = y - y0
+        out[k::ss] = cols[y0:y0 + h] * (1.0 - fy) + cols[y0 + 1:y0 + 1 + h] * fy
+    return out
+
+
+def _trace_rows(
+    scene: Scene, exposure: ExposureLike, row0: int, row1: int, ss: int, accelerate: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sub-pixel rays of image rows [row0, row1) and their DSM hits: (origins, directions, t), ordered
+    (row, sub-row, col, sub-col); t is inf for the sky.
+
+    With ``accelerate`` the exposure is asked only for the rays of pixel centres (with a one-pixel
+    border): sub-pixel rays are interpolated from them (checked against ``exposure.rays`` on a sample of
+    sub-pixels; the chunk falls back to exact rays beyond 1e-4 px or 0.1 mm), and where the pixel-centre
+    hits of a pixel and its 8 neighbours are coherent (no depth step, hits less than a cell apart, so
+    nothing can stand between them) each sub-pixel ray is intersected starting just before its
+    interpolated distance; every other sub-pixel ray is traced from the top.
+    """
+    cam = exposure.camera
+    width = int(cam.width)
+    offs = (np.arange(ss) + 0.5) / ss
+    u = (np.arange(width)[:, None] + offs[None, :]).reshape(-1)
+    v = (np.arange(row0, row1)[:, None] + offs[None, :]).reshape(-1)
+    uu, vv = np.meshgrid(u, v)
+    uv = np.column_stack([uu.reshape(-1), vv.reshape(-1)])
+    if not accelerate:
+        o, d = exposure.rays(uv)
+        return o, d, intersect_dsm(scene, o, d).t
+
+    cell = scene.config.cell_m
+    # pixel-centre rays on a grid with a one-pixel border: anchor (i, j) is pixel (row0 - 1 + i, j - 1)
+    ua = np.arange(-1, width + 1) + 0.5
+    va = np.arange(row0 - 1, row1 + 1) + 0.5
+    ga, gb = np.meshgrid(ua, va)
+    oa, da = exposure.rays(np.column_stack([ga.reshape(-1), gb.reshape(-1)]))
+    anchors = intersect_dsm(scene, oa, da)
+    shape_a = (len(va), len(ua))
+    ta = anchors.t.reshape(shape_a)
+    # sub-pixel rays interpolated from the anchors
+    o = _upsample(oa.reshape(shape_a + (3,)), ss).reshape(-1, 3)
+    d = _upsample(da.reshape(shape_a + (3,)), ss).reshape(-1, 3)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    check = np.linspace(0, len(uv) - 1, 64).astype(np.int64)
+    oc, dc = exposure.rays(uv[check])
+    angle_px = np.linalg.norm(dc - d[check], axis=1).max() * float(cam.f)
+    if angle_px > 1e-4 or np.abs(oc - o[check]).max() > 1e-4:
+        o, d = exposure.rays(uv)
+
+    # coherent pixels: all 9 anchors hit, no step in distance, hits horizontally within a cell of the
+    # centre's (so no DSM feature, at least a cell wide, fits between the rays unseen)
+    pa = anchors.points.reshape(shape_a + (3,))[..., :2]
+    centre = (slice(1, -1), slice(1, -1))
+    ok = np.isfinite(ta[centre])
+    tol = 0.5 * cell
+    with np.errstate(invalid="ignore"):
+        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            a = ta[1 - dy:shape_a[0] - 1 - dy, 1 - dx:shape_a[1] - 1 - dx]
+            b = ta[1 + dy:shape_a[0] - 1 + dy, 1 + dx:shape_a[1] - 1 + dx]
+            ok &= np.isfinite(a) & np.isfinite(b) & (np.abs(a + b - 2.0 * ta[centre]) < tol)
+            for sgn in (-1, 1):
+                q = pa[1 + sgn * dy:shape_a[0] - 1 + sgn * dy, 1 + sgn * dx:shape_a[1] - 1 + sgn * dx]
+                ok &= np.linalg.norm(q - pa[centre], axis=2) < cell
+    coherent = np.repeat(np.repeat(ok, ss, axis=0), ss, axis=1).reshape(-1)
+    t = np.full(len(uv), np.inf)
+    idx = np.nonzero(coherent)[0]
+    if len(idx):
+        ta_fill = np.where(np.isfinite(ta), ta, 0.0)
+        t_guess = _upsample(ta_fill, ss).reshape(-1)[idx]
+        t_near = _hits_near(scene, o[idx], d[idx], np.maximum(t_guess - 0.3 * cell, 0.0))
+        good = np.isfinite(t_near)
+        t[idx[good]] = t_near[good]
+        coherent[idx[~good]] = False
+    rest = np.nonzero(~coherent)[0]
+    if len(rest):
+        t[rest] = intersect_dsm(scene, o[rest], d[rest]).t
+    return o, d, t
+
+
+def render_radiance(scene: Scene, exposure: ExposureLike, config: RenderConfig) -> np.ndarray:
+    """The noiseless, unblurred signal: (H, W) kelvin (thermal) or (H, W, 3) reflectance 0-255 (RGB),
+    each pixel the mean of its sub-pixel rays."""
+    cam = exposure.camera
+    width, height = int(cam.width), int(cam.height)
+    ss = int(config.supersample)
+    thermal = config.modality == "thermal"
+    out = np.empty((height, width) if thermal else (height, width, 3), dtype=np.float64)
+    rows_per_chunk = max(1, int(config.chunk_rays) // (width * ss * ss))
+    f_px = float(cam.f)
+    for row0 in range(0, height, rows_per_chunk):
+        row1 = min(row0 + rows_per_chunk, height)
+        o, d, t = _trace_rows(scene, exposure, row0, row1, ss, config.accelerate)
+        hit = np.isfinite(t)
+        th = np.where(hit, t, 0.0)
+        footprint = th / (f_px * ss)  # ground spacing of the sub-samples, metres
+        e = o[:, 0] + th * d[:, 0]
+        n = o[:, 1] + th * d[:, 1]
+        nr = row1 - row0
+        if thermal:
+            vals = scene.thermal_at(e, n, footprint)
+            vals[~hit] = SKY_KELVIN
+            out[row0:row1] = vals.reshape(nr, ss, width, ss).mean(axis=(1, 3))
+        else:
+            vals = scene.rgb_at(e, n, footprint)
+            vals[~hit] = SKY_RGB
+            out[row0:row1] = vals.reshape(nr, ss, width, ss, 3).mean(axis=(1, 3))
+    return out
+
+
+def vignetting_factor(camera: Camera, strength: float) -> np.ndarray:
+    """(H, W) multiplicative fall-off ``1 - strength (r / r_corner)^2``, r from the principal point."""
+    u = np.arange(camera.width) + 0.5 - camera.cx
+    v = np.arange(camera.height) + 0.5 - camera.cy
+    r2 = u[None, :] ** 2 + v[:, None] ** 2
+    corner = max(camera.cx, camera.width - camera.cx) ** 2 + max(camera.cy, camera.height - camera.cy) ** 2
+    return 1.0 - strength * r2 / corner
+
+
+def render_frame(
+    scene: Scene, exposure: ExposureLike, config: RenderConfig, rng: np.random.Generator
+) -> np.ndarray:
+    """Render one frame: (H, W) uint16 thermal DN (= round(dn_per_kelvin * T) with noise at the NETD),
+    or (H, W, 3) uint8 RGB. Only ``exposure.rays`` and ``exposure.camera`` (size, focal length) are used.
+    """
+    img = render_radiance(scene, exposure, config)
+    if config.vignetting:
+        fall = vignetting_factor(exposure.camera, config.vignetting)
+        img = img * (fall if img.ndim == 2 else fall[..., None])
+    if config.blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), sigmaX=config.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
+    if config.modality == "thermal":
+        if config.netd_k > 0:
+            img = img + rng.normal(0.0, config.netd_k, img.shape)
+        return np.clip(np.rint(img * config.dn_per_kelvin), 0, 65535).astype(np.uint16)
+    if config.rgb_noise_dn > 0:
+        img = img + rng.normal(0.0, config.rgb_noise_dn, img.shape)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+# ============================================================================================ targets
+def locate_targets(
+    image: np.ndarray, approx_uv: np.ndarray, window_px: int = 11, iterations: int = 3,
+    threshold_sigma: float = 3.0,
+) -> np.ndarray:
+    """Sub-pixel centres of bright (hot) target blobs: (N, 2) pixels, aerocal convention (the centre of
+    pixel (row, col) is (col + 0.5, row + 0.5)); NaN where the window leaves the image or holds no blob.
+
+    For each approximate position: a round window of diameter ``window_px`` around it; background =
+    median of the window's outer ring of pixels, noise = their MAD; weights = the signal above background
+    by more than ``threshold_sigma`` noise sigmas; intensity-weighted centroid; re-centre and repeat
+    ``iterations`` times. The window must lie inside the target's dark square (its diameter below the
+    square's side, minus the blur) and contain the whole blurred disc: for the scene's default targets
+    (square half-side 3 radii) a disc of radius r px wants a window of about 4 r px. RGB images are
+    averaged over channels.
+    """
+    img = np.asarray(image, dtype=float)
+    if img.ndim == 3:
+        img = img.mean(axis=2)
+    approx = np.atleast_2d(np.asarray(approx_uv, dtype=float))
+    half = int(window_px) // 2
+    height, width = img.shape
+    out = np.full(approx.shape, np.nan)
+    ry, rx = np.mgrid[-half:half + 1, -half:half + 1]
+    rho = np.hypot(rx, ry)
+    inside = rho <= half + 0.5  # a round window: any rotation of the target square fits the same way
+    border = inside & (rho > half - 1.0)
+    for k, (u, v) in enumerate(approx):
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        cu, cv = u, v
+        found = False
+        for _ in range(max(1, iterations)):
+            col, row = int(np.floor(cu)), int(np.floor(cv))
+            if row - half < 0 or col - half < 0 or row + half >= height or col + half >= width:
+                found = False
+                break
+            patch = img[row - half:row + half + 1, col - half:col + half + 1]
+            edge = patch[border]
+            bg = np.median(edge)
+            noise = 1.4826 * np.median(np.abs(edge - bg))
+            w = patch - bg
+            w = np.where(inside & (w > threshold_sigma * noise), w, 0.0)
+            total = w.sum()
+            if total <= 0:
+                found = False
+                break
+            cu = col + 0.5 + float((w * rx).sum() / total)
+            cv = row + 0.5 + float((w * ry).sum() / total)
+            found = True
+        if found:
+            out[k] = (cu, cv)
+    return out
