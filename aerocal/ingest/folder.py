@@ -1,0 +1,622 @@
+"""Ingest a flight: a folder of images (or a list of image files) plus its sidecar files.
+
+A *flight folder* keeps its images in ``images/`` and beside it, all optional::
+
+    eo.csv          exterior orientation overriding the image metadata (see aerocal.ingest.eo_csv)
+    gcp_list.txt    OpenDroneMap ground control list (see aerocal.ingest.gcp_odm)
+    gcps.csv        GCP coordinates with sigmas and roles (see aerocal.ingest.gcp_csv)
+    camera.json     camera identity and nominal camera (see aerocal.ingest.camera_identity)
+    (the simulator's ground-truth file is never read by ingest or any processing code)
+
+A plain folder of images is also accepted (its sidecars are looked for in the folder itself).
+Explicit ``gcp_file``/``eo_file``/``crs`` arguments win over what is found.
+
+Order of work: list and read every image (metadata only, no pixel decoding); drop duplicates; apply the
+EO CSV; fill the camera identity; resolve UTC times; choose the flight CRS (the ``crs`` argument, else the
+UTM zone of the images' median position, else the ground control's CRS); project positions; find
+strips; read and check ground control; build the tables. Problems never stop the flight: each names its
+file (and line and field), and the result carries them all.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from aerocal import tables
+from aerocal.camera import Camera
+from aerocal.geometry import lonlat_to_projected, utm_crs_for
+from aerocal.ingest.camera_identity import (
+    UNKNOWN_CAMERA_ID,
+    CameraIdentity,
+    identity_of,
+    read_camera_json,
+)
+from aerocal.ingest.capture_time import resolve_utc_times
+from aerocal.ingest.config import IngestConfig
+from aerocal.ingest.crs_strings import CrsTextError, crs_kind, normalise_crs
+from aerocal.ingest.dji import APP4_FLOAT_OFFSETS, app4_field_name
+from aerocal.ingest.eo_csv import EoFile, read_eo_csv
+from aerocal.ingest.gcp import ImageFrame, build_gcp_tables, read_gcp_file
+from aerocal.ingest.gcp_records import GcpFile
+from aerocal.ingest.metadata import ImageMetadata, read_image_metadata, sniff_container
+from aerocal.ingest.problems import Problem, ProblemLog, name_list
+from aerocal.ingest.strips import find_strips
+
+#: extensions of image formats ingest does not read; such files are reported, not silently ignored
+OTHER_IMAGE_EXTENSIONS = (
+    ".png",
+    ".bmp",
+    ".gif",
+    ".dng",
+    ".raw",
+    ".cr2",
+    ".nef",
+    ".arw",
+    ".heic",
+    ".webp",
+    ".jp2",
+)
+EO_NAME, GCP_LIST_NAME, GCP_CSV_NAME, CAMERA_JSON_NAME = "eo.csv", "gcp_list.txt", "gcps.csv", "camera.json"
+_HEADING_CONVENTIONS = ("dji_gimbal", "body_rpy")
+
+
+@dataclass
+class IngestResult:
+    """Everything ingest produced for one flight.
+
+    * ``images``: table of schema :data:`aerocal.tables.IMAGES` (CRS in its metadata);
+    * ``gcps``, ``gcp_observations``: tables of schemas ``GCPS`` and ``GCP_OBSERVATIONS``;
+    * ``extra``: per-image metadata not in the schema (``image_id``, ``name`` and one column per field:
+      speeds, laser range, relative altitude, undocumented DJI APP4 floats, provenance of each value);
+    * ``crs``: the flight's projected CRS (``None`` if nothing in the flight is georeferenced);
+    * ``problems``: everything found wrong, by file, line and field;
+    * ``camera``, ``camera_identity``: the nominal camera of ``camera.json`` if there is one;
+    * ``skipped_images``: image files that could not be ingested (each has an error in ``problems``);
+    * ``sources``: the sidecar files that were read.
+    """
+
+    images: pa.Table
+    gcps: pa.Table
+    gcp_observations: pa.Table
+    extra: pa.Table
+    crs: str | None
+    problems: list[Problem]
+    camera: Camera | None = None
+    camera_identity: CameraIdentity | None = None
+    skipped_images: list[str] = field(default_factory=list)
+    sources: dict[str, str] = field(default_factory=dict)
+    config: IngestConfig = field(default_factory=IngestConfig)
+
+    @property
+    def errors(self) -> list[Problem]:
+        return [p for p in self.problems if p.severity == "error"]
+
+    @property
+    def warnings(self) -> list[Problem]:
+        return [p for p in self.problems if p.severity == "warning"]
+
+
+# ---------------------------------------------------------------------------- discovery
+@dataclass
+class _Inputs:
+    label: str
+    images: list[Path]
+    sidecar_dir: Path | None
+    folder_files: set[str]
+
+
+def _discover(
+    path_or_list: str | Path | Sequence[str | Path], cfg: IngestConfig, problems: ProblemLog
+) -> _Inputs:
+    exts = tuple(e.lower() for e in cfg.image_extensions)
+    if isinstance(path_or_list, str | Path):
+        root = Path(path_or_list)
+        if not root.exists():
+            problems.error(root, "does not exist; nothing ingested")
+            return _Inputs(str(root), [], None, set())
+        if root.is_file():
+            return _Inputs(str(root), [root], None, {root.name})
+        image_dir = root / "images" if (root / "images").is_dir() else root
+        try:
+            entries = sorted((p for p in image_dir.iterdir() if p.is_file()), key=lambda p: p.name)
+        except OSError as exc:
+            problems.error(image_dir, f"cannot be listed ({exc.strerror or exc}); nothing ingested")
+            return _Inputs(str(root), [], root, set())
+        images: list[Path] = []
+        for p in entries:
+            if p.name.startswith("."):
+                continue
+            ext = p.suffix.lower()
+            if ext in exts:
+                images.append(p)
+            elif ext in OTHER_IMAGE_EXTENSIONS:
+                if _sniff(p) is not None:
+                    images.append(p)
+                else:
+                    problems.error(
+                        p, f"image format {ext} is not supported (JPEG, TIFF, DJI R-JPEG are); skipped"
+                    )
+        if not images:
+            problems.error(image_dir, f"holds no image files ({', '.join(exts)}); nothing ingested")
+        return _Inputs(str(root), images, root, {p.name for p in entries})
+    paths: list[Path] = []
+    for item in path_or_list:
+        p = Path(item)
+        if not p.is_file():
+            problems.error(p, "does not exist or is not a file; skipped")
+            continue
+        paths.append(p)
+    paths.sort(key=lambda p: p.name)
+    label = str(paths[0].parent) if paths else "<no images>"
+    return _Inputs(label, paths, None, {p.name for p in paths})
+
+
+def _sniff(path: Path) -> str | None:
+    try:
+        with open(path, "rb") as fh:
+            return sniff_container(fh.read(8))
+    except OSError:
+        return None
+
+
+def _sidecar(
+    explicit: str | Path | None, sidecar_dir: Path | None, name: str, problems: ProblemLog
+) -> Path | None:
+    if explicit is not None:
+        p = Path(explicit)
+        if not p.is_file():
+            problems.error(p, "does not exist or is not a file; not used")
+            return None
+        return p
+    if sidecar_dir is not None and (sidecar_dir / name).is_file():
+        return sidecar_dir / name
+    return None
+
+
+# ---------------------------------------------------------------------------- main entry
+def ingest_folder(
+    path_or_list: str | Path | Sequence[str | Path],
+    gcp_file: str | Path | Sequence[str | Path] | None = None,
+    eo_file: str | Path | None = None,
+    crs: str | None = None,
+    config: IngestConfig | None = None,
+) -> IngestResult:
+    """Ingest a flight folder, a folder of images or a list of image files; never raises on bad data.
+
+    ``gcp_file``: an ODM ``gcp_list.txt`` or a GCP CSV, or several (a CSV of coordinates and roles plus a
+    ``gcp_list.txt`` of image measurements); default: ``gcp_list.txt`` and ``gcps.csv`` beside ``images/``.
+    ``eo_file``: an EO CSV (default ``eo.csv``). ``crs``: the flight's projected CRS (default: the UTM zone
+    of the images' median position); also the CRS of EO/GCP CSVs that carry no ``# crs:`` line.
+    """
+    cfg = config or IngestConfig()
+    problems = ProblemLog()
+    inputs = _discover(path_or_list, cfg, problems)
+    where = inputs.label
+    sources: dict[str, str] = {"images": where}
+
+    user_crs = None
+    if crs is not None:
+        try:
+            norm = normalise_crs(str(crs))
+            if crs_kind(norm) != "projected":
+                problems.error(
+                    where,
+                    f"crs {crs!r} is not a projected CRS in metres; chosen automatically instead",
+                    "crs",
+                )
+            else:
+                user_crs = norm
+        except CrsTextError as exc:
+            problems.error(where, f"crs argument: {exc}; chosen automatically instead", "crs")
+
+    # images
+    metas: list[ImageMetadata] = []
+    skipped: list[str] = []
+    for path in inputs.images:
+        try:
+            meta, found = read_image_metadata(path, cfg)
+        except Exception as exc:  # a defect in a reader must not stop the flight; it is reported by file
+            why = f"unexpected failure while reading ({type(exc).__name__}: {exc}); skipped"
+            meta, found = None, [Problem(str(path), None, None, why, "error")]
+        problems.extend(found)
+        if meta is None:
+            skipped.append(path.name)
+        else:
+            metas.append(meta)
+    metas = _drop_duplicates(metas, problems, skipped)
+
+    # sidecars
+    eo_path = _sidecar(eo_file, inputs.sidecar_dir, EO_NAME, problems)
+    camera_json = _sidecar(None, inputs.sidecar_dir, CAMERA_JSON_NAME, problems)
+    if gcp_file is None:
+        gcp_paths = [
+            p
+            for p in (_sidecar(None, inputs.sidecar_dir, n, problems) for n in (GCP_CSV_NAME, GCP_LIST_NAME))
+            if p is not None
+        ]
+    else:
+        items = [gcp_file] if isinstance(gcp_file, str | Path) else list(gcp_file)
+        gcp_paths = [p for p in (_sidecar(i, None, "", problems) for i in items) if p is not None]
+
+    identity, camera = (None, None)
+    if camera_json is not None:
+        identity, camera = _guarded(problems, camera_json, read_camera_json, camera_json, problems) or (
+            None,
+            None,
+        )
+        sources["camera_json"] = str(camera_json)
+    if eo_path is not None:
+        sources["eo"] = str(eo_path)
+        eo = _guarded(problems, eo_path, read_eo_csv, eo_path, problems, user_crs, cfg.eo_default_attitude)
+        if eo is not None:
+            _apply_eo(eo, metas, problems)
+    gcp_files: list[GcpFile] = []
+    for p in gcp_paths:
+        f = _guarded(problems, p, read_gcp_file, p, problems, cfg, user_crs)
+        if f is not None:
+            gcp_files.append(f)
+    if gcp_paths:
+        sources["gcp"] = ";".join(str(p) for p in gcp_paths)
+
+    camera_ids = _camera_ids(metas, identity, camera, camera_json, problems)
+    times = resolve_utc_times(metas, where, problems, cfg.time_zone_from_gnss)
+    _flight_warnings(metas, where, problems)
+
+    flight_crs = user_crs or _choose_crs(metas, gcp_files, where, problems)
+    x, y = _project(metas, flight_crs)
+    strip = _strips(metas, x, y, times, cfg)
+
+    frames = {m.name: ImageFrame(i + 1, m.width, m.height) for i, m in enumerate(metas)}
+    built = None
+    if gcp_files and flight_crs is not None:
+        built = _guarded(
+            problems,
+            gcp_files[0].path,
+            build_gcp_tables,
+            gcp_files,
+            frames,
+            flight_crs,
+            problems,
+            cfg,
+            inputs.folder_files,
+        )
+    if built is not None:
+        gcps, gcp_obs = built
+    else:
+        gcps, gcp_obs = tables.empty("gcps"), tables.empty("gcp_observations")
+        if gcp_files and flight_crs is None:
+            problems.error(gcp_files[0].path, "no flight CRS could be chosen; ground control not used", "crs")
+
+    images = _images_table(metas, camera_ids, times, x, y, strip, flight_crs)
+    extra = _extra_table(metas)
+    if flight_crs is not None:
+        gcps, gcp_obs = tables.with_crs(gcps, flight_crs), tables.with_crs(gcp_obs, flight_crs)
+    return IngestResult(
+        images=images,
+        gcps=gcps,
+        gcp_observations=gcp_obs,
+        extra=extra,
+        crs=flight_crs,
+        problems=problems.as_list(),
+        camera=camera,
+        camera_identity=identity,
+        skipped_images=skipped,
+        sources=sources,
+        config=cfg,
+    )
+
+
+# ---------------------------------------------------------------------------- steps
+def _guarded(problems: ProblemLog, path: Path, fn, *args):
+    """``fn(*args)``; an unexpected exception (a defect, not bad data) is reported against ``path``."""
+    try:
+        return fn(*args)
+    except Exception as exc:  # a defect in a reader must not stop the flight; it is reported by file
+        problems.error(path, f"unexpected failure while reading ({type(exc).__name__}: {exc}); not used")
+        return None
+
+
+def _drop_duplicates(
+    metas: list[ImageMetadata], problems: ProblemLog, skipped: list[str]
+) -> list[ImageMetadata]:
+    by_hash: dict[str, ImageMetadata] = {}
+    by_name: dict[str, ImageMetadata] = {}
+    out = []
+    for m in metas:
+        if m.sha256 in by_hash:
+            problems.error(
+                m.path, f"has the same content as {by_hash[m.sha256].path}; duplicate skipped", "sha256"
+            )
+            skipped.append(m.name)
+            continue
+        if m.name in by_name:
+            problems.error(m.path, f"has the same file name as {by_name[m.name].path}; skipped", "name")
+            skipped.append(m.name)
+            continue
+        by_hash[m.sha256] = by_name[m.name] = m
+        out.append(m)
+    return out
+
+
+def _apply_eo(eo: EoFile, metas: list[ImageMetadata], problems: ProblemLog) -> None:
+    exact = {m.name: m for m in metas}
+    lower = {m.name.lower(): m for m in metas}
+    stem = {Path(m.name).stem.lower(): m for m in metas}
+    covered: set[str] = set()
+    for name, rec in eo.records.items():
+        m = exact.get(name) or lower.get(name.lower()) or stem.get(Path(name).stem.lower())
+        if m is None:
+            problems.error(
+                eo.path, f"image {name} is not among the ingested images; row ignored", "image", rec.line
+            )
+            continue
+        covered.add(m.name)
+        pose = m.pose
+        if rec.lat is not None and rec.lon is not None:
+            pose.lat, pose.lon, pose.alt = rec.lat, rec.lon, rec.z
+            pose.source = f"eo_csv:{eo.path.name}"
+            pose.alt_reference = f"as given in {eo.path.name}"
+            if crs_kind(eo.crs) == "projected":
+                m.extra["eo_crs"] = eo.crs
+                m.extra["eo_x"], m.extra["eo_y"] = float(rec.x), float(rec.y)  # type: ignore[arg-type]
+        if rec.angles is not None and eo.convention is not None:
+            pose.roll, pose.pitch, pose.yaw = rec.angles
+            pose.convention = eo.convention
+            m.extra["attitude_source"] = f"eo_csv:{eo.path.name}"
+        if rec.temperature_c is not None:
+            m.temperature_c, m.temperature_source = rec.temperature_c, f"eo_csv:{eo.path.name}"
+    missing = [m.name for m in metas if m.name not in covered]
+    if missing and eo.records:
+        problems.warning(
+            eo.path,
+            f"{len(missing)} ingested image(s) have no row: metadata kept for {name_list(missing)}",
+            "image",
+        )
+
+
+def _camera_ids(
+    metas: list[ImageMetadata],
+    identity: CameraIdentity | None,
+    camera: Camera | None,
+    camera_json: Path | None,
+    problems: ProblemLog,
+) -> list[str]:
+    ids: list[str] = []
+    known: dict[tuple[int, int], set[str]] = {}
+    for m in metas:
+        ident = identity_of(m.make, m.model, m.serial, m.lens)
+        if ident.is_known:
+            known.setdefault((m.width, m.height), set()).add(ident.camera_id)
+    for m in metas:
+        ident = identity_of(m.make, m.model, m.serial, m.lens)
+        if ident.is_known:
+            if (
+                identity is not None
+                and identity.is_known
+                and (ident.make, ident.model) != (identity.make, identity.model)
+            ):
+                problems.warning(
+                    m.path,
+                    f"camera {ident.camera_id} differs from {CAMERA_JSON_NAME} ({identity.camera_id}); "
+                    "the image's own identity is used",
+                    "camera_id",
+                )
+            ids.append(ident.camera_id)
+        elif identity is not None and identity.is_known:
+            ids.append(identity.camera_id)
+        elif len(known.get((m.width, m.height), ())) == 1:
+            cid = next(iter(known[(m.width, m.height)]))
+            problems.warning(
+                m.path, f"no camera identity; assumed to be the flight's {cid} (same image size)", "camera_id"
+            )
+            ids.append(cid)
+        else:
+            problems.warning(
+                m.path, f"no camera identity; camera_id set to {UNKNOWN_CAMERA_ID!r}", "camera_id"
+            )
+            ids.append(UNKNOWN_CAMERA_ID)
+    if camera is not None and camera_json is not None:
+        sizes = sorted({(m.width, m.height) for m in metas})
+        if sizes and (camera.width, camera.height) not in sizes:
+            problems.warning(
+                camera_json,
+                f"nominal camera is {camera.width}x{camera.height} but the images are "
+                f"{', '.join(f'{w}x{h}' for w, h in sizes)}",
+                "camera",
+            )
+    return ids
+
+
+def _flight_warnings(metas: list[ImageMetadata], where: str, problems: ProblemLog) -> None:
+    """Warnings about the whole flight, given once instead of once per image."""
+    if not metas:
+        return
+    n = len(metas)
+    no_pos = [m.name for m in metas if m.pose.lat is None]
+    if len(no_pos) == n:
+        problems.warning(
+            where,
+            f"no image carries a GNSS position ({n} images): positions and attitude are null; orientation "
+            "must come from structure from motion and ground control",
+            "gnss",
+        )
+    elif no_pos:
+        problems.warning(
+            where, f"{len(no_pos)} of {n} images have no GNSS position: {name_list(no_pos)}", "gnss"
+        )
+    no_att = [m.name for m in metas if m.pose.convention is None]
+    if no_att and len(no_pos) < n:
+        problems.warning(
+            where, f"{len(no_att)} of {n} images have no recorded attitude: {name_list(no_att)}", "attitude"
+        )
+    no_temp = [m.name for m in metas if m.temperature_c is None]
+    if no_temp and len(no_temp) < n:
+        problems.warning(
+            where,
+            f"{len(no_temp)} of {n} images have no camera temperature: {name_list(no_temp)}",
+            "temperature_c",
+        )
+    dji_alt = [m for m in metas if m.pose.source == "xmp:drone-dji" and m.pose.alt is not None]
+    if dji_alt:
+        problems.warning(
+            where,
+            f"alt of {len(dji_alt)} image(s) is DJI AbsoluteAltitude, whose vertical reference (ellipsoidal "
+            "or mean sea level) DJI does not document for every model and mode: "
+            "check before using heights as "
+            "priors (dji_relative_altitude_m is in extra)",
+            "alt",
+        )
+    app4 = [m for m in metas if any(app4_field_name(o) in m.extra for o in APP4_FLOAT_OFFSETS)]
+    if app4:
+        ranges = []
+        for off in APP4_FLOAT_OFFSETS:
+            vals = [float(m.extra[app4_field_name(off)]) for m in app4 if app4_field_name(off) in m.extra]
+            if vals:
+                ranges.append(f"byte {off}: {vals[0]:.1f} -> {vals[-1]:.1f}")
+        used = [m for m in app4 if (m.temperature_source or "").startswith("dji:APP4")]
+        use = (
+            f"used as temperature_c on request ({len(used)} images)"
+            if used
+            else "not used as the sensor temperature (IngestConfig.dji_app4_temperature opts in)"
+        )
+        problems.warning(
+            where,
+            f"DJI APP4 floats that read as internal temperatures in degC ({'; '.join(ranges)}) are "
+            f"UNDOCUMENTED by DJI; stored in extra as dji_app4_f<byte>_undocumented, {use}",
+            "APP4",
+        )
+
+
+def _choose_crs(
+    metas: list[ImageMetadata], gcp_files: list[GcpFile], where: str, problems: ProblemLog
+) -> str | None:
+    lon = np.array([m.pose.lon for m in metas if m.pose.lon is not None], dtype=float)
+    lat = np.array([m.pose.lat for m in metas if m.pose.lat is not None], dtype=float)
+    if lon.size:
+        try:
+            return utm_crs_for(float(np.median(lon)), float(np.median(lat)))
+        except ValueError as exc:
+            problems.warning(
+                where, f"images' median position: {exc}; flight CRS from ground control instead", "crs"
+            )
+    for f in gcp_files:
+        kind = crs_kind(f.crs)
+        if kind == "projected":
+            return f.crs
+        if kind == "geographic" and f.points:
+            glon = float(np.median([p.x for p in f.points.values()]))
+            glat = float(np.median([p.y for p in f.points.values()]))
+            try:
+                return utm_crs_for(glon, glat)
+            except ValueError:
+                continue
+    return None
+
+
+def _project(metas: list[ImageMetadata], crs: str | None) -> tuple[np.ndarray, np.ndarray]:
+    n = len(metas)
+    x = np.full(n, np.nan)
+    y = np.full(n, np.nan)
+    if crs is None:
+        return x, y
+    idx = [i for i, m in enumerate(metas) if m.pose.lat is not None and m.pose.lon is not None]
+    if idx:
+        lon = np.array([metas[i].pose.lon for i in idx], dtype=float)
+        lat = np.array([metas[i].pose.lat for i in idx], dtype=float)
+        px, py = lonlat_to_projected(lon, lat, crs)
+        x[idx], y[idx] = np.asarray(px, dtype=float), np.asarray(py, dtype=float)
+    for i, m in enumerate(metas):  # EO given in the flight CRS: keep its coordinates exactly
+        if m.extra.get("eo_crs") == crs and str(m.pose.source).startswith("eo_csv"):
+            x[i], y[i] = float(m.extra["eo_x"]), float(m.extra["eo_y"])
+    bad = ~np.isfinite(x) | ~np.isfinite(y)
+    x[bad] = y[bad] = np.nan
+    return x, y
+
+
+def _strips(metas, x, y, times, cfg: IngestConfig) -> np.ndarray:
+    n = len(metas)
+    strip = np.full(n, -2, dtype=np.int32)  # -2: no position (null in the table)
+    pos = np.flatnonzero(np.isfinite(x) & np.isfinite(y))
+    if pos.size == 0:
+        return strip
+    if all(times[i] is not None for i in pos):
+        order = sorted(pos, key=lambda i: (times[i], metas[i].name))
+    else:
+        order = sorted(pos, key=lambda i: metas[i].name)
+    order = np.asarray(order)
+    heading = np.array(
+        [
+            metas[i].pose.yaw
+            if metas[i].pose.convention in _HEADING_CONVENTIONS and metas[i].pose.yaw is not None
+            else np.nan
+            for i in order
+        ],
+        dtype=float,
+    )
+    strip[order] = find_strips(x[order], y[order], heading, cfg.strips)
+    return strip
+
+
+def _images_table(metas, camera_ids, times, x, y, strip, crs) -> pa.Table:
+    def col(values):
+        return [None if v is None or (isinstance(v, float) and not math.isfinite(v)) else v for v in values]
+
+    columns = {
+        "image_id": list(range(1, len(metas) + 1)),
+        "name": [m.name for m in metas],
+        "path": [str(m.path.resolve()) for m in metas],
+        "sha256": [m.sha256 for m in metas],
+        "time": times,
+        "camera_id": camera_ids,
+        "width": [m.width for m in metas],
+        "height": [m.height for m in metas],
+        "bit_depth": [m.bit_depth for m in metas],
+        "lat": col(m.pose.lat for m in metas),
+        "lon": col(m.pose.lon for m in metas),
+        "alt": col(m.pose.alt for m in metas),
+        "gnss_x": col(x.tolist()),
+        "gnss_y": col(y.tolist()),
+        "gnss_z": col(m.pose.alt if np.isfinite(x[i]) else None for i, m in enumerate(metas)),
+        "roll": col(m.pose.roll for m in metas),
+        "pitch": col(m.pose.pitch for m in metas),
+        "yaw": col(m.pose.yaw for m in metas),
+        "attitude_convention": [m.pose.convention for m in metas],
+        "temperature_c": col(m.temperature_c for m in metas),
+        "strip": [None if s == -2 else int(s) for s in strip.tolist()],
+    }
+    table = tables.from_columns("images", columns)
+    return tables.with_crs(table, crs) if crs else table
+
+
+def _extra_table(metas: list[ImageMetadata]) -> pa.Table:
+    rows = []
+    for m in metas:
+        row = dict(m.extra)
+        row["position_source"] = m.pose.source
+        if m.pose.alt_reference:
+            row["alt_reference"] = m.pose.alt_reference
+        if m.temperature_source:
+            row["temperature_source"] = m.temperature_source
+        row["container"] = m.container + ("/r-jpeg raw thermal" if m.raw_thermal else "")
+        rows.append(row)
+    keys = sorted({k for r in rows for k in r})
+    arrays = [
+        pa.array(list(range(1, len(metas) + 1)), type=pa.int32()),
+        pa.array([m.name for m in metas], type=pa.string()),
+    ]
+    names = ["image_id", "name"]
+    for k in keys:
+        values = [r.get(k) for r in rows]
+        numeric = all(v is None or (isinstance(v, int | float) and not isinstance(v, bool)) for v in values)
+        if numeric:
+            arrays.append(pa.array([None if v is None else float(v) for v in values], type=pa.float64()))
+        else:
+            arrays.append(pa.array([None if v is None else str(v) for v in values], type=pa.string()))
+        names.append(k)
+    return pa.Table.from_arrays(arrays, names=names)

@@ -1,0 +1,259 @@
+"""Writing the metadata ingest reads: EXIF (IFD0, EXIF and GPS IFDs) and XMP, into TIFF and JPEG files.
+
+The inverse of the readers, for flights the project makes itself (the simulator's contract: 16-bit
+single-channel TIFF or 8-bit JPEG, EXIF Make/Model/BodySerialNumber/DateTimeOriginal, an XMP packet with
+``drone-dji`` fields) and for tests. Files are little-endian classic TIFF, one uncompressed strip;
+JPEGs get an APP1 EXIF segment and an APP1 XMP segment right after SOI (existing APPn segments other
+than APP0 are removed).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import struct
+from collections.abc import Mapping
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from aerocal.ingest.exif import (
+    TAG_BODY_SERIAL,
+    TAG_DATETIME_ORIGINAL,
+    TAG_EXIF_IFD,
+    TAG_GPS_IFD,
+    TAG_LENS_MODEL,
+    TAG_MAKE,
+    TAG_MODEL,
+    TAG_OFFSET_TIME_ORIGINAL,
+    TAG_SUBSEC_ORIGINAL,
+    TAG_XMP,
+)
+from aerocal.ingest.jpeg import parse_jpeg
+from aerocal.ingest.xmp import XMP_APP1_HEADER
+from aerocal.io import atomic_path
+
+#: one IFD entry to write: (tag, TIFF type, values); values are str (ASCII), bytes (BYTE/UNDEFINED),
+#: a sequence of ints (SHORT/LONG) or of floats (RATIONAL: written as num/10**6)
+Entry = tuple[int, int, object]
+
+DJI_NAMESPACE = "http://www.dji.com/drone-dji/1.0/"
+
+
+def _encode_value(typ: int, values: object) -> tuple[int, bytes]:
+    if typ == 2:
+        raw = str(values).encode("latin-1", errors="replace") + b"\x00"
+        return len(raw), raw
+    if typ in (1, 7):
+        raw = bytes(values)  # type: ignore[arg-type]
+        return len(raw), raw
+    seq = list(values)  # type: ignore[call-overload]
+    if typ == 3:
+        return len(seq), struct.pack(f"<{len(seq)}H", *seq)
+    if typ == 4:
+        return len(seq), struct.pack(f"<{len(seq)}I", *seq)
+    if typ == 5:
+        parts = []
+        for v in seq:
+            parts += [int(round(float(v) * 1_000_000)), 1_000_000]
+        return len(seq), struct.pack(f"<{len(parts)}I", *parts)
+    if typ == 11:
+        return len(seq), struct.pack(f"<{len(seq)}f", *seq)
+    if typ == 12:
+        return len(seq), struct.pack(f"<{len(seq)}d", *seq)
+    raise ValueError(f"TIFF type {typ} is not written by this module")
+
+
+def _ifd_bytes(entries: list[Entry], start: int) -> bytes:
+    """An IFD placed at byte ``start`` of the file, followed by its out-of-line values (no next IFD)."""
+    entries = sorted(entries, key=lambda e: e[0])
+    n = len(entries)
+    header_len = 2 + 12 * n + 4
+    data_pos = start + header_len
+    head = bytearray(struct.pack("<H", n))
+    tail = bytearray()
+    for tag, typ, values in entries:
+        count, raw = _encode_value(typ, values)
+        if len(raw) <= 4:
+            head += struct.pack("<HHI", tag, typ, count) + raw.ljust(4, b"\x00")
+        else:
+            offset = data_pos + len(tail)
+            head += struct.pack("<HHII", tag, typ, count, offset)
+            tail += raw
+            if len(tail) % 2:
+                tail += b"\x00"
+    head += struct.pack("<I", 0)
+    return bytes(head + tail)
+
+
+def _exif_entries(
+    serial: str | None, lens: str | None, time: dt.datetime | None, utc_offset: str | None
+) -> list[Entry]:
+    exif: list[Entry] = []
+    if time is not None:
+        exif.append((TAG_DATETIME_ORIGINAL, 2, time.strftime("%Y:%m:%d %H:%M:%S")))
+        if time.microsecond:
+            exif.append((TAG_SUBSEC_ORIGINAL, 2, f"{time.microsecond:06d}".rstrip("0")))
+    if utc_offset:
+        exif.append((TAG_OFFSET_TIME_ORIGINAL, 2, utc_offset))
+    if serial:
+        exif.append((TAG_BODY_SERIAL, 2, serial))
+    if lens:
+        exif.append((TAG_LENS_MODEL, 2, lens))
+    return exif
+
+
+def _gps_entries(lat: float | None, lon: float | None, alt: float | None) -> list[Entry]:
+    if lat is None or lon is None:
+        return []
+
+    def dms(v: float) -> list[float]:
+        v = abs(v)
+        d = int(v)
+        m = int((v - d) * 60)
+        return [float(d), float(m), (v - d - m / 60.0) * 3600.0]
+
+    gps: list[Entry] = [
+        (0, 1, b"\x02\x03\x00\x00"),
+        (1, 2, "N" if lat >= 0 else "S"),
+        (2, 5, dms(lat)),
+        (3, 2, "E" if lon >= 0 else "W"),
+        (4, 5, dms(lon)),
+    ]
+    if alt is not None:
+        gps += [(5, 1, b"\x00" if alt >= 0 else b"\x01"), (6, 5, [abs(alt)])]
+    return gps
+
+
+def exif_block(
+    make: str | None = None,
+    model: str | None = None,
+    serial: str | None = None,
+    lens: str | None = None,
+    time: dt.datetime | None = None,
+    utc_offset: str | None = None,
+    gps: tuple[float, float, float | None] | None = None,
+    ifd0_extra: list[Entry] | None = None,
+) -> bytes:
+    """A little-endian TIFF block: IFD0 (Make, Model), the EXIF IFD and the GPS IFD (a JPEG APP1 body)."""
+    ifd0: list[Entry] = list(ifd0_extra or [])
+    if make:
+        ifd0.append((TAG_MAKE, 2, make))
+    if model:
+        ifd0.append((TAG_MODEL, 2, model))
+    exif = _exif_entries(serial, lens, time, utc_offset)
+    gps_e = _gps_entries(*gps) if gps else []
+    # lay out: header (8) | IFD0 | EXIF IFD | GPS IFD; pointers are fixed up once sizes are known
+    ifd0_full = ifd0 + ([(TAG_EXIF_IFD, 4, [0])] if exif else []) + ([(TAG_GPS_IFD, 4, [0])] if gps_e else [])
+    exif_pos = 8 + len(_ifd_bytes(ifd0_full, 8))
+    b1 = _ifd_bytes(exif, exif_pos) if exif else b""
+    gps_pos = exif_pos + len(b1)
+    b2 = _ifd_bytes(gps_e, gps_pos) if gps_e else b""
+    fixed = list(ifd0)
+    if exif:
+        fixed.append((TAG_EXIF_IFD, 4, [exif_pos]))
+    if gps_e:
+        fixed.append((TAG_GPS_IFD, 4, [gps_pos]))
+    b0 = _ifd_bytes(fixed, 8)
+    return b"II*\x00" + struct.pack("<I", 8) + b0 + b1 + b2
+
+
+def dji_xmp_packet(fields: Mapping[str, object]) -> str:
+    """An XMP packet of ``drone-dji:<name>="<value>"`` attributes (floats signed, as DJI writes them)."""
+    attrs = []
+    for name, value in fields.items():
+        text = f"{value:+.7f}" if isinstance(value, float) else str(value)
+        attrs.append(f"   drone-dji:{name}={quoteattr(text)}")
+    return (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
+        f'  <rdf:Description rdf:about="" xmlns:drone-dji="{DJI_NAMESPACE}"\n'
+        + "\n".join(attrs)
+        + ">\n  </rdf:Description>\n </rdf:RDF>\n</x:xmpmeta>"
+    )
+
+
+def write_tiff_with_metadata(
+    path: str | Path,
+    pixels: np.ndarray,
+    make: str | None = None,
+    model: str | None = None,
+    serial: str | None = None,
+    time: dt.datetime | None = None,
+    xmp: str | None = None,
+    lens: str | None = None,
+) -> Path:
+    """Write an uncompressed TIFF (uint8/uint16, (H, W) or (H, W, C)) with EXIF and XMP, atomically."""
+    arr = np.ascontiguousarray(pixels)
+    if arr.dtype not in (np.uint8, np.uint16) or arr.ndim not in (2, 3):
+        raise ValueError(f"pixels must be uint8/uint16 (H, W[, C]); got {arr.dtype} {arr.shape}")
+    h, w = arr.shape[:2]
+    spp = 1 if arr.ndim == 2 else arr.shape[2]
+    bits = arr.dtype.itemsize * 8
+    data = arr.astype(arr.dtype.newbyteorder("<"), copy=False).tobytes()
+    ifd0: list[Entry] = [
+        (256, 4, [w]),
+        (257, 4, [h]),
+        (258, 3, [bits] * spp),
+        (259, 3, [1]),
+        (262, 3, [1 if spp == 1 else 2]),
+        (273, 4, [0]),
+        (277, 3, [spp]),
+        (278, 4, [h]),
+        (279, 4, [len(data)]),
+        (284, 3, [1]),
+    ]
+    if make:
+        ifd0.append((TAG_MAKE, 2, make))
+    if model:
+        ifd0.append((TAG_MODEL, 2, model))
+    if xmp:
+        ifd0.append((TAG_XMP, 1, xmp.encode("utf-8")))
+    exif = _exif_entries(serial, lens, time, None)
+    if exif:
+        ifd0.append((TAG_EXIF_IFD, 4, [0]))
+    # two passes: sizes first, then real offsets
+    exif_pos = 8 + len(_ifd_bytes(ifd0, 8))
+    b1 = _ifd_bytes(exif, exif_pos) if exif else b""
+    pix_pos = exif_pos + len(b1)
+    ifd0 = [e for e in ifd0 if e[0] not in (273, TAG_EXIF_IFD)] + [(273, 4, [pix_pos])]
+    if exif:
+        ifd0.append((TAG_EXIF_IFD, 4, [exif_pos]))
+    b0 = _ifd_bytes(ifd0, 8)
+    blob = b"II*\x00" + struct.pack("<I", 8) + b0 + b1 + data
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(blob)
+    return path
+
+
+def _segment(marker: int, payload: bytes) -> bytes:
+    if len(payload) + 2 > 0xFFFF:
+        raise ValueError(f"APP{marker - 0xE0} payload of {len(payload)} bytes does not fit a JPEG segment")
+    return bytes([0xFF, marker]) + struct.pack(">H", len(payload) + 2) + payload
+
+
+def jpeg_without_metadata(jpeg: bytes) -> bytes:
+    """The JPEG with every APP1..APP15 segment removed (EXIF, XMP, maker data); pixels untouched."""
+    s = parse_jpeg(jpeg)
+    out = bytearray(b"\xff\xd8")
+    i = 2
+    while i < s.sos_offset:
+        while jpeg[i] == 0xFF and jpeg[i + 1] == 0xFF:
+            i += 1
+        marker = jpeg[i + 1]
+        length = struct.unpack_from(">H", jpeg, i + 2)[0]
+        if not 0xE1 <= marker <= 0xEF:
+            out += jpeg[i : i + 2 + length]
+        i += 2 + length
+    return bytes(out + jpeg[s.sos_offset :])
+
+
+def jpeg_with_metadata(jpeg: bytes, exif: bytes | None = None, xmp: str | None = None) -> bytes:
+    """The JPEG with its APP1..APP15 segments replaced by an EXIF block and an XMP packet."""
+    body = jpeg_without_metadata(jpeg)
+    segs = b""
+    if exif is not None:
+        segs += _segment(0xE1, b"Exif\x00\x00" + exif)
+    if xmp is not None:
+        segs += _segment(0xE1, XMP_APP1_HEADER + xmp.encode("utf-8"))
+    return body[:2] + segs + body[2:]

@@ -1,0 +1,59 @@
+"""Image pixels with their original radiometry, for enhancement and mosaicking.
+
+:func:`read_raw` returns the sensor's pixel grid as stored (EXIF orientation is *not* applied: the
+camera model refers to the stored grid):
+
+* DJI R-JPEG: the raw thermal frame from the APP3 segments, ``uint16`` (H, W);
+* TIFF: the first page via :mod:`tifffile`, in its own dtype (``uint16`` for 16-bit thermal frames),
+  (H, W) or (H, W, C);
+* JPEG: decoded by ``cv2.imdecode`` with ``IMREAD_UNCHANGED``, ``uint8`` (H, W) for greyscale or
+  (H, W, 3) in **RGB** order (OpenCV decodes BGR; the channels are swapped here).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from aerocal.ingest.dji import raw_thermal_frame
+from aerocal.ingest.jpeg import JpegFormatError, parse_jpeg
+from aerocal.ingest.metadata import sniff_container
+
+
+class ImageReadError(ValueError):
+    """An image's pixels cannot be read; the message names the file and the reason."""
+
+
+def read_raw(path: str | Path) -> np.ndarray:
+    """Pixels of ``path`` with original radiometry (module docstring); raise :class:`ImageReadError`."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise ImageReadError(f"{path}: cannot be read ({exc.strerror or exc})") from exc
+    kind = sniff_container(data)
+    if kind == "jpeg":
+        try:
+            jpeg = parse_jpeg(data)
+        except JpegFormatError as exc:
+            raise ImageReadError(f"{path}: not a readable JPEG: {exc}") from exc
+        raw = raw_thermal_frame(jpeg)
+        if raw is not None:
+            return raw
+        import cv2
+
+        img = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise ImageReadError(f"{path}: OpenCV cannot decode this JPEG")
+        if img.ndim == 3 and img.shape[2] >= 3:
+            img = np.ascontiguousarray(img[:, :, [2, 1, 0]])
+        return img
+    if kind == "tiff":
+        import tifffile
+
+        try:
+            return tifffile.imread(path, key=0)
+        except Exception as exc:  # tifffile raises many types (TiffFileError, ValueError, struct.error, ...)
+            raise ImageReadError(f"{path}: not a readable TIFF ({type(exc).__name__}: {exc})") from exc
+    raise ImageReadError(f"{path}: not a JPEG or TIFF image")
