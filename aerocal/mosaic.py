@@ -1,0 +1,476 @@
+"""Orthomosaic: the block's frames resampled onto a north-up grid in the flight's projected CRS.
+
+Output grid
+-----------
+North-up, square pixels of ``gsd_m`` metres; pixel ``(row, col)`` is centred on
+``E = west + (col + 0.5) gsd``, ``N = north - (row + 0.5) gsd`` (GDAL "pixel is area"). Written as a
+Cloud-Optimized GeoTIFF (deflate, internal tiles, overviews) with the flight's CRS, its transform and a
+nodata value; written atomically (:func:`aerocal.io.atomic_path`).
+
+Per output pixel
+----------------
+1. Its ground point ``X = (E, N, h)`` with ``h`` bilinear in the DSM (:class:`aerocal.dsm.Dsm`).
+2. For every candidate frame: ``uv = camera_i.project(R_cw (X - C))`` through the FULL camera model
+   (Brown distortion, affinity, skew) with that frame's IO: ``LinearThermalModel.camera_at(camera, T_i)``
+   when a linear thermal model is given; for the similarity/polynomial models (which map measured
+   pixels to the reference camera) the measured position is found by inverting the correction by
+   fixed-point iteration (6 steps; it converges because the corrections change slowly across the image).
+3. Frame choice: the most nadir view, i.e. the smallest distance of ``uv`` to the frame's principal
+   point. Seams are feathered: a frame whose distance exceeds the best one by ``delta`` pixels gets
+   weight ``1 - delta / (2 feather_px)`` (clipped to [0, 1]); as ``delta`` grows by up to 2 px per
+   output pixel across a seam, weights fall to 0 over about ``feather_px`` pixels from it. Every weight
+   also tapers to ~0 over ``feather_px`` pixels inside the frame's border, so a frame edge never shows.
+4. The value is the weighted mean of the frames' values, each resampled bilinearly (``cv2.remap``,
+   ``INTER_LINEAR``) from the ORIGINAL radiometry (16-bit thermal DN stay DN; output dtype = input
+   dtype). Pixels no frame sees, or without a DSM height, are nodata.
+
+Occlusions are not modelled (this is an orthomosaic on the DSM, not a true orthophoto): at the
+narrow fields of view of thermal frames from hundreds of metres the hidden ground is a few metres
+beside tall buildings.
+
+Parallelism: the grid is cut into tiles of ``tile_px``; each tile is one task (on a Dask
+``distributed.Client`` when one is passed, serially otherwise) that receives only the frames whose
+footprint (the image border cast onto planes at the DSM's minimum and maximum heights) touches it,
+their pixels and the DSM window under the tile. Serial and Dask runs give identical bytes (the same
+function, frames summed in image-id order).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from aerocal.camera import Camera, LinearThermalModel, ThermalModel
+from aerocal.dsm import Dsm
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class MosaicConfig:
+    """Orthomosaic settings. Lengths in metres, sizes in output pixels.
+
+    ``gsd_m`` None = the block's median GSD (flying height above the DSM's median / focal length).
+    ``bounds`` None = the union of the frames' footprints at the DSM's median height.
+    ``nodata`` None = the dtype's maximum for uint16 (65535, i.e. 655.35 K, never a thermal value) and 0 for
+    uint8 (valid pixels are then clipped to 1..255).
+    """
+
+    gsd_m: float | None = None
+    bounds: tuple[float, float, float, float] | None = None  #: (west, south, east, north)
+    tile_px: int = 256  #: tile (task and GeoTIFF block) size; a multiple of 16
+    feather_px: float = 8.0  #: seam and frame-border feathering width
+    nodata: int | None = None
+    cog: bool = True  #: Cloud-Optimized GeoTIFF (else a tiled GeoTIFF with internal overviews)
+    overview_resampling: str = "average"
+
+    def __post_init__(self) -> None:
+        if self.gsd_m is not None and not self.gsd_m > 0:
+            raise ValueError(f"MosaicConfig.gsd_m must be positive, got {self.gsd_m}")
+        if self.tile_px < 16 or self.tile_px % 16:
+            raise ValueError(f"MosaicConfig.tile_px must be a multiple of 16 (>= 16), got {self.tile_px}")
+        if self.feather_px < 0:
+            raise ValueError(f"MosaicConfig.feather_px must be >= 0, got {self.feather_px}")
+
+
+@dataclass(frozen=True)
+class FrameGeometry:
+    """One adjusted frame: ``R_cw`` world-to-camera (3, 3), projection centre ``C`` (3,) world metres, and
+    the camera (IO in pixels) that holds for this frame.
+
+    ``thermal_model`` / ``temperature`` are set only for models that correct measurements rather than the
+    IO (similarity, polynomial): ``camera`` is then the reference camera and :meth:`project` undoes the
+    correction to find where the frame really recorded a ground point.
+    """
+
+    image_id: int
+    camera: Camera
+    R_cw: np.ndarray
+    C: np.ndarray
+    thermal_model: ThermalModel | None = None
+    temperature: float | None = None
+
+    def project(self, X: np.ndarray) -> np.ndarray:
+        """World points (..., 3) -> recorded pixels (..., 2) (top-left-corner convention); NaN behind."""
+        p = (np.asarray(X, dtype=float) - np.asarray(self.C, dtype=float)) @ np.asarray(self.R_cw).T
+        uv = self.camera.project(p)
+        if self.thermal_model is None:
+            return uv
+        from aerocal.camera import correct_measurements
+
+        raw = uv.copy()
+        for _ in range(6):  # correct(raw) = uv, the correction is close to the identity
+            raw = raw + (uv - correct_measurements(self.camera, raw, self.temperature, self.thermal_model))
+        return raw
+
+    def ground_footprint(self, heights: Sequence[float], samples_per_edge: int = 8) -> np.ndarray:
+        """The image border cast onto horizontal planes at ``heights`` (metres): (M, 2) E, N points."""
+        cam = self.camera
+        t = np.linspace(0.0, 1.0, samples_per_edge, endpoint=False)
+        w, h = float(cam.width), float(cam.height)
+        border = np.concatenate([
+            np.column_stack([t * w, np.zeros_like(t)]), np.column_stack([np.full_like(t, w), t * h]),
+            np.column_stack([w - t * w, np.full_like(t, h)]), np.column_stack([np.zeros_like(t), h - t * h]),
+        ])
+        if self.thermal_model is not None:
+            from aerocal.camera import correct_measurements
+
+            border = correct_measurements(cam, border, self.temperature, self.thermal_model)
+        d = np.column_stack([cam.unproject(border), np.ones(len(border))]) @ np.asarray(self.R_cw)
+        out = []
+        for z in heights:
+            down = d[:, 2] < -1e-9
+            s = (float(z) - self.C[2]) / np.where(down, d[:, 2], -1.0)
+            out.append(np.asarray(self.C)[:2] + s[down, None] * d[down, :2])
+        return np.vstack(out) if out else np.zeros((0, 2))
+
+
+def frames_from_poses(
+    poses,
+    camera: Camera | Mapping[int, Camera],
+    temperatures: Mapping[int, float] | None = None,
+    thermal_model: ThermalModel | None = None,
+) -> list[FrameGeometry]:
+    """Frame geometries from a ``poses`` table (world-to-camera quaternions, projection centres).
+
+    ``camera`` is one camera for the block or one per image id. With ``thermal_model`` every image id needs
+    a temperature (degC) in ``temperatures``: a :class:`LinearThermalModel` gives the frame the IO
+    ``camera_at(camera, T_i)``; the other models are applied to measurements in :meth:`FrameGeometry.project`.
+    """
+    from aerocal import tables
+    from aerocal.geometry import matrix_from_quat_wxyz
+
+    poses = tables.validate(poses, "poses")
+    ids = poses.column("image_id").to_numpy()
+    q = np.column_stack([poses.column(c).to_numpy() for c in ("qw", "qx", "qy", "qz")])
+    C = np.column_stack([poses.column(c).to_numpy() for c in ("X", "Y", "Z")])
+    R = matrix_from_quat_wxyz(q / np.linalg.norm(q, axis=1, keepdims=True)).reshape(-1, 3, 3)
+    frames = []
+    for i, iid in enumerate(ids.tolist()):
+        cam = camera[iid] if isinstance(camera, Mapping) else camera
+        model, temp = None, None
+        if thermal_model is not None:
+            if temperatures is None or iid not in temperatures or not np.isfinite(temperatures[iid]):
+                raise ValueError(f"frames_from_poses: image {iid} has no sensor temperature; the thermal "
+                                 "model needs one per image (images.temperature_c)")
+            temp = float(temperatures[iid])
+            if isinstance(thermal_model, LinearThermalModel):
+                cam = thermal_model.camera_at(cam, temp)
+            else:
+                model = thermal_model
+        frames.append(FrameGeometry(image_id=int(iid), camera=cam, R_cw=R[i], C=C[i], thermal_model=model,
+                                    temperature=temp))
+    return frames
+
+
+def block_gsd(frames: Sequence[FrameGeometry], ground_height_m: float) -> float:
+    """Median ground sampling distance (metres): (centre height - ground height) / focal length (px)."""
+    g = [(f.C[2] - ground_height_m) / f.camera.f for f in frames]
+    return float(np.median(g))
+
+
+def read_frame(path: str | Path) -> np.ndarray:
+    """Read a frame's original pixels: 16-bit TIFF as stored, other formats by OpenCV (colour as RGB)."""
+    path = Path(path)
+    if path.suffix.lower() in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            return np.asarray(tifffile.imread(path))
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{path}: cannot read the frame as TIFF ({exc})") from exc
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: cannot read the frame (missing or not an image)")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+    return img
+
+
+@dataclass(frozen=True)
+class TileSpec:
+    """One tile of the output grid: pixel offsets and size, and the grid's origin and pixel size."""
+
+    row0: int
+    col0: int
+    rows: int
+    cols: int
+    west: float
+    north: float
+    gsd_m: float
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        w = self.west + self.col0 * self.gsd_m
+        n = self.north - self.row0 * self.gsd_m
+        return (w, n - self.rows * self.gsd_m, w + self.cols * self.gsd_m, n)
+
+
+def render_tile(
+    tile: TileSpec, frames: Sequence[FrameGeometry], pixels: Sequence[np.ndarray | str | Path], dsm: Dsm,
+    feather_px: float, nodata: int, dtype: str, bands: int,
+) -> tuple[TileSpec, np.ndarray]:
+    """Compute one tile: (bands, rows, cols) array of ``dtype``; nodata where no frame sees the ground."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    shape = (tile.rows, tile.cols)
+    out = np.full((bands,) + shape, nodata, dtype=dtype)
+    if not frames:
+        return tile, out
+    w, _, _, n = tile.bounds()
+    e = w + (np.arange(tile.cols) + 0.5) * tile.gsd_m
+    nn = n - (np.arange(tile.rows) + 0.5) * tile.gsd_m
+    E, N = np.meshgrid(e, nn)
+    H = dsm.height_at(E, N)
+    X = np.stack([E, N, H], axis=-1)
+    has_height = np.isfinite(H)
+    uvs, scores, tapers = [], [], []
+    for fr in frames:
+        uv = fr.project(X)
+        cam = fr.camera
+        ok = has_height & np.all(np.isfinite(uv), axis=-1) & cam.in_image(uv)
+        border = np.minimum.reduce([uv[..., 0], cam.width - uv[..., 0], uv[..., 1], cam.height - uv[..., 1]])
+        score = np.hypot(uv[..., 0] - cam.cx, uv[..., 1] - cam.cy)
+        uvs.append(uv)
+        scores.append(np.where(ok, score, np.inf))
+        tapers.append(np.where(ok, np.clip(border / max(feather_px, 1e-9), 1e-6, 1.0), 0.0))
+    S = np.stack(scores)
+    best = S.min(axis=0)
+    seen = np.isfinite(best)
+    if not seen.any():
+        return tile, out
+    width = max(2.0 * feather_px, 1e-9)
+    acc = np.zeros((bands,) + shape)
+    wsum = np.zeros(shape)
+    for k, fr in enumerate(frames):
+        with np.errstate(invalid="ignore"):
+            wk = np.where(np.isfinite(S[k]), np.clip(1.0 - (S[k] - best) / width, 0.0, 1.0), 0.0) * tapers[k]
+        if not np.any(wk > 0):
+            continue
+        img = pixels[k]
+        if not isinstance(img, np.ndarray):
+            img = read_frame(img)
+        cam = fr.camera
+        if img.shape[:2] != (cam.height, cam.width):
+            raise ValueError(f"image {fr.image_id}: pixels are {img.shape[1]}x{img.shape[0]}, its camera says "
+                             f"{cam.width}x{cam.height}; give the frame's original pixels")
+        uv = np.nan_to_num(uvs[k], nan=-10.0).astype(np.float32)
+        # OpenCV puts the centre of the first pixel at (0, 0): ours minus 0.5
+        vals = cv2.remap(img.astype(np.float32), uv[..., 0] - 0.5, uv[..., 1] - 0.5, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+        vals = vals.reshape(shape + (-1,))
+        acc += np.moveaxis(vals, -1, 0) * wk
+        wsum += wk
+    valid = seen & (wsum > 0)
+    info = np.iinfo(dtype) if np.issubdtype(np.dtype(dtype), np.integer) else None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = acc / np.where(valid, wsum, 1.0)
+    if info is not None:
+        mean = np.clip(np.rint(mean), info.min, info.max)
+        mean = np.where(mean == nodata, nodata - 1 if nodata == info.max else nodata + 1, mean)
+    out[:, valid] = mean[:, valid].astype(dtype)
+    return tile, out
+
+
+@dataclass(frozen=True)
+class MosaicResult:
+    """What :func:`build_mosaic` wrote: file, grid and coverage."""
+
+    path: Path
+    crs: str
+    transform: tuple[float, ...]  #: GDAL geotransform order as rasterio's Affine (a, b, c, d, e, f)
+    width: int
+    height: int
+    gsd_m: float
+    nodata: int
+    dtype: str
+    bands: int
+    tiles: int
+    tiles_with_data: int
+    coverage: float  #: fraction of pixels with data
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["path"] = str(self.path)
+        d["transform"] = list(self.transform)
+        return d
+
+
+def _frame_bboxes(frames: Sequence[FrameGeometry], zmin: float, zmax: float) -> np.ndarray:
+    boxes = []
+    for fr in frames:
+        pts = fr.ground_footprint([zmin, zmax])
+        if len(pts) == 0:
+            boxes.append((np.inf, np.inf, -np.inf, -np.inf))
+        else:
+            boxes.append((pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()))
+    return np.asarray(boxes, dtype=float)
+
+
+def build_mosaic(
+    frames: Sequence[FrameGeometry],
+    images: Mapping[int, np.ndarray | str | Path],
+    dsm: Dsm,
+    out_path: str | Path,
+    config: MosaicConfig | None = None,
+    client=None,
+    progress: Progress | None = None,
+) -> MosaicResult:
+    """Build the orthomosaic of ``frames`` over ``dsm`` and write it to ``out_path`` (see module docstring).
+
+    ``images`` maps image id -> original pixels (array) or a file path (read by :func:`read_frame` where
+    the tile is computed). ``client``: a ``distributed.Client`` (tiles run on its workers), or None
+    (serial). ``progress(done, total)`` is called after each tile is written.
+    """
+    config = config or MosaicConfig()
+    out_path = Path(out_path)
+    frames = sorted(frames, key=lambda f: f.image_id)
+    missing = [f.image_id for f in frames if f.image_id not in images]
+    if missing:
+        raise ValueError(f"build_mosaic: no pixels for image id(s) {missing[:10]}; pass every frame's image")
+    if not frames:
+        raise ValueError("build_mosaic: no frames")
+    zmin, zmax = dsm.height_range()
+    zmed = float(np.nanmedian(dsm.heights))
+    gsd = config.gsd_m or block_gsd(frames, zmed)
+    boxes = _frame_bboxes(frames, zmin, zmax)
+    if config.bounds is not None:
+        w, s, e, n = config.bounds
+    else:
+        mid = _frame_bboxes(frames, zmed, zmed)
+        ok = np.isfinite(mid).all(axis=1)
+        w, s = mid[ok, 0].min(), mid[ok, 1].min()
+        e, n = mid[ok, 2].max(), mid[ok, 3].max()
+        dw, ds, de, dn = dsm.bounds()
+        w, s, e, n = max(w, dw), max(s, ds), min(e, de), min(n, dn)
+    west = np.floor(w / gsd) * gsd
+    north = np.ceil(n / gsd) * gsd
+    width = int(np.ceil((e - west) / gsd))
+    height = int(np.ceil((north - s) / gsd))
+    if width <= 0 or height <= 0:
+        raise ValueError(f"build_mosaic: empty output grid for bounds {(w, s, e, n)}")
+
+    # data type and bands from the first frame
+    first = images[frames[0].image_id]
+    sample = first if isinstance(first, np.ndarray) else read_frame(first)
+    dtype = str(sample.dtype)
+    bands = 1 if sample.ndim == 2 else int(sample.shape[2])
+    if dtype not in ("uint8", "uint16"):
+        raise ValueError(f"build_mosaic: frames of dtype {dtype} are not supported; give uint8 or uint16 pixels")
+    nodata = config.nodata if config.nodata is not None else (65535 if dtype == "uint16" else 0)
+
+    tiles = []
+    for r0 in range(0, height, config.tile_px):
+        for c0 in range(0, width, config.tile_px):
+            tiles.append(TileSpec(r0, c0, min(config.tile_px, height - r0), min(config.tile_px, width - c0),
+                                  float(west), float(north), float(gsd)))
+
+    def members(tile: TileSpec) -> list[int]:
+        tw, ts, te, tn = tile.bounds()
+        hit = (boxes[:, 0] <= te) & (boxes[:, 2] >= tw) & (boxes[:, 1] <= tn) & (boxes[:, 3] >= ts)
+        return np.nonzero(hit)[0].tolist()
+
+    import rasterio
+    from rasterio.transform import from_origin
+
+    transform = from_origin(west, north, gsd, gsd)
+    profile = {
+        "driver": "GTiff", "width": width, "height": height, "count": bands, "dtype": dtype, "crs": dsm.crs,
+        "transform": transform, "nodata": nodata, "tiled": True, "blockxsize": config.tile_px,
+        "blockysize": config.tile_px, "compress": "deflate", "predictor": 2, "BIGTIFF": "IF_SAFER",
+    }
+    total = len(tiles)
+    with_data = 0
+    valid_px = 0
+    tmpdir = Path(tempfile.mkdtemp(prefix=".tmp-mosaic.", dir=out_path.parent if out_path.parent.exists()
+                                   else None))
+    try:
+        work = tmpdir / "work.tif"
+        with rasterio.open(work, "w", **profile) as dst:
+            done = 0
+            for tile, arr in _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client):
+                dst.write(arr, window=rasterio.windows.Window(tile.col0, tile.row0, tile.cols, tile.rows))
+                n_valid = int(np.count_nonzero(arr[0] != nodata))
+                valid_px += n_valid
+                with_data += n_valid > 0
+                done += 1
+                if progress:
+                    progress(done, total)
+        _finalise(work, out_path, config, profile)
+    finally:
+        import shutil
+
+        shutil.rmtree(tmpdir, ignore_errors=True)
+    return MosaicResult(
+        path=out_path, crs=dsm.crs, transform=tuple(transform)[:6], width=width, height=height, gsd_m=float(gsd),
+        nodata=int(nodata), dtype=dtype, bands=bands, tiles=total, tiles_with_data=with_data,
+        coverage=valid_px / float(width * height),
+    )
+
+
+def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client):
+    """Yield (tile, array) as tiles complete: serially, or on the Dask client."""
+    args = (config.feather_px, nodata, dtype, bands)
+    if client is None:
+        cache: dict[int, np.ndarray] = {}
+
+        def pix(k: int) -> np.ndarray:
+            iid = frames[k].image_id
+            if iid not in cache:
+                v = images[iid]
+                cache[iid] = v if isinstance(v, np.ndarray) else read_frame(v)
+            return cache[iid]
+
+        for tile in tiles:
+            idx = members(tile)
+            yield render_tile(tile, [frames[k] for k in idx], [pix(k) for k in idx],
+                              dsm.window(tile.bounds()), *args)
+        return
+
+    from distributed import as_completed
+
+    arrays = {f.image_id: images[f.image_id] for f in frames if isinstance(images[f.image_id], np.ndarray)}
+    scattered = client.scatter(arrays) if arrays else {}
+    futures = []
+    for tile in tiles:
+        idx = members(tile)
+        pix = [scattered[frames[k].image_id] if frames[k].image_id in scattered else str(images[frames[k].image_id])
+               for k in idx]
+        futures.append(client.submit(render_tile, tile, [frames[k] for k in idx], pix,
+                                     dsm.window(tile.bounds()), *args, pure=False))
+    try:
+        for fut in as_completed(futures):
+            yield fut.result()
+    finally:
+        for fut in futures:
+            fut.release()
+
+
+def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict) -> None:
+    """Copy the working GeoTIFF to ``out_path`` as a COG (or tiled GeoTIFF with overviews), atomically."""
+    import rasterio
+    import rasterio.shutil
+    from rasterio.enums import Resampling
+
+    from aerocal.io import atomic_path
+
+    resampling = Resampling[config.overview_resampling]
+    with atomic_path(out_path) as tmp:
+        if config.cog:
+            rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", PREDICTOR="YES",
+                                 BLOCKSIZE=config.tile_px, OVERVIEW_RESAMPLING=config.overview_resampling.upper(),
+                                 BIGTIFF="IF_SAFER")
+        else:
+            with rasterio.open(work, "r+") as src:
+                factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 64]
+                if factors:
+                    src.build_overviews(factors, resampling)
+            rasterio.shutil.copy(work, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", PREDICTOR=2,
+                                 BLOCKXSIZE=config.tile_px, BLOCKYSIZE=config.tile_px, COPY_SRC_OVERVIEWS="YES")

@@ -1,0 +1,202 @@
+"""Report figures: PNG images (matplotlib, Agg canvas, no pyplot state) with the numbers they show.
+
+Every function takes plain arrays or :mod:`aerocal.assess` results and returns a :class:`Figure`:
+the PNG bytes, a title, a caption and ``numbers`` (JSON-ready) that ``summary.json`` carries for
+machines. World coordinates are E, N metres of the flight's CRS; image coordinates pixels (origin at
+the top-left corner, y down, so image plots have y pointing down).
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Figure:
+    """A rendered figure and the numbers behind it."""
+
+    name: str  #: identifier (file-name safe), the key in summary.json
+    title: str
+    png: bytes = field(repr=False)
+    caption: str = ""
+    numbers: dict = field(default_factory=dict)
+
+
+def _canvas(width_in: float = 7.0, height_in: float = 5.0):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure as MplFigure
+
+    fig = MplFigure(figsize=(width_in, height_in), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png(fig) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100)
+    return buf.getvalue()
+
+
+def _nice(x: float) -> float:
+    """A round number (1, 2, 5 x 10^k) close to ``x``."""
+    if not x > 0 or not np.isfinite(x):
+        return 1.0
+    k = np.floor(np.log10(x))
+    m = x / 10**k
+    return float((1 if m < 1.5 else 2 if m < 3.5 else 5 if m < 7.5 else 10) * 10**k)
+
+
+def _f(v) -> float | None:
+    v = float(v)
+    return v if np.isfinite(v) else None
+
+
+def block_figure(
+    centres: np.ndarray,
+    footprints: Sequence[np.ndarray] = (),
+    points_en: np.ndarray | None = None,
+    residuals: np.ndarray | None = None,
+    ids: Sequence[str] | None = None,
+    exaggeration: float | None = None,
+    title: str = "Block and check-point residuals",
+) -> Figure:
+    """Camera centres (N, 2+ E, N), footprints ((M, 2) polygons), residual vectors (K, 2+, metres) at
+    ``points_en`` (K, 2), exaggerated (default: the largest residual drawn as 8 % of the block's size)
+    with a scale arrow."""
+    fig = _canvas(7.0, 6.0)
+    ax = fig.add_subplot()
+    c = np.asarray(centres, dtype=float)
+    for fp in footprints:
+        p = np.asarray(fp, dtype=float)
+        ax.fill(p[:, 0], p[:, 1], facecolor="tab:blue", alpha=0.06, edgecolor="tab:blue", linewidth=0.6)
+    ax.plot(c[:, 0], c[:, 1], "k^", markersize=5, label="camera centres")
+    numbers: dict = {"n_images": int(len(c))}
+    if points_en is not None and residuals is not None and len(points_en):
+        p = np.asarray(points_en, dtype=float)
+        r = np.asarray(residuals, dtype=float)[:, :2]
+        extent = max(np.ptp(np.vstack([c[:, :2], p[:, :2]]), axis=0).max(), 1.0)
+        biggest = max(float(np.max(np.hypot(r[:, 0], r[:, 1]))), 1e-9)
+        k = exaggeration or _nice(0.08 * extent / biggest)
+        ax.quiver(p[:, 0], p[:, 1], r[:, 0] * k, r[:, 1] * k, angles="xy", scale_units="xy", scale=1.0,
+                  color="tab:red", width=0.004, label=f"residuals x{k:g}")
+        ax.plot(p[:, 0], p[:, 1], "o", mfc="none", mec="tab:red", markersize=5)
+        ref = _nice(biggest)
+        x0, y0 = c[:, 0].min(), c[:, 1].min() - 0.06 * extent
+        ax.annotate("", xy=(x0 + ref * k, y0), xytext=(x0, y0),
+                    arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 1.5})
+        ax.text(x0, y0 - 0.02 * extent, f"{ref:g} m", color="tab:red", va="top")
+        numbers.update({"exaggeration": k, "scale_arrow_m": ref, "points": [
+            {"id": ids[i] if ids is not None else str(i), "E": float(p[i, 0]), "N": float(p[i, 1]),
+             "dE_m": _f(r[i, 0]), "dN_m": _f(r[i, 1])} for i in range(len(p))]})
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("E (m)")
+    ax.set_ylabel("N (m)")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(axis="x", labelrotation=30)
+    ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title)
+    return Figure("block", title, _png(fig), "Camera centres and footprints; red arrows are check-point "
+                  "residuals (estimated minus surveyed), exaggerated, with a scale arrow.", numbers)
+
+
+def image_residual_figure(binned, exaggeration: float | None = None,
+                          title: str = "Reprojection residuals over the image") -> Figure:
+    """Mean residual vectors per bin (an :class:`aerocal.assess.BinnedResiduals`) over the image frame."""
+    fig = _canvas(7.0, 5.6)
+    ax = fig.add_subplot()
+    x, y = binned.centres()
+    m = binned.mean
+    has = binned.count > 0
+    length = np.hypot(m[..., 0], m[..., 1])
+    biggest = max(float(length[has].max()) if has.any() else 0.0, 1e-9)
+    cell = min(binned.width / m.shape[1], binned.height / m.shape[0])
+    k = exaggeration or _nice(0.8 * cell / biggest)
+    ax.quiver(x[has], y[has], m[..., 0][has] * k, m[..., 1][has] * k, angles="xy", scale_units="xy", scale=1.0,
+              color="tab:red", width=0.005)
+    ax.add_patch(_rect(binned.width, binned.height))
+    ref = _nice(biggest)
+    ax.annotate("", xy=(0.05 * binned.width + ref * k, -0.06 * binned.height),
+                xytext=(0.05 * binned.width, -0.06 * binned.height),
+                arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 1.5}, annotation_clip=False)
+    ax.text(0.05 * binned.width, -0.09 * binned.height, f"{ref:g} px (x{k:g})", color="tab:red")
+    ax.set_xlim(-0.05 * binned.width, 1.05 * binned.width)
+    ax.set_ylim(1.05 * binned.height, -0.14 * binned.height)  # y down, as in the image
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    ax.set_title(title)
+    return Figure("image_residuals", title, _png(fig), "Mean reprojection residual per image region "
+                  "(exaggerated); a pattern means the camera model misses something.",
+                  {"exaggeration": k, "scale_arrow_px": ref, **binned.to_dict()})
+
+
+def _rect(w: float, h: float):
+    from matplotlib.patches import Rectangle
+
+    return Rectangle((0, 0), w, h, fill=False, edgecolor="0.4")
+
+
+def temperature_io_figure(
+    temperatures: np.ndarray, f: np.ndarray, cx: np.ndarray, cy: np.ndarray,
+    model=None, camera=None, title: str = "Interior orientation against sensor temperature",
+) -> Figure:
+    """Per-image focal length and principal point (pixels) against sensor temperature (degC); with a
+    ``LinearThermalModel`` and its reference ``camera`` the model's lines are drawn too."""
+    t = np.asarray(temperatures, dtype=float)
+    series = {"f": np.asarray(f, dtype=float), "cx": np.asarray(cx, dtype=float), "cy": np.asarray(cy, dtype=float)}
+    fig = _canvas(7.0, 7.0)
+    axes = fig.subplots(3, 1, sharex=True)
+    numbers: dict = {"temperature_c": t.tolist()}
+    slopes = {}
+    for ax, (name, v) in zip(axes, series.items(), strict=True):
+        ax.plot(t, v, "o", markersize=4, label="per image")
+        ok = np.isfinite(t) & np.isfinite(v)
+        if ok.sum() >= 2 and np.ptp(t[ok]) > 0:
+            slopes[name] = float(np.polyfit(t[ok], v[ok], 1)[0])
+        if model is not None and camera is not None:
+            tt = np.linspace(np.nanmin(t), np.nanmax(t), 20)
+            vals = [getattr(model.camera_at(camera, x), name) for x in tt]
+            ax.plot(tt, vals, "-", color="tab:orange", label="thermal model")
+        ax.set_ylabel(f"{name} (px)")
+        ax.grid(alpha=0.3)
+        numbers[f"{name}_px"] = [_f(x) for x in v]
+    axes[0].legend(fontsize=8)
+    axes[-1].set_xlabel("sensor temperature (degC)")
+    axes[0].set_title(title)
+    numbers["fitted_slope_px_per_degC"] = slopes
+    if model is not None:
+        numbers["model"] = model.to_dict()
+    return Figure("temperature_io", title, _png(fig), "Focal length and principal point against the "
+                  "sensor temperature of each image.", numbers)
+
+
+def dem_difference_figure(diff, title: str = "DSM minus reference") -> Figure:
+    """Map and histogram of an :class:`aerocal.assess.DemDifference`."""
+    fig = _canvas(10.0, 4.6)
+    ax_map, ax_hist = fig.subplots(1, 2, width_ratios=[1.3, 1.0])
+    d = diff.difference
+    lim = max(abs(diff.median) + 3 * (diff.nmad if np.isfinite(diff.nmad) else 1.0), 0.1)
+    w, s, e, n = diff.extent
+    im = ax_map.imshow(d, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=(w, e, s, n), interpolation="nearest")
+    fig.colorbar(im, ax=ax_map, label="difference (m)", shrink=0.8)
+    for t in diff.transects:
+        ax_map.plot([t["start"][0], t["end"][0]], [t["start"][1], t["end"][1]], "k-", lw=1)
+    ax_map.set_xlabel("E (m)")
+    ax_map.set_ylabel("N (m)")
+    ax_map.ticklabel_format(useOffset=False, style="plain")
+    ax_map.tick_params(axis="x", labelrotation=30)
+    edges, counts = diff.histogram_edges, diff.histogram_counts
+    ax_hist.bar(0.5 * (edges[:-1] + edges[1:]), counts, width=np.diff(edges), color="0.5")
+    ax_hist.axvline(diff.mean, color="tab:red", label=f"mean {diff.mean:.2f} m")
+    ax_hist.axvline(diff.median, color="tab:blue", ls="--", label=f"median {diff.median:.2f} m")
+    ax_hist.set_xlabel("difference (m)")
+    ax_hist.set_ylabel("cells")
+    ax_hist.legend(fontsize=8)
+    ax_hist.set_title(f"NMAD {diff.nmad:.2f} m, n {diff.n}")
+    fig.suptitle(title)
+    return Figure("dem_difference", title, _png(fig), f"Tested DSM minus reference ({diff.selection}).",
+                  diff.to_dict())

@@ -1,0 +1,76 @@
+"""DSM from tie points: robust gridding, GeoTIFF output, agreement with the simulator's true surface."""
+
+import numpy as np
+import pytest
+import rasterio
+
+from aerocal.dsm import NODATA, DsmConfig, dsm_from_points, read_dsm, write_dsm
+
+CRS = "EPSG:32632"
+
+
+def _plane(e, n):
+    return 50.0 + 0.02 * (e - 686000.0) - 0.01 * (n - 4929000.0)
+
+
+def test_plane_with_blunders_is_recovered_and_blunders_rejected():
+    seed = 11
+    rng = np.random.default_rng(seed)
+    e = rng.uniform(686000, 686200, 4000)
+    n = rng.uniform(4929000, 4929150, 4000)
+    z = _plane(e, n) + rng.normal(0, 0.05, len(e))
+    blunder = rng.choice(len(e), 25, replace=False)
+    z[blunder] += rng.choice([-1, 1], 25) * rng.uniform(20, 60, 25)
+    dsm = dsm_from_points(np.column_stack([e, n, z]), CRS, gsd_m=0.5)
+    assert dsm.cell_m == pytest.approx(1.0), "default cell = 2 GSD"
+    assert dsm.stats["rejected_outliers"] >= 25, f"seed {seed}: {dsm.stats}"
+    E, N = dsm.cell_centres()
+    inside = (E > 686005) & (E < 686195) & (N > 4929005) & (N < 4929145)
+    err = dsm.heights[inside] - _plane(E[inside], N[inside])
+    assert np.all(np.isfinite(err))
+    assert np.max(np.abs(err)) < 0.3, f"seed {seed}: max error {np.max(np.abs(err)):.3f} m"
+    assert abs(np.mean(err)) < 0.02, f"seed {seed}: mean error {np.mean(err):.4f} m"
+
+
+def test_write_dsm_is_a_georeferenced_float32_geotiff(tmp_path):
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(0, 100, 500) + 686000, rng.uniform(0, 80, 500) + 4929000,
+                           rng.uniform(40, 45, 500)])
+    dsm = dsm_from_points(pts, CRS, config=DsmConfig(cell_m=2.0, max_fill_distance_m=3.0))
+    assert np.isnan(dsm.heights).any(), "cells far from data stay empty with max_fill_distance_m"
+    path = write_dsm(dsm, tmp_path / "dsm.tif")
+    with rasterio.open(path) as src:
+        assert src.crs.to_epsg() == 32632
+        assert src.dtypes[0] == "float32" and src.nodata == NODATA
+        assert src.transform.a == 2.0 and src.transform.e == -2.0
+        assert (src.transform.c, src.transform.f) == (dsm.west, dsm.north)
+        data = src.read(1, masked=True)
+        assert data.mask.sum() == np.isnan(dsm.heights).sum()
+    back = read_dsm(path)
+    np.testing.assert_array_equal(np.isnan(back.heights), np.isnan(dsm.heights))
+    assert np.nanmax(np.abs(back.heights - dsm.heights)) == 0.0
+    assert not list(tmp_path.glob(".tmp-*")), "no temporary file left behind"
+
+
+def test_read_dsm_names_the_file_it_cannot_read(tmp_path):
+    bad = tmp_path / "broken.tif"
+    bad.write_text("not a tiff")
+    with pytest.raises(ValueError, match="broken.tif"):
+        read_dsm(bad)
+
+
+def test_tie_point_dsm_matches_the_true_surface_where_it_has_data():
+    from aerocal.simulate import simulate_flight
+
+    seed = 3
+    sim = simulate_flight("conte-calibration", seed=seed, max_images=14)
+    gsd = sim.trajectory.gsd_m
+    dsm = dsm_from_points(sim.tie.points, sim.crs, gsd_m=gsd)
+    from aerocal.assess import compare_dems
+
+    # cells within 2 m (2 cells) of a cell that holds a tie point: measured, not interpolated across
+    near = compare_dems(dsm, sim.scene.height_at, mask=dsm.distance_m <= 2.0, selection="within 2 m of data")
+    print(f"tie-point DSM - true DSM near data: mean {near.mean:.3f} m, NMAD {near.nmad:.3f} m, n {near.n}")
+    assert near.n > 1000
+    assert abs(near.mean) < gsd, f"seed {seed}: mean difference {near.mean:.3f} m above 1 GSD ({gsd:.2f} m)"
+    assert abs(near.median) < 0.2 * gsd, f"seed {seed}: median {near.median:.3f} m"

@@ -1,0 +1,162 @@
+"""Orthomosaic of a rendered simulated flight: a GeoTIFF a GIS opens, targets where they were surveyed."""
+
+import numpy as np
+import pytest
+import rasterio
+
+from aerocal.assess import mosaic_target_residuals
+from aerocal.camera import Camera, LinearThermalModel
+from aerocal.dsm import Dsm, dsm_from_points
+from aerocal.mosaic import MosaicConfig, build_mosaic, frames_from_poses
+
+SEED = 3
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """An effect-free conte-calibration sub-block of 12 frames, rendered once; the true poses and camera
+    stand for the adjusted block, the DSM is gridded from the true tie points."""
+    from aerocal.simulate import simulate_flight
+    from aerocal.simulate.render import RenderConfig
+    from aerocal.simulate.rendering import render_flight_images
+    from aerocal.simulate.simulator import true_poses
+
+    sim = simulate_flight("conte-calibration", seed=SEED, max_images=12)
+    out = tmp_path_factory.mktemp("frames")
+    render_flight_images(sim, out, config=RenderConfig(modality="thermal", supersample=2))
+    names = dict(zip(sim.images.column("image_id").to_pylist(), sim.images.column("name").to_pylist(),
+                     strict=True))
+    images = {i: out / n for i, n in names.items()}
+    frames = frames_from_poses(true_poses(sim), {e.image_id: e.camera for e in sim.exposures})
+    gsd = sim.trajectory.gsd_m
+    dsm = dsm_from_points(sim.tie.points, sim.crs, gsd_m=gsd)
+    work = tmp_path_factory.mktemp("mosaic")
+    calls = []
+    result = build_mosaic(frames, images, dsm, work / "ortho.tif", MosaicConfig(gsd_m=gsd),
+                          progress=lambda done, total: calls.append((done, total)))
+    return {"sim": sim, "images": images, "frames": frames, "dsm": dsm, "gsd": gsd, "work": work,
+            "serial": result, "calls": calls}
+
+
+@pytest.fixture(scope="module")
+def client():
+    from distributed import Client, LocalCluster
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None)
+    c = Client(cluster)
+    yield c
+    c.close()
+    cluster.close()
+
+
+def test_mosaic_opens_with_the_flight_crs_grid_and_radiometry(flight):
+    res, sim, gsd = flight["serial"], flight["sim"], flight["gsd"]
+    with rasterio.open(res.path) as src:
+        assert src.crs.to_string() == sim.crs
+        assert src.transform.a == pytest.approx(gsd) and src.transform.e == pytest.approx(-gsd)
+        assert src.transform.b == 0 and src.transform.d == 0
+        assert src.dtypes == ("uint16",) and src.nodata == 65535
+        assert src.profile["compress"] == "deflate" and src.profile["tiled"]
+        assert src.overviews(1), "overviews for a GIS"
+        data = src.read(1, masked=True)
+        mask = src.read_masks(1)
+    valid = data.compressed()
+    assert 0.9 < valid.size / data.size, f"coverage {valid.size / data.size:.3f}"
+    kelvin = valid / 100.0
+    assert 270 < np.median(kelvin) < 305 and kelvin.min() > 220, "kelvin * 100, original radiometry"
+    assert np.array_equal(mask == 0, np.ma.getmaskarray(data))
+    assert flight["calls"][-1] == (res.tiles, res.tiles) and len(flight["calls"]) == res.tiles
+    assert not list(res.path.parent.glob(".tmp-*")), "written atomically, nothing left behind"
+
+
+def test_mosaic_value_is_the_original_pixel_value(flight):
+    """At the nadir of a frame the mosaic samples that frame alone: its DN, bilinearly resampled."""
+    from aerocal.mosaic import read_frame
+
+    res, fr = flight["serial"], flight["frames"][4]
+    img = read_frame(flight["images"][fr.image_id]).astype(float)
+    uv = np.array([[300.5, 240.5], [330.5, 220.5], [310.5, 260.5]])
+    rays = np.column_stack([fr.camera.unproject(uv), np.ones(3)]) @ fr.R_cw
+    dsm = flight["dsm"]
+    X = []
+    for d in rays:  # intersect with the DSM by fixed point on the height
+        z = float(np.nanmedian(dsm.heights))
+        for _ in range(20):
+            p = fr.C + (z - fr.C[2]) / d[2] * d
+            z = float(dsm.height_at(p[0], p[1]))
+        X.append(p)
+    X = np.array(X)
+    with rasterio.open(res.path) as src:
+        vals = np.array([v[0] for v in src.sample(X[:, :2])], float)
+    expect = img[(uv[:, 1] - 0.5).astype(int), (uv[:, 0] - 0.5).astype(int)]
+    assert np.all(np.abs(vals - expect) < 60), f"mosaic {vals} vs frame {expect} (DN, 0.01 K)"
+
+
+def test_check_targets_in_the_mosaic_within_one_gsd(flight, client):
+    sim, gsd = flight["sim"], flight["gsd"]
+    res = mosaic_target_residuals(flight["serial"].path, sim.gcps, role="check", window_px=11)
+    rmse = float(np.sqrt(np.mean(np.sum(res.residuals**2, axis=1))))
+    print(f"check targets on the tie-point DSM mosaic: n {res.n}, RMSE {rmse:.3f} m = {rmse / gsd:.2f} GSD")
+    assert res.n >= 8, f"seed {SEED}: only {res.n} of 12 check targets located"
+    assert rmse < gsd, f"seed {SEED}: planimetric RMSE {rmse:.3f} m above 1 GSD {gsd:.3f} m"
+    # on the true surface the geometry alone is tested: targets land to a small fraction of a pixel
+    scene = sim.scene
+    rows = scene.shape[0]
+    true_dsm = Dsm(heights=scene.dsm, west=scene.config.origin_e,
+                   north=scene.config.origin_n + rows * scene.config.cell_m, cell_m=scene.config.cell_m,
+                   crs=sim.crs)
+    exact = build_mosaic(flight["frames"], flight["images"], true_dsm, flight["work"] / "ortho_true.tif",
+                         MosaicConfig(gsd_m=gsd, bounds=_bounds(flight["serial"])), client=client)
+    res_true = mosaic_target_residuals(exact.path, sim.gcps, role="check", window_px=11)
+    rmse_true = float(np.sqrt(np.mean(np.sum(res_true.residuals**2, axis=1))))
+    print(f"check targets on the true DSM mosaic: n {res_true.n}, RMSE {rmse_true:.3f} m")
+    assert res_true.n >= res.n and rmse_true < 0.2 * gsd, f"seed {SEED}: RMSE {rmse_true:.3f} m on the true DSM"
+
+
+def _bounds(res):
+    a, _, c, _, e, f = res.transform
+    return (c, f + res.height * e, c + res.width * a, f)
+
+
+def test_dask_and_serial_mosaics_are_identical(flight, client):
+    calls = []
+    res = build_mosaic(flight["frames"], flight["images"], flight["dsm"], flight["work"] / "ortho_dask.tif",
+                       MosaicConfig(gsd_m=flight["gsd"]), client=client,
+                       progress=lambda done, total: calls.append(done))
+    with rasterio.open(res.path) as a, rasterio.open(flight["serial"].path) as b:
+        assert a.transform == b.transform and a.shape == b.shape
+        assert np.array_equal(a.read(), b.read())
+    assert sorted(calls) == list(range(1, res.tiles + 1))
+
+
+def test_tiles_whose_frames_are_missing_are_nodata_not_zeros(flight, client):
+    frames = flight["frames"][:2]
+    images = {f.image_id: flight["images"][f.image_id] for f in frames}
+    res = build_mosaic(frames, images, flight["dsm"], flight["work"] / "ortho_part.tif",
+                       MosaicConfig(gsd_m=flight["gsd"], bounds=_bounds(flight["serial"])), client=client)
+    assert res.tiles_with_data < res.tiles
+    with rasterio.open(res.path) as src:
+        data = src.read(1)
+        mask = src.read_masks(1)
+    assert not np.any(data == 0), "no zeros: pixels no frame sees are nodata"
+    empty = data == 65535
+    assert 0.3 < empty.mean() < 0.95 and np.array_equal(empty, mask == 0)
+    tiles = [data[r:r + 256, c:c + 256] for r in range(0, data.shape[0], 256) for c in range(0, data.shape[1], 256)]
+    blank = sum(bool(np.all(t == 65535)) for t in tiles)
+    assert blank == res.tiles - res.tiles_with_data >= 1, "tiles outside both footprints are wholly nodata"
+
+
+def test_thermal_model_gives_each_frame_its_io_and_a_missing_temperature_is_named(flight):
+    from aerocal.simulate.simulator import true_poses
+
+    cam = Camera.from_mm(640, 480, focal_mm=39.2, pixel_size_um=23.5)
+    model = LinearThermalModel(t0=20.0, df_dt=0.2, dcx_dt=0.05, dcy_dt=-0.03)
+    poses = true_poses(flight["sim"])
+    temps = {i: 15.0 + i for i in poses.column("image_id").to_pylist()}
+    frames = frames_from_poses(poses, cam, temps, model)
+    for f in frames:
+        dt = temps[f.image_id] - 20.0
+        assert f.camera.f == pytest.approx(cam.f + 0.2 * dt) and f.camera.cy == pytest.approx(cam.cy - 0.03 * dt)
+    temps.pop(3)
+    with pytest.raises(ValueError, match="image 3 has no sensor temperature"):
+        frames_from_poses(poses, cam, temps, model)
