@@ -1,0 +1,50 @@
+"""Shared plumbing of the benchmarks: timing, peak memory, and appending results to RESULTS.md."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import platform
+import resource
+import sys
+import time
+from collections.abc import Callable
+from contextlib import contextmanager
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
+
+
+def machine() -> str:
+    return (f"{platform.node()} {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+            f"{dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC")
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+@contextmanager
+def timed(rows: list, label: str):
+    t0 = time.perf_counter()
+    yield
+    rows.append((label, time.perf_counter() - t0, peak_rss_mb()))
+
+
+def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def record(title: str, lines: list[str]) -> None:
+    """Print ``lines`` and append them under ``title`` with the machine and exact command to RESULTS.md."""
+    command = " ".join(getattr(sys, "orig_argv", sys.argv))
+    block = [f"## {title}", "", f"- machine: {machine()}", f"- command: `{command}`", "", *lines, ""]
+    print("\n".join(block))
+    with RESULTS.open("a") as fh:
+        fh.write("\n".join(block) + "\n")
