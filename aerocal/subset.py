@@ -18,7 +18,7 @@ import pyarrow as pa
 
 from aerocal.adjust.bundle import initial_state
 from aerocal.adjust.problem import AdjustConfig, build_block
-from aerocal.adjust.solver import Problem, State, _schur, inverse_spd
+from aerocal.adjust.solver import Problem, State, inverse_spd, schur_complement
 from aerocal.camera import Camera
 
 
@@ -140,7 +140,7 @@ def _predict(
     state = State(io=st.io, slopes=st.slopes, R=st.R, C=st.C, X=st.X)
     prob = Problem(blk, cfg.adjust, t0=float(np.nanmedian(blk.temperature)) if cfg.adjust.thermal else 0.0)
     _, _, _, r, Jc, Jp, Hpp = prob.residuals(state, jac=True)
-    S, *_ = _schur(Jc, Jp, Hpp, np.zeros_like(r), 0.0)
+    S, *_ = schur_complement(Jc, Jp, Hpp, np.zeros_like(r), 0.0)
     cov = inverse_spd(S)
     ng = prob.layout.n_global
     names = list(cfg.adjust.free) + [f"d{n}/dT" for n in cfg.adjust.thermal]

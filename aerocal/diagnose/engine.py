@@ -32,7 +32,7 @@ from aerocal.adjust.problem import AdjustConfig
 from aerocal.adjust.solver import inverse_spd
 from aerocal.camera import Camera, LinearThermalModel
 from aerocal.diagnose import hypotheses as hyp
-from aerocal.diagnose.model import Baseline, check_rmse, conditional, fit_baseline, linearise, reduce, refit
+from aerocal.diagnose.model import Baseline, Conditional, check_rmse, fit_baseline, linearise, reduce, refit
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,8 @@ def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str
     nc = red.n_camera
     base_idx = np.concatenate([np.arange(nc)] + [nc + np.arange(offsets[k], offsets[k + 1])
                                                  for k in range(len(accepted))])
+    tests = nc + np.arange(offsets[len(accepted)], offsets[-1])
+    conditional = Conditional(red, base_idx, tests)
     s02 = max(base.solution.sigma0, 1e-12) ** 2
     n_obs = len(lin.r)
     m = max(1, len([n for n in names if n not in accepted]))
@@ -155,7 +157,7 @@ def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str
             out.append(Evidence(name, round_no, dof, 0.0, 1.0, 1.0, [0.0] * dof, [float("inf")] * dof, 0.0, False,
                                 hyp.UNITS[name]))
             continue
-        info, grad = conditional(red, base_idx, idx)
+        info, grad = conditional(idx)
         inv = inverse_spd(info)
         theta = -inv @ grad
         stat = float(grad @ inv @ grad) / s02

@@ -135,18 +135,36 @@ def reduce(lin: Linear, extra: np.ndarray) -> Reduced:
     return Reduced(S, -np.asarray(rhs).ravel(), lin.Jc.shape[1])
 
 
-def conditional(red: Reduced, base: np.ndarray, test: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For columns ``test`` given free columns ``base`` (indices into S): (information matrix, gradient).
+class Conditional:
+    """Information and gradient of test columns given free base columns, for many tests at once.
 
-    The chi-square drop of freeing ``test`` is ``g^T I^-1 g``; the Gauss-Newton estimate ``-I^-1 g``.
+    For columns ``t`` given free columns ``b`` of the reduced system: ``I = S_tt - S_tb S_bb^-1 S_bt`` and
+    ``g_t|b = g_t - S_tb S_bb^-1 g_b``; the chi-square drop of freeing ``t`` is ``g^T I^-1 g`` and the
+    Gauss-Newton estimate ``-I^-1 g``. ``S_bb`` is factorised once (Cholesky) for every test.
     """
-    S, g = red.S, red.g
-    Sbb = S[np.ix_(base, base)]
-    Sbt = S[np.ix_(base, test)]
-    X = inverse_spd(Sbb) @ np.column_stack([Sbt, g[base]])
-    info = S[np.ix_(test, test)] - Sbt.T @ X[:, :-1]
-    grad = g[test] - Sbt.T @ X[:, -1]
-    return 0.5 * (info + info.T), grad
+
+    def __init__(self, red: Reduced, base: np.ndarray, tests: np.ndarray) -> None:
+        from scipy.linalg import cho_factor, cho_solve
+
+        S, g = red.S, red.g
+        self.S, self.g, self.base = S, g, base
+        self.tests = tests
+        Sbb = S[np.ix_(base, base)]
+        rhs = np.column_stack([S[np.ix_(base, tests)], g[base]])
+        d = np.sqrt(np.maximum(np.diag(Sbb), 1e-300))
+        try:
+            fac = cho_factor(Sbb / d[:, None] / d[None, :])
+            self.X = cho_solve(fac, rhs / d[:, None]) / d[:, None]
+        except np.linalg.LinAlgError:
+            self.X = inverse_spd(Sbb) @ rhs
+        self.pos = {int(t): k for k, t in enumerate(tests)}
+
+    def __call__(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cols = [self.pos[int(t)] for t in idx]
+        Sbt = self.S[np.ix_(self.base, idx)]
+        info = self.S[np.ix_(idx, idx)] - Sbt.T @ self.X[:, cols]
+        grad = self.g[idx] - Sbt.T @ self.X[:, -1]
+        return 0.5 * (info + info.T), grad
 
 
 def triangulate_checks(base: Baseline, block: Block | None = None) -> np.ndarray:
