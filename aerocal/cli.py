@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import importlib
 import json
-import shutil
 from pathlib import Path
 
 import click
@@ -30,6 +29,14 @@ LAZY_GROUPS: dict[str, tuple[str, str, str]] = {
     "certificates": ("flows.commands_storage", "certificates_app",
                      "Calibration certificates: list, show, export, import."),
     "runs": ("flows.commands_storage", "runs_app", "Processing runs and their provenance."),
+    "init": ("flows.commands", "init_app", "Create the database and show where things live."),
+    "process": ("flows.commands", "process_app", "Process a flight end to end."),
+    "calibrate": ("flows.commands", "calibrate_app", "Calibrate a camera and store the certificate."),
+    "campaign": ("flows.commands", "campaign_app", "Campaigns of flights: add, run, list."),
+    "serve": ("flows.commands", "serve_app", "Serve the campaigns' scheduled deployments (blocks)."),
+    "ingest": ("flows.commands", "ingest_app", "Ingest a flight folder and summarise what was found."),
+    "match": ("flows.commands", "match_app", "Match a flight's images into tie-point observations."),
+    "report": ("flows.commands", "report_app", "Show the report of a processed flight."),
 }
 
 
@@ -79,7 +86,7 @@ def fail(message: str, code: int = 2) -> None:
 @app.command()
 def simulate(
     preset: str = typer.Argument(..., help="Flight preset: conte-city, conte-calibration, daakir-uav, "
-                                            "mitishita-block."),
+                                            "mitishita-block, seneca (stations read from real images)."),
     out: Path = typer.Option(..., "--out", help="Flight folder to write (must not exist or be empty)."),
     seed: int = typer.Option(0, help="Random seed; the same seed gives the same flight."),
     mode: str = typer.Option("observations", help="observations (image measurements, fast) or images "
@@ -89,6 +96,8 @@ def simulate(
     max_images: int | None = typer.Option(None, "--max-images", help="Keep only the N frames nearest the "
                                                                       "block centre."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    source: Path | None = typer.Option(None, "--source", help="Image folder of a measured preset (seneca); "
+                                                              "default ../shared/data/seneca/images."),
 ) -> None:
     """Simulate a flight and write a flight folder (and truth.json, for tests and studies only).
 
@@ -106,13 +115,13 @@ def simulate(
     from aerocal.simulate.simulator import spec_summary
 
     try:
-        get_preset(preset)
+        spec = get_preset(preset, source)
         if mode not in MODES:
             raise SimulationError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
         effects = dict(parse_effect(e) for e in effect)
         if out.exists() and (not out.is_dir() or any(out.iterdir())):
             raise SimulationError(f"output folder {out} exists and is not empty; choose a new --out or remove it")
-        sim = simulate_flight(preset, seed=seed, effects=effects, max_images=max_images)
+        sim = simulate_flight(spec, seed=seed, effects=effects, max_images=max_images)
         with _progress(f"writing {mode}", sim.images.num_rows if mode == "images" else 0) as advance:
             write_flight(sim, out, mode=mode, progress=advance)
     except (PresetError, EffectError, SimulationError) as exc:
@@ -196,24 +205,40 @@ def demo(
     out: Path = typer.Option(Path("demo-output"), "--out", help="Folder for everything the demo writes."),
     seed: int = typer.Option(7, help="Random seed of the simulated flight."),
 ) -> None:
-    """Simulate a small thermal flight with one hidden effect and show what was made.
+    """Simulate a small thermal flight with one hidden effect and process it end to end: self-calibration
+    with the certificate stored, adjustment, orthomosaic, assessment, diagnosis and an HTML report.
+
+    Everything goes under --out (SQLite database, artifacts, Prefect's home) unless AEROCAL_DATABASE_URL
+    or AEROCAL_ARTIFACT_ROOT are set.
 
     Example: aerocal demo --out demo-output
     """
-    from aerocal.simulate import simulate_flight, write_flight
-    from aerocal.simulate.simulator import spec_summary
+    from flows.environment import demo_environment
 
-    flight = out / "flight"
-    if flight.exists():
-        if not (flight / "flight.json").exists():
-            fail(f"{flight} exists and is not a demo flight; remove it or choose another --out")
-        shutil.rmtree(flight)  # the demo's own previous output
-    sim = simulate_flight("conte-calibration", seed=seed, effects={"thermal_focal": 0.06})
-    write_flight(sim, flight, mode="observations")
-    summary = spec_summary(sim)
-    summary["out"] = str(flight)
-    _print_summary("demo: simulated thermal calibration flight (one hidden effect)", summary)
-    console.print(f"flight folder: {flight.resolve()}")
+    demo_environment(out)  # before Prefect is imported: its home goes under --out
+    from flows.demo import DemoConfig
+    from flows.demo import demo as demo_flow
+    from flows.flight import FlowInputError
+
+    try:
+        with console.status("simulating and processing the demo flight (about a minute) ..."):
+            summary = demo_flow(out, DemoConfig(seed=seed))
+    except (FlowInputError, OSError) as exc:
+        fail(str(exc))
+    _print_summary("demo: simulated thermal flight (one hidden effect: thermal_focal)", summary["simulated"])
+    steps = ", ".join(f"{k} {v['status']}" for k, v in summary["steps"].items())
+    console.print(f"steps: {steps}")
+    console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
+    acc = summary.get("accuracy") or {}
+    if acc.get("rho"):
+        rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
+        console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
+    console.print(f"[bold]diagnosis:[/bold] {summary.get('diagnosis')}")
+    console.print(f"flight folder: {summary['flight_dir']}")
+    for name, path in summary["files"].items():
+        console.print(f"{name:>13}: {path}")
+    for key, value in summary["storage"].items():
+        console.print(f"{key:>13}: {value}")
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
@@ -252,7 +253,7 @@ def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize(
     "args, message",
-    [(["conte-x"], "valid presets: conte-calibration, conte-city"),
+    [(["conte-x"], "valid presets: conte-calibration, conte-city, daakir-uav, mitishita-block, seneca"),
      (["conte-calibration", "--effect", "foo=1"], "valid effects: thermal_focal"),
      (["conte-calibration", "--effect", "boresight=0.1"], "boresight takes 3"),
      (["conte-calibration", "--effect", "thermal_focal=abc"], "thermal_focal takes 1"),
@@ -276,3 +277,26 @@ def test_cli_simulate_writes_a_flight(tmp_path):
     summary = json.loads(result.output)
     assert summary["images"] == 10 and summary["effects"] == {"boresight": [0.01, 0.0, 0.0]}
     assert (out / "truth.json").exists()
+
+
+SENECA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "seneca" / "images"
+
+
+def test_seneca_preset_flies_the_real_stations_and_temperatures():
+    if not SENECA.is_dir():
+        pytest.skip(f"measured data not found at {SENECA} (../shared/data beside the repository)")
+    sim = simulate_flight("seneca", seed=2)
+    t = sim.images.column("temperature_c").to_numpy()
+    assert sim.images.num_rows == 166, "the 1800x1350 frames (the first, smaller frame is left out)"
+    assert t[0] == 37.0 and t[-1] == 23.0 and np.all(np.diff(t) <= 0), "the camera cooled from 37 to 23 degC"
+    assert sim.crs == "EPSG:32617"
+    assert len(np.unique(sim.trajectory.strip)) >= 20, "strips as ingest found them"
+    assert np.median(np.bincount(sim.tie.image_id)[1:]) > 300
+    gsd = sim.trajectory.gsd_m
+    assert 0.04 < gsd < 0.07, f"GSD {gsd:.3f} m at ~70 m with a 4.3 mm lens"
+
+
+def test_measured_preset_with_a_missing_folder_names_it(tmp_path):
+    result = CliRunner().invoke(app, ["simulate", "seneca", "--source", str(tmp_path / "nothing"),
+                                      "--out", str(tmp_path / "f")])
+    assert result.exit_code != 0 and "nothing is not a folder" in " ".join(result.output.split())

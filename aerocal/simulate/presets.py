@@ -174,7 +174,23 @@ class PresetError(ValueError):
     """An unknown preset; the message lists the valid names."""
 
 
-def get_preset(name: str) -> FlightSpec:
+#: presets built on demand from measured data (name -> builder taking an optional source folder)
+MEASURED = ("seneca",)
+
+
+def preset_names() -> list[str]:
+    return sorted([*PRESETS, *MEASURED])
+
+
+def get_preset(name: str, source: str | None = None) -> FlightSpec:
+    """A preset by name; ``source`` is the image folder of a measured preset (``seneca``)."""
+    if name == "seneca":
+        from aerocal.simulate.measured import MeasuredFlightError, seneca_spec
+
+        try:
+            return seneca_spec(source)
+        except MeasuredFlightError as exc:
+            raise PresetError(str(exc)) from exc
     if name not in PRESETS:
-        raise PresetError(f"unknown preset {name!r}; valid presets: {', '.join(sorted(PRESETS))}")
+        raise PresetError(f"unknown preset {name!r}; valid presets: {', '.join(preset_names())}")
     return PRESETS[name]

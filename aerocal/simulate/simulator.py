@@ -122,9 +122,13 @@ def simulate_flight(
     seed: int = 0,
     effects: dict[str, object] | None = None,
     max_images: int | None = None,
+    source: str | None = None,
 ) -> SimulatedFlight:
-    """Simulate ``preset`` with hidden ``effects`` ({name: magnitude}, see :mod:`aerocal.effects`)."""
-    spec = get_preset(preset) if isinstance(preset, str) else preset
+    """Simulate ``preset`` with hidden ``effects`` ({name: magnitude}, see :mod:`aerocal.effects`).
+
+    ``source``: the image folder of a measured preset (``seneca``).
+    """
+    spec = get_preset(preset, source) if isinstance(preset, str) else preset
     fx = normalise_effects(effects)
     if max_images is not None and max_images < 2:
         raise SimulationError(f"--max-images must be at least 2, got {max_images}")
@@ -135,13 +139,23 @@ def simulate_flight(
     margin = 0.75 * math.hypot(across, along) + 50.0
     scene, bounds = _make_scene(spec, margin, seed=int(seeds[0].generate_state(1)[0]))
     terrain = spec.scene.terrain_mean_m
-    traj = plan_flight(spec.plan, spec.camera_nominal, bounds, terrain, rng_plan)
+    if "stations" in spec.extra:  # a measured flight: its recorded stations are the truth
+        from aerocal.simulate.measured import trajectory
+
+        traj = trajectory(spec.extra["stations"])
+    else:
+        traj = plan_flight(spec.plan, spec.camera_nominal, bounds, terrain, rng_plan)
+    selected = np.arange(len(traj))
     if max_images is not None and max_images < len(traj):
-        traj = traj.subset(_select_compact(traj, max_images))
+        selected = _select_compact(traj, max_images)
+        traj = traj.subset(selected)
     N = len(traj)
 
     t_true = spec.sensors.temperature.true_at(traj.time_s)
     t_rec = spec.sensors.temperature.recorded_at(traj.time_s, rng_temp)
+    if "stations" in spec.extra:  # the camera's own readings (integer degC) stand for the truth and the record
+        t_true = np.asarray(spec.extra["stations"]["temperature"], dtype=float)[selected]
+        t_rec = t_true.copy()
     readout = fx["rolling_shutter"][0] if "rolling_shutter" in fx else 0.0
     refr = fx.get("refraction", (0.0,))[0]
     exposures = []
