@@ -1,0 +1,245 @@
+"""Initial orientation of a block: from the recorded GNSS/IMU, or by incremental SfM where none exist.
+
+* With a recorded position and attitude for every image, the initial poses are those records and the
+  tie points are intersected from them (:func:`orient_from_priors`); the bundle adjustment refines both.
+* Without them (e.g. the copr images, which carry no GNSS), :func:`orient_incremental` hands our own
+  keypoints and verified matches to COLMAP's incremental mapper (pycolmap 4.x) and reads the
+  reconstruction back as aerocal tables; :func:`georeference` then moves it into the flight's CRS by a
+  7-parameter similarity estimated on the ground-control points triangulated in the model.
+
+Poses follow aerocal's convention (world-to-camera quaternions, scalar first, projection centres);
+pixels are COLMAP's own convention, so keypoints go to COLMAP unchanged.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from aerocal import tables
+from aerocal.camera import Camera
+from aerocal.geometry import (
+    Similarity,
+    attitude_to_R_cw,
+    estimate_similarity,
+    matrix_from_quat_wxyz,
+    quat_wxyz_from_matrix,
+)
+
+
+class OrientationError(RuntimeError):
+    """The block could not be oriented; the message says what was missing and what to try."""
+
+
+@dataclass(frozen=True)
+class IncrementalConfig:
+    """Options of the incremental mapper (documented defaults)."""
+
+    min_model_size: int = 3  # smallest reconstruction kept
+    refine_intrinsics: bool = False  # keep the starting camera: flat nadir blocks do not determine it
+    multiple_models: bool = False  # one model; images that do not join it stay unregistered
+    camera_model: str = "SIMPLE_RADIAL"  # COLMAP model seeded from the starting camera (f, cx, cy, k1)
+
+
+def poses_table(image_ids: np.ndarray, R_cw: np.ndarray, C: np.ndarray, crs: str | None = None) -> pa.Table:
+    q = quat_wxyz_from_matrix(R_cw)
+    return tables.from_columns("poses", {
+        "image_id": np.asarray(image_ids, dtype=np.int32), "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2],
+        "qz": q[:, 3], "X": C[:, 0], "Y": C[:, 1], "Z": C[:, 2]}, crs=crs)
+
+
+def poses_arrays(poses: pa.Table) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(image ids, R_cw (N, 3, 3), C (N, 3)) of a poses table."""
+    p = poses.to_pydict()
+    q = np.column_stack([p["qw"], p["qx"], p["qy"], p["qz"]])
+    return (np.asarray(p["image_id"]), matrix_from_quat_wxyz(q).reshape(-1, 3, 3),
+            np.column_stack([p["X"], p["Y"], p["Z"]]))
+
+
+def has_priors(images: pa.Table) -> bool:
+    """True when every image has a recorded position and attitude."""
+    cols = ("gnss_x", "gnss_y", "gnss_z", "roll", "pitch", "yaw", "attitude_convention")
+    return all(images.column(c).null_count == 0 for c in cols) and images.num_rows > 0
+
+
+def orient_from_priors(images: pa.Table) -> pa.Table:
+    """Initial poses from the recorded GNSS/IMU (the adjustment refines them)."""
+    if not has_priors(images):
+        raise OrientationError("some images lack a recorded position or attitude; use orient_incremental")
+    im = images.to_pydict()
+    R = np.stack([attitude_to_R_cw(c, r, p, y) for c, r, p, y in
+                  zip(im["attitude_convention"], im["roll"], im["pitch"], im["yaw"], strict=True)])
+    C = np.column_stack([im["gnss_x"], im["gnss_y"], im["gnss_z"]]).astype(float)
+    return poses_table(np.asarray(im["image_id"]), R, C, tables.crs_of(images))
+
+
+def _colmap_camera(camera: Camera, model: str):
+    import pycolmap
+
+    if model == "SIMPLE_RADIAL":
+        params = [camera.f, camera.cx, camera.cy, camera.k1]
+    elif model == "PINHOLE":
+        params = [camera.f + camera.b1, camera.f, camera.cx, camera.cy]
+    else:
+        from aerocal.camera import to_pycolmap
+
+        return to_pycolmap(camera, drop_skew=True)
+    return pycolmap.Camera(model=model, width=camera.width, height=camera.height, params=params)
+
+
+def orient_incremental(
+    images: pa.Table,
+    keypoints: pa.Table,
+    matches: pa.Table,
+    camera: Camera,
+    config: IncrementalConfig | None = None,
+    workdir: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[pa.Table, pa.Table, pa.Table]:
+    """Incremental SfM on our keypoints and verified matches: (poses, points, observations) in the
+    reconstruction's own frame (arbitrary datum; see :func:`georeference`).
+
+    ``observations`` holds the registered measurements of the reconstruction's tracks (track ids are
+    COLMAP's point ids).
+    """
+    import pycolmap
+
+    config = config or IncrementalConfig()
+    pycolmap.logging.minloglevel = 2  # COLMAP's own progress lines: our callback reports progress
+    keypoints = tables.validate(keypoints, "keypoints", source="keypoints")
+    matches = tables.validate(matches, "matches", source="matches")
+    tmp = tempfile.TemporaryDirectory(prefix="aerocal-sfm-") if workdir is None else None
+    work = Path(tmp.name if tmp else workdir)
+    work.mkdir(parents=True, exist_ok=True)
+    try:
+        db_path = work / "database.db"
+        if db_path.exists():
+            db_path.unlink()
+        db = pycolmap.Database.open(str(db_path))
+        cam_id = db.write_camera(_colmap_camera(camera, config.camera_model))
+        names = dict(zip(images.column("image_id").to_pylist(), images.column("name").to_pylist(), strict=True))
+        kp = keypoints.to_pydict()
+        kp_img = np.asarray(kp["image_id"])
+        kp_id = np.asarray(kp["keypoint_id"])
+        kp_xy = np.column_stack([kp["x"], kp["y"]]).astype(np.float32)
+        colmap_id: dict[int, int] = {}
+        row_of: dict[int, np.ndarray] = {}  # our keypoint id -> row in COLMAP's keypoint list, per image
+        for image_id in names:
+            sel = np.flatnonzero(kp_img == image_id)
+            iid = db.write_image(pycolmap.Image(name=str(names[image_id]), camera_id=cam_id))
+            colmap_id[image_id] = iid
+            db.write_keypoints(iid, kp_xy[sel])
+            lut = np.full(int(kp_id[sel].max()) + 1 if len(sel) else 1, -1, dtype=np.int64)
+            lut[kp_id[sel]] = np.arange(len(sel))
+            row_of[image_id] = lut
+        m = matches.to_pydict()
+        a, b = np.asarray(m["image_id1"]), np.asarray(m["image_id2"])
+        ka, kb = np.asarray(m["keypoint_id1"]), np.asarray(m["keypoint_id2"])
+        pairs = np.unique(np.column_stack([a, b]), axis=0) if len(a) else np.zeros((0, 2), int)
+        for i1, i2 in pairs:
+            sel = (a == i1) & (b == i2)
+            mm = np.column_stack([row_of[i1][ka[sel]], row_of[i2][kb[sel]]]).astype(np.uint32)
+            c1, c2 = colmap_id[i1], colmap_id[i2]
+            if c1 > c2:
+                c1, c2, mm = c2, c1, mm[:, ::-1].copy()
+            db.write_matches(c1, c2, mm)
+            tvg = pycolmap.TwoViewGeometry()
+            tvg.config = pycolmap.TwoViewGeometryConfiguration.UNCALIBRATED
+            tvg.inlier_matches = mm
+            db.write_two_view_geometry(c1, c2, tvg)
+        db.close()
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.min_model_size = config.min_model_size
+        opts.multiple_models = config.multiple_models
+        opts.ba_refine_focal_length = config.refine_intrinsics
+        opts.ba_refine_principal_point = False
+        opts.ba_refine_extra_params = config.refine_intrinsics
+        n_total = len(names)
+        registered = [0]
+
+        def on_image() -> None:
+            registered[0] += 1
+            if progress:
+                progress(min(registered[0], n_total), n_total)
+
+        recs = pycolmap.incremental_mapping(str(db_path), str(work), str(work / "sparse"), options=opts,
+                                            next_image_callback=on_image)
+    finally:
+        if tmp:
+            tmp.cleanup()
+    if not recs:
+        raise OrientationError(
+            f"incremental mapping found no initial pair among {len(names)} images ({len(pairs)} matched pairs); "
+            "check the matches, or give GNSS/IMU priors")
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    ours = {v: k for k, v in colmap_id.items()}
+    ids, Rs, Cs = [], [], []
+    obs_img, obs_trk, obs_xy = [], [], []
+    for iid, image in rec.images.items():
+        if not image.has_pose:
+            continue
+        T = image.cam_from_world()
+        R = np.asarray(T.rotation.matrix())
+        ids.append(ours[iid])
+        Rs.append(R)
+        Cs.append(-R.T @ np.asarray(T.translation))
+        for p2d in image.points2D:
+            if p2d.has_point3D():
+                obs_img.append(ours[iid])
+                obs_trk.append(p2d.point3D_id)
+                obs_xy.append(np.asarray(p2d.xy))
+    pts = rec.points3D
+    pid = np.array(list(pts.keys()), dtype=np.int64)
+    xyz = np.array([pts[k].xyz for k in pid]).reshape(-1, 3)
+    err = np.array([pts[k].error for k in pid])
+    n_obs = np.array([pts[k].track.length() for k in pid], dtype=np.int32)
+    order = np.argsort(ids)
+    poses = poses_table(np.asarray(ids)[order], np.stack(Rs)[order], np.stack(Cs)[order])
+    points = tables.from_columns("points", {"track_id": pid, "X": xyz[:, 0], "Y": xyz[:, 1], "Z": xyz[:, 2],
+                                            "n_obs": n_obs, "error": err})
+    xy = np.asarray(obs_xy).reshape(-1, 2)
+    observations = tables.from_columns("observations", {
+        "image_id": np.asarray(obs_img, dtype=np.int32), "track_id": np.asarray(obs_trk, dtype=np.int64),
+        "x": xy[:, 0], "y": xy[:, 1], "sigma": np.full(len(xy), 0.5, np.float32)})
+    return poses, points, observations
+
+
+def georeference(poses: pa.Table, camera: Camera, gcps: pa.Table, gcp_observations: pa.Table,
+                 crs: str | None = None) -> tuple[pa.Table, Similarity]:
+    """Move a reconstruction into the flight CRS by a similarity on the triangulated control points."""
+    ids, R, C = poses_arrays(poses)
+    index = {int(k): i for i, k in enumerate(ids)}
+    g = gcps.to_pydict()
+    surveyed = {gid: np.array([g["X"][k], g["Y"][k], g["Z"][k]]) for k, gid in enumerate(g["gcp_id"])
+                if g["role"][k] == "control"}
+    go = gcp_observations.to_pydict()
+    model, world = [], []
+    for gid in surveyed:
+        rows = [k for k, (name, iid) in enumerate(zip(go["gcp_id"], go["image_id"], strict=True))
+                if name == gid and int(iid) in index]
+        if len(rows) < 2:
+            continue
+        A, b = np.zeros((3, 3)), np.zeros(3)
+        for k in rows:
+            i = index[int(go["image_id"][k])]
+            xy = camera.unproject(np.array([[go["x"][k], go["y"][k]]]))[0]
+            d = R[i].T @ np.array([xy[0], xy[1], 1.0])
+            d /= np.linalg.norm(d)
+            P = np.eye(3) - np.outer(d, d)
+            A += P
+            b += P @ C[i]
+        model.append(np.linalg.solve(A, b))
+        world.append(surveyed[gid])
+    if len(model) < 3:
+        raise OrientationError(
+            f"georeferencing needs at least 3 control points seen in 2 oriented images, found {len(model)}; "
+            "add ground control or GNSS")
+    sim = estimate_similarity(np.asarray(model), np.asarray(world))
+    C_w = sim.apply(C)
+    R_w = np.einsum("nij,jk->nik", R, sim.R.T)  # R_cw' = R_cw S^T: p_cam = R (S^T (X - t) / s - ...)
+    return poses_table(ids, R_w, C_w, crs or tables.crs_of(gcps)), sim
