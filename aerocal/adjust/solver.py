@@ -71,7 +71,7 @@ class Solution:
 
     state: State
     layout: Layout
-    cov_camera: np.ndarray  # (n_camera, n_camera) inverse of the reduced normal matrix (unscaled)
+    cov_camera: SparseInverse  # inverse of the reduced normal matrix (unscaled), blocks on demand
     sigma0: float
     dof: int
     cost: float
@@ -295,6 +295,58 @@ def inverse_spd(S: np.ndarray) -> np.ndarray:
     return inv / d[:, None] / d[None, :]
 
 
+class SparseInverse:
+    """Blocks of the inverse of a sparse symmetric positive definite matrix, computed on demand.
+
+    The reduced camera system of a block is sparse (an image couples only with the images it shares
+    points with), so one sparse LU factorisation (SuperLU, Jacobi-scaled) and a solve for the columns
+    a caller needs beats forming the dense inverse: conte-city, 818 images (4908 unknowns), dense
+    Cholesky inverse 33 s on the loaded 2-core machine, IO and check-point blocks from the sparse
+    factorisation well under a second. Indexing works like a dense array for ``[a:b, a:b]`` and
+    ``[np.ix_(rows, cols)]``; ``dense()`` forms the whole inverse when it is really wanted.
+    """
+
+    def __init__(self, S: np.ndarray) -> None:
+        self.n = len(S)
+        self.d = np.sqrt(np.maximum(np.diag(S), 1e-300))
+        Ss = S / self.d[:, None] / self.d[None, :]
+        self._lu = None
+        self._dense = None
+        try:
+            self._lu = spla.splu(sp.csc_matrix(Ss))
+        except RuntimeError:  # exactly singular: fall back to the pseudo-inverse
+            self._dense = inverse_spd(S)
+        self._cols: dict[int, np.ndarray] = {}
+
+    def columns(self, cols: np.ndarray) -> np.ndarray:
+        """The inverse's columns ``cols`` (n, len(cols))."""
+        cols = np.asarray(cols, dtype=np.int64)
+        if self._dense is not None:
+            return self._dense[:, cols]
+        missing = [int(c) for c in cols if int(c) not in self._cols]
+        if missing:
+            E = np.zeros((self.n, len(missing)))
+            E[missing, np.arange(len(missing))] = 1.0 / self.d[missing]
+            X = self._lu.solve(E) / self.d[:, None]
+            for k, c in enumerate(missing):
+                self._cols[c] = X[:, k]
+        return np.column_stack([self._cols[int(c)] for c in cols]) if len(cols) else np.zeros((self.n, 0))
+
+    def __getitem__(self, key) -> np.ndarray:
+        rows, cols = key
+        idx = np.arange(self.n)
+        rows = idx[rows] if isinstance(rows, slice) else np.asarray(rows).ravel()
+        cols = idx[cols] if isinstance(cols, slice) else np.asarray(cols).ravel()
+        return self.columns(cols)[rows]
+
+    def dense(self) -> np.ndarray:
+        return self._dense if self._dense is not None else self.columns(np.arange(self.n))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.n, self.n)
+
+
 def solve(problem: Problem, start: State) -> Solution:
     """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
     cfg = problem.cfg
@@ -326,7 +378,7 @@ def solve(problem: Problem, start: State) -> Solution:
                 converged = True  # no further decrease possible: at the minimum to machine precision
                 break
     S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0)
-    cov = inverse_spd(S)
+    cov = SparseInverse(S)
     cost, res_px, w = problem.residuals(st, jac=False)
     n_res = len(r)
     n_unk = problem.layout.n_camera + 3 * problem.layout.n_points

@@ -140,11 +140,11 @@ class Conditional:
 
     For columns ``t`` given free columns ``b`` of the reduced system: ``I = S_tt - S_tb S_bb^-1 S_bt`` and
     ``g_t|b = g_t - S_tb S_bb^-1 g_b``; the chi-square drop of freeing ``t`` is ``g^T I^-1 g`` and the
-    Gauss-Newton estimate ``-I^-1 g``. ``S_bb`` is factorised once (Cholesky) for every test.
+    Gauss-Newton estimate ``-I^-1 g``. ``S_bb`` is factorised once (sparse LU) for every test.
     """
 
     def __init__(self, red: Reduced, base: np.ndarray, tests: np.ndarray) -> None:
-        from scipy.linalg import cho_factor, cho_solve
+        import scipy.sparse.linalg as spla
 
         S, g = red.S, red.g
         self.S, self.g, self.base = S, g, base
@@ -152,10 +152,10 @@ class Conditional:
         Sbb = S[np.ix_(base, base)]
         rhs = np.column_stack([S[np.ix_(base, tests)], g[base]])
         d = np.sqrt(np.maximum(np.diag(Sbb), 1e-300))
-        try:
-            fac = cho_factor(Sbb / d[:, None] / d[None, :])
-            self.X = cho_solve(fac, rhs / d[:, None]) / d[:, None]
-        except np.linalg.LinAlgError:
+        try:  # the reduced system is sparse (images couple with their neighbours): sparse LU, Jacobi-scaled
+            lu = spla.splu(sp.csc_matrix(Sbb / d[:, None] / d[None, :]))
+            self.X = lu.solve(rhs / d[:, None]) / d[:, None]
+        except RuntimeError:
             self.X = inverse_spd(Sbb) @ rhs
         self.pos = {int(t): k for k, t in enumerate(tests)}
 
