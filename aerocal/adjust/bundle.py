@@ -270,9 +270,12 @@ def adjust(
     gcps: pa.Table | None = None,
     gcp_observations: pa.Table | None = None,
     thermal_correction: LinearThermalModel | None = None,
+    initial_poses: pa.Table | None = None,
 ) -> AdjustmentResult:
     """Bundle adjustment with self-calibration (IO free or fixed per parameter) and an optional thermal model.
 
+    ``initial_poses``: starting poses from an orientation (a poses table) for blocks without recorded
+    GNSS/IMU; the priors must then be off and at least 3 control GCPs give the datum.
     ``thermal_correction``: correct tie-point and GCP measurements to the model's reference temperature
     before adjusting (Daakir 2019), ``camera`` then being the IO at that temperature.
     With ``config.adaptive`` insignificant or near-singular parameters are dropped one at a time and the
@@ -287,6 +290,7 @@ def adjust(
         config,
         thermal_correction=thermal_correction,
         correction_camera=camera,
+        initial_poses=initial_poses,
     )
     if config.thermal_t0 is not None:
         t0 = float(config.thermal_t0)

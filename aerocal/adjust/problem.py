@@ -138,6 +138,7 @@ def build_block(
     config: AdjustConfig | None = None,
     thermal_correction: LinearThermalModel | None = None,
     correction_camera: Camera | None = None,
+    initial_poses: pa.Table | None = None,
 ) -> Block:
     """Validate the tables and build the :class:`Block` arrays.
 
@@ -159,23 +160,41 @@ def build_block(
         raise AdjustmentError("images.image_id has duplicate values; every image needs a unique id")
     index = {int(v): i for i, v in enumerate(image_ids)}
     N = len(image_ids)
-    conv = images.column("attitude_convention").to_pylist()
-    roll, pitch, yaw = (_col(images, n, "images").astype(float) for n in ("roll", "pitch", "yaw"))
-    R_rec = np.empty((N, 3, 3))
-    for i in range(N):
-        if conv[i] is None or not np.isfinite([roll[i], pitch[i], yaw[i]]).all():
+    if initial_poses is not None:
+        # starting poses from an orientation (e.g. incremental SfM georeferenced on GCPs): they are
+        # starting values only, so GNSS and attitude priors must be off
+        if config.gnss_sigma_m is not None or config.attitude_sigma_deg is not None:
             raise AdjustmentError(
-                f"images row {i} (image_id {image_ids[i]}): attitude (roll/pitch/yaw/attitude_convention) is "
-                "missing; the adjustment starts from the recorded attitude, so every image needs one"
+                "initial_poses are starting values, not recorded GNSS/IMU: set AdjustConfig.gnss_sigma_m=None "
+                "and attitude_sigma_deg=None (the datum then comes from at least 3 control GCPs)")
+        from aerocal.orient import poses_arrays
+
+        p_ids, p_R, p_C = poses_arrays(initial_poses)
+        pos = {int(v): k for k, v in enumerate(p_ids)}
+        missing = [int(v) for v in image_ids if int(v) not in pos]
+        if missing:
+            raise AdjustmentError(f"initial_poses: image_id {missing[0]} (and {len(missing) - 1} more) has no pose; "
+                                  "adjust only the oriented images (select_images)")
+        rows = np.array([pos[int(v)] for v in image_ids])
+        R_rec, gnss = p_R[rows], p_C[rows]
+    else:
+        conv = images.column("attitude_convention").to_pylist()
+        roll, pitch, yaw = (_col(images, n, "images").astype(float) for n in ("roll", "pitch", "yaw"))
+        R_rec = np.empty((N, 3, 3))
+        for i in range(N):
+            if conv[i] is None or not np.isfinite([roll[i], pitch[i], yaw[i]]).all():
+                raise AdjustmentError(
+                    f"images row {i} (image_id {image_ids[i]}): attitude (roll/pitch/yaw/attitude_convention) is "
+                    "missing; the adjustment starts from the recorded attitude, so every image needs one"
+                )
+            R_rec[i] = attitude_to_R_cw(conv[i], roll[i], pitch[i], yaw[i])
+        gnss = np.column_stack([_col(images, n, "images").astype(float) for n in ("gnss_x", "gnss_y", "gnss_z")])
+        if not np.isfinite(gnss).all():
+            bad = int(np.flatnonzero(~np.isfinite(gnss).all(axis=1))[0])
+            raise AdjustmentError(
+                f"images row {bad} (image_id {image_ids[bad]}): gnss_x/gnss_y/gnss_z missing; "
+                "the adjustment starts from the recorded positions"
             )
-        R_rec[i] = attitude_to_R_cw(conv[i], roll[i], pitch[i], yaw[i])
-    gnss = np.column_stack([_col(images, n, "images").astype(float) for n in ("gnss_x", "gnss_y", "gnss_z")])
-    if not np.isfinite(gnss).all():
-        bad = int(np.flatnonzero(~np.isfinite(gnss).all(axis=1))[0])
-        raise AdjustmentError(
-            f"images row {bad} (image_id {image_ids[bad]}): gnss_x/gnss_y/gnss_z missing; "
-            "the adjustment starts from the recorded positions"
-        )
     origin = gnss.mean(axis=0)
     temperature = _col(images, "temperature_c", "images").astype(float)
     if (config.thermal or thermal_correction is not None) and not np.isfinite(temperature).all():
