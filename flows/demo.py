@@ -1,0 +1,94 @@
+"""The demo: a small simulated thermal flight with one hidden effect, processed end to end.
+
+:func:`demo` simulates ``conte-calibration`` (the NEC TS9260 thermal camera over a synthetic city) in
+observations mode with a hidden focal-length temperature effect, renders a handful of frames near the
+block centre so that the orthomosaic has pixels, and runs :func:`flows.flight.process_flight` with every
+step: ingest, orient, self-calibration with the certificate stored, full-block adjustment with fixed IO
+and thermal correction, DSM and orthomosaic, assessment, diagnosis and the HTML report.
+
+Everything goes under the output folder: the flight, the run folder, the SQLite database and the artifact
+store (unless ``AEROCAL_DATABASE_URL`` / ``AEROCAL_ARTIFACT_ROOT`` are set), and Prefect's home (set by
+the ``aerocal demo`` command before Prefect is imported; see
+:func:`flows.environment.demo_environment`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from prefect import flow
+
+from flows.config import ProcessConfig
+from flows.environment import demo_environment
+from flows.flight import FlowInputError, process_flight
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoConfig:
+    """The demo flight: ``preset`` (conte-calibration), ``seed`` (7), ``max_images`` (30 frames nearest
+    the block centre), ``effects`` (hidden: a focal length changing 0.06 px per degC, ``thermal_focal``),
+    ``frames`` rendered for the orthomosaic (8, the ones nearest the block centre)."""
+
+    preset: str = "conte-calibration"
+    seed: int = 7
+    max_images: int | None = 30
+    effects: tuple[tuple[str, tuple[float, ...]], ...] = (("thermal_focal", (0.06,)),)
+    frames: int = 8
+
+
+def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
+    """Write the demo flight (observations mode plus ``config.frames`` rendered frames) to ``folder``."""
+    from aerocal.simulate import simulate_flight, write_flight
+    from aerocal.simulate.rendering import render_flight_images
+    from aerocal.simulate.simulator import spec_summary
+
+    if folder.exists():
+        if not (folder / "flight.json").exists():
+            raise FlowInputError(
+                f"{folder} exists and is not a demo flight; remove it or choose another output"
+            )
+        shutil.rmtree(folder)  # the demo's own previous flight
+    sim = simulate_flight(
+        config.preset, seed=config.seed, effects=dict(config.effects), max_images=config.max_images
+    )
+    write_flight(sim, folder, mode="observations")
+    if config.frames:
+        xy = np.column_stack([sim.images.column("gnss_x").to_numpy(), sim.images.column("gnss_y").to_numpy()])
+        near = np.argsort(np.linalg.norm(xy - np.median(xy, axis=0), axis=1))[: config.frames]
+        idx = sorted(int(i) for i in near)
+        subset = dataclasses.replace(
+            sim, images=sim.images.take(idx), exposures=[sim.exposures[i] for i in idx]
+        )
+        render_flight_images(subset, folder / "images")
+    return spec_summary(sim)
+
+
+@flow(name="demo", validate_parameters=False)
+def demo(
+    out: str | Path = "demo-output",
+    config: DemoConfig | None = None,
+    database_url: str | None = None,
+    artifact_root: str | None = None,
+) -> dict[str, Any]:
+    """Simulate the demo flight under ``out/flight`` and process it into ``out/run``; returns the run's
+    summary with the simulated flight's figures under ``simulated``."""
+    config = config or DemoConfig()
+    out = Path(out).resolve()
+    env = demo_environment(out)
+    flight = out / "flight"
+    simulated = simulate_demo_flight(flight, config)
+    summary = process_flight(
+        flight,
+        out / "run",
+        "auto",
+        ProcessConfig(),
+        database_url or env["database_url"],
+        artifact_root or env["artifact_root"],
+    )
+    summary["simulated"] = simulated
+    summary["flight_dir"] = str(flight)
+    return summary

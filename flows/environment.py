@@ -1,0 +1,84 @@
+"""Where a flow keeps things and how Prefect runs: database, artifact store, Prefect home and settings.
+
+This module does not import Prefect: :func:`quiet_prefect` must set Prefect's environment before Prefect
+is first imported (its settings are read then).
+
+* Database: ``database_url`` argument, else ``$AEROCAL_DATABASE_URL``, else the SQLite file of
+  :func:`storage.database.database_url`; migrated to the newest schema on first use.
+* Artifacts: ``artifact_root`` argument, else ``$AEROCAL_ARTIFACT_ROOT``, else
+  :func:`storage.artifacts.default_artifact_root`.
+* Prefect: with ``PREFECT_API_URL`` unset, the first flow run starts Prefect's temporary local server
+  (SQLite under ``PREFECT_HOME``); with it set (e.g. the compose file's Prefect server backed by
+  PostgreSQL), flow runs are recorded there.
+* Dask: a ``LocalCluster`` per step that needs one, or the scheduler at ``--dask ADDRESS``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+#: environment that keeps Prefect local and quiet unless the user set otherwise
+PREFECT_DEFAULTS = {
+    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+    "DO_NOT_TRACK": "1",
+    "PREFECT_LOGGING_LEVEL": "WARNING",
+    "PREFECT_UI_ENABLED": "false",
+    "DASK_LOGGING__DISTRIBUTED": "warning",  # Dask's per-worker INFO lines drown the progress otherwise
+}
+
+
+def quiet_prefect(home: str | Path | None = None) -> None:
+    """Set Prefect's analytics off and logging to warnings (unless already set); with ``home``, put
+    ``PREFECT_HOME`` (Prefect's profiles and its temporary server's database) there. Call before Prefect
+    is imported."""
+    for key, value in PREFECT_DEFAULTS.items():
+        os.environ.setdefault(key, value)
+    if home is not None:
+        Path(home).mkdir(parents=True, exist_ok=True)
+        os.environ["PREFECT_HOME"] = str(Path(home).resolve())
+
+
+@dataclass(frozen=True)
+class StorageLocation:
+    """The database URL and the artifact root a flow run uses."""
+
+    database_url: str
+    artifact_root: str
+
+    def describe(self) -> dict[str, str]:
+        from storage.database import mask_url
+
+        return {"database": mask_url(self.database_url), "artifacts": self.artifact_root}
+
+
+_migrated: set[str] = set()
+
+
+def resolve_storage(
+    database_url: str | None = None, artifact_root: str | Path | None = None, migrate: bool = True
+) -> StorageLocation:
+    """The storage a flow uses (see the module docstring); the database is migrated to the newest schema
+    once per process."""
+    from storage.artifacts import default_artifact_root
+    from storage.database import database_url as default_url
+    from storage.migrations import upgrade
+
+    url = database_url or default_url()
+    root = str(Path(artifact_root).resolve()) if artifact_root else str(default_artifact_root())
+    if migrate and url not in _migrated:
+        upgrade(url)
+        _migrated.add(url)
+    return StorageLocation(url, root)
+
+
+def demo_environment(out: str | Path) -> dict[str, str]:
+    """Database, artifact root and Prefect home of a demo writing to ``out`` (environment wins for the first
+    two). Sets ``PREFECT_HOME``; call before Prefect is imported for it to take effect."""
+    out = Path(out).resolve()
+    quiet_prefect(out / "prefect")
+    return {
+        "database_url": os.environ.get("AEROCAL_DATABASE_URL") or f"sqlite:///{out / 'aerocal.db'}",
+        "artifact_root": os.environ.get("AEROCAL_ARTIFACT_ROOT") or str(out / "artifacts"),
+    }

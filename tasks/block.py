@@ -1,0 +1,101 @@
+"""The full-block adjustment with IO fixed from the certificate, image measurements corrected for the
+sensor temperature where the certificate has a linear thermal model (Daakir 2019: tie points and GCP
+measurements are corrected, not pixels; :func:`aerocal.adjust.adjust_fixed_io`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from prefect import task
+
+from aerocal.adjust import AdjustConfig, adjust_fixed_io
+from aerocal.camera import LinearThermalModel
+from aerocal.certificate import Certificate
+from tasks.resume import ArrayOutput, JsonOutput, StepContext, StepInputs, StepResult, TableOutput, run_step
+from tasks.retries import TASK_RETRIES, TASK_RETRY_DELAYS_S, retry_condition
+
+
+@dataclass(frozen=True)
+class BlockStepConfig:
+    """``adjust``: the full-block adjustment (IO is fixed whatever ``adjust.free`` says; default GNSS
+    sigmas 0.10/0.10/0.15 m, GCPs weighted by their survey sigmas); ``thermal_correction`` (True): apply
+    the certificate's linear thermal model to the measurements."""
+
+    adjust: AdjustConfig = field(default_factory=AdjustConfig)
+    thermal_correction: bool = True
+
+
+def adjust_step(
+    ctx: StepContext,
+    ingest: StepResult,
+    observations: str,
+    certificate: str,
+    config: BlockStepConfig | None = None,
+    adjust_config: AdjustConfig | None = None,
+) -> StepResult:
+    """Adjust the whole flight with the certificate's IO.
+
+    Outputs: ``poses``, ``points`` (tables), ``adjustment`` (summary, check-point and control residuals,
+    predicted check-point sigmas; metres, E N Up) and ``residuals`` ((M, 2) pixels, predicted minus
+    observed, aligned with the observations table).
+    """
+    config = config or BlockStepConfig()
+    acfg = adjust_config or config.adjust
+    inputs = {
+        "images": ingest["images"],
+        "observations": observations,
+        "gcps": ingest["gcps"],
+        "gcp_observations": ingest["gcp_observations"],
+        "certificate": certificate,
+    }
+
+    def compute(inp: StepInputs) -> dict:
+        cert = Certificate.from_dict(inp.json("certificate"))
+        thermal = None
+        if (
+            config.thermal_correction
+            and cert.thermal is not None
+            and isinstance(cert.thermal.model, LinearThermalModel)
+        ):
+            thermal = cert.thermal.model
+        res = adjust_fixed_io(
+            inp.table("images"),
+            inp.table("observations"),
+            cert.camera,
+            acfg,
+            inp.table("gcps"),
+            inp.table("gcp_observations"),
+            thermal,
+        )
+        summary = res.summary()
+        summary.update(
+            {
+                "certificate_id": cert.id,
+                "thermal_correction": thermal is not None,
+                "converged": res.converged,
+                "iterations": res.iterations,
+                "check_ids": list(res.check_ids),
+                "check_errors_m": np.asarray(res.check_errors).tolist(),
+                "check_sigma_m": np.asarray(res.check_sigma).tolist(),
+                "control_ids": list(res.control_ids),
+                "control_errors_m": np.asarray(res.control_errors).tolist(),
+            }
+        )
+        return {
+            "poses": TableOutput(res.poses, "poses"),
+            "points": TableOutput(res.points, "points"),
+            "adjustment": JsonOutput(summary, "adjustment"),
+            "residuals": ArrayOutput(np.asarray(res.residuals, dtype=float), "residuals"),
+        }
+
+    return run_step(ctx, "adjust", inputs, {"config": config, "adjust": acfg}, compute)
+
+
+adjust_task = task(
+    adjust_step,
+    name="adjust-fixed-io",
+    retries=TASK_RETRIES,
+    retry_delay_seconds=TASK_RETRY_DELAYS_S,
+    retry_condition_fn=retry_condition,
+)

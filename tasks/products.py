@@ -1,0 +1,366 @@
+"""Products and quality of an adjusted flight: DSM + orthomosaic, assessment, diagnosis, report.
+
+* :func:`mosaic_step`: a DSM gridded from the adjusted tie points (:func:`aerocal.dsm.dsm_from_points`,
+  GeoTIFF) and, when frames with pixels exist (``images/`` of the flight folder), the orthomosaic in the
+  flight's CRS from their original radiometry (:func:`aerocal.mosaic.build_mosaic`, tiles on a Dask
+  client). A flight in observations mode without frames gets the DSM only.
+* :func:`assess_step`: check-point residuals with achieved / predicted accuracy
+  (:func:`aerocal.assess.accuracy_ratio`), control residuals, reprojection statistics.
+* :func:`diagnose_step`: residual analysis against the catalogue of unmodelled effects
+  (:func:`aerocal.diagnose.engine.diagnose`), IO fixed from the certificate.
+* :func:`report_step`: the self-contained HTML report and its ``summary.json``
+  (:func:`aerocal.report.html.write_report`).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from prefect import task
+
+from aerocal.certificate import Certificate
+from tasks.resume import FileOutput, JsonOutput, StepContext, StepInputs, StepResult, run_step
+from tasks.retries import TASK_RETRIES, TASK_RETRY_DELAYS_S, retry_condition
+
+_RETRY = {
+    "retries": TASK_RETRIES,
+    "retry_delay_seconds": TASK_RETRY_DELAYS_S,
+    "retry_condition_fn": retry_condition,
+}
+
+
+def _thermal(cert: Certificate):
+    return None if cert.thermal is None else cert.thermal.model
+
+
+def frame_paths(flight: dict, images) -> dict[int, Path]:
+    """Image id -> frame file for the frames that exist: the ``path`` column, else ``images/<name>`` of
+    the flight folder (rendered frames beside an observations-mode flight)."""
+    folder = Path(flight["folder"])
+    out = {}
+    for iid, name, path in zip(
+        images.column("image_id").to_pylist(),
+        images.column("name").to_pylist(),
+        images.column("path").to_pylist(),
+        strict=True,
+    ):
+        for cand in (Path(path) if path else None, folder / "images" / name if name else None):
+            if cand is not None and cand.is_file():
+                out[int(iid)] = cand
+                break
+    return out
+
+
+# ------------------------------------------------------------------------------------------- mosaic
+@dataclass(frozen=True)
+class MosaicStepConfig:
+    """DSM and orthomosaic settings (:class:`aerocal.dsm.DsmConfig`, :class:`aerocal.mosaic.MosaicConfig`;
+    ``None`` = their defaults); ``dask_workers`` of the local cluster for the mosaic tiles (2; 0 = serial);
+    mosaics of at most ``serial_max_frames`` frames (4) run here without a cluster, since starting the
+    worker processes (a few seconds) costs more than the tiles."""
+
+    dsm: Any = None
+    mosaic: Any = None
+    dask_workers: int = 2
+    serial_max_frames: int = 4
+
+
+def mosaic_step(
+    ctx: StepContext,
+    ingest: StepResult,
+    adjusted: StepResult,
+    certificate: str,
+    config: MosaicStepConfig | None = None,
+    dask_address: str | None = None,
+) -> StepResult:
+    """Outputs: ``dsm`` (GeoTIFF, float32 metres), ``orthomosaic`` (GeoTIFF/COG, when frames exist) and
+    ``mosaic`` (grid, GSD, coverage, frames used)."""
+    config = config or MosaicStepConfig()
+    inputs = {
+        "images": ingest["images"],
+        "flight": ingest["flight"],
+        "poses": adjusted["poses"],
+        "points": adjusted["points"],
+        "certificate": certificate,
+    }
+    # the frames' pixels are inputs too: their SHA-256 enter the cache key (a frame added to images/ or
+    # re-rendered re-runs the mosaic)
+
+    def frames_key(inp_flight: dict, images) -> dict[str, str]:
+        import hashlib
+
+        return {
+            str(i): hashlib.sha256(p.read_bytes()).hexdigest()
+            for i, p in sorted(frame_paths(inp_flight, images).items())
+        }
+
+    def compute(inp: StepInputs) -> dict:
+        from aerocal.dsm import DsmConfig, dsm_from_points, write_dsm
+        from aerocal.mosaic import MosaicConfig, build_mosaic, frames_from_poses
+
+        flight, images, poses = inp.json("flight"), inp.table("images"), inp.table("poses")
+        points = inp.table("points")
+        cert = Certificate.from_dict(inp.json("certificate"))
+        cam = cert.camera
+        ground = float(np.median(points.column("Z").to_numpy()))
+        height = float(np.median(poses.column("Z").to_numpy())) - ground
+        gsd = height / cam.f  # GSD = H p / c with the focal length c/p in pixels
+        work = Path(tempfile.mkdtemp(prefix="aerocal-mosaic-"))
+        dsm = dsm_from_points(points, flight["crs"], gsd_m=gsd, config=config.dsm or DsmConfig())
+        out: dict[str, Any] = {"dsm": FileOutput(write_dsm(dsm, work / "dsm.tif"), "dsm", temporary=True)}
+        info: dict[str, Any] = {
+            "gsd_m": gsd,
+            "ground_height_m": ground,
+            "dsm_cell_m": dsm.cell_m,
+            "dsm_shape": list(dsm.heights.shape),
+            "frames": 0,
+        }
+        paths = frame_paths(flight, images)
+        if paths:
+            temps = dict(
+                zip(
+                    images.column("image_id").to_pylist(),
+                    images.column("temperature_c").to_pylist(),
+                    strict=True,
+                )
+            )
+            thermal = _thermal(cert)
+            sel = poses.filter(np.isin(poses.column("image_id").to_numpy(), list(paths)))
+            frames = frames_from_poses(
+                sel,
+                cam,
+                {int(k): float(v) for k, v in temps.items() if v is not None}
+                if thermal is not None
+                else None,
+                thermal,
+            )
+            mcfg = config.mosaic or MosaicConfig()
+            path = work / "orthomosaic.tif"
+            if dask_address:
+                from distributed import Client
+
+                with Client(dask_address) as client:
+                    res = build_mosaic(frames, paths, dsm, path, mcfg, client)
+            elif config.dask_workers > 0 and len(frames) > config.serial_max_frames:
+                from aerocal.matching import local_client
+
+                with local_client(n_workers=config.dask_workers) as client:
+                    res = build_mosaic(frames, paths, dsm, path, mcfg, client)
+            else:
+                res = build_mosaic(frames, paths, dsm, path, mcfg, None)
+            out["orthomosaic"] = FileOutput(res.path, "orthomosaic", temporary=True)
+            info.update({k: v for k, v in res.to_dict().items() if k != "path"})
+            info["frames"] = len(frames)
+        out["mosaic"] = JsonOutput(info, "mosaic")
+        return out
+
+    with ctx.database.session() as session:
+        images_tab = ctx.store.read_table(ctx.store.get(session, ingest["images"]), "images")
+        flight = json.loads(ctx.store.read_bytes(ctx.store.get(session, ingest["flight"])))
+    return run_step(
+        ctx, "mosaic", inputs, {"config": config, "frames": frames_key(flight, images_tab)}, compute
+    )
+
+
+# ------------------------------------------------------------------------------------------- assess
+def assess_step(ctx: StepContext, ingest: StepResult, observations: str, adjusted: StepResult) -> StepResult:
+    """Output ``assessment``: achieved vs predicted accuracy at check points (rho per axis and verdict),
+    control-point residuals, reprojection statistics (pixels) overall, per image, per strip and binned."""
+    inputs = {
+        "images": ingest["images"],
+        "observations": observations,
+        "adjustment": adjusted["adjustment"],
+        "residuals": adjusted["residuals"],
+    }
+
+    def compute(inp: StepInputs) -> dict:
+        from aerocal.assess import accuracy_ratio, reprojection_stats
+
+        adj, res = inp.json("adjustment"), inp.array("residuals")
+        obs, images = inp.table("observations"), inp.table("images")
+        out: dict[str, Any] = {}
+        e = np.asarray(adj["check_errors_m"], dtype=float).reshape(-1, 3)
+        s = np.asarray(adj["check_sigma_m"], dtype=float).reshape(-1, 3) if adj["check_sigma_m"] else None
+        if len(e) >= 2 and s is not None:
+            out["check_points"] = accuracy_ratio(e, s).to_dict()
+        else:
+            out["check_points"] = {"n": len(e), "verdict": "fewer than 2 check points: accuracy not assessed"}
+        c = np.asarray(adj["control_errors_m"], dtype=float).reshape(-1, 3)
+        out["control_points"] = {
+            "n": len(c),
+            "rmse_m": np.sqrt(np.mean(c**2, axis=0)).tolist() if len(c) else None,
+        }
+        ok = np.isfinite(res).all(axis=1)
+        stats = reprojection_stats(obs.filter(ok), res[ok], images)
+        out["reprojection"] = stats.to_dict()
+        out["sigma0"] = adj["sigma0"]
+        return {"assessment": JsonOutput(out, "assessment")}
+
+    return run_step(ctx, "assess", inputs, None, compute)
+
+
+# ----------------------------------------------------------------------------------------- diagnose
+def diagnose_step(
+    ctx: StepContext,
+    ingest: StepResult,
+    observations: str,
+    certificate: str,
+    config: Any = None,
+    adjust_config: Any = None,
+) -> StepResult:
+    """Output ``diagnosis``: the hypotheses tested, the effects named with magnitude and evidence, the
+    gain on check points, and a one-line verdict (``summary``). IO fixed from the certificate."""
+    from aerocal.adjust import AdjustConfig
+    from aerocal.diagnose.engine import DiagnoseConfig
+
+    inputs = {
+        "images": ingest["images"],
+        "observations": observations,
+        "gcps": ingest["gcps"],
+        "gcp_observations": ingest["gcp_observations"],
+        "certificate": certificate,
+    }
+    acfg = adjust_config or AdjustConfig()
+    cfg = config
+
+    def compute(inp: StepInputs) -> dict:
+        import dataclasses
+
+        from aerocal.diagnose.engine import diagnose
+
+        cert = Certificate.from_dict(inp.json("certificate"))
+        t0 = getattr(_thermal(cert), "t0", None)
+        dcfg = cfg or DiagnoseConfig(reference_temperature=t0)
+        result = diagnose(
+            inp.table("images"),
+            inp.table("observations"),
+            cert.camera,
+            dataclasses.replace(acfg, free=(), thermal=(), adaptive=False),
+            inp.table("gcps"),
+            inp.table("gcp_observations"),
+            dcfg,
+        )
+        doc = result.to_dict()
+        doc["summary"] = result.summary()
+        return {"diagnosis": JsonOutput(doc, "diagnosis")}
+
+    return run_step(ctx, "diagnose", inputs, {"diagnose": cfg or DiagnoseConfig(), "adjust": acfg}, compute)
+
+
+# ------------------------------------------------------------------------------------------- report
+@dataclass(frozen=True)
+class ReportStepConfig:
+    """``title`` of the report (default "Flight report: <flight name>")."""
+
+    title: str | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def report_step(
+    ctx: StepContext,
+    ingest: StepResult,
+    certificate: str,
+    adjusted: StepResult,
+    mosaic: StepResult,
+    assessment: StepResult,
+    diagnosis: StepResult,
+    config: ReportStepConfig | None = None,
+) -> StepResult:
+    """Outputs ``report`` (self-contained HTML) and ``report_summary`` (its numbers as JSON)."""
+    config = config or ReportStepConfig()
+    inputs = {
+        "flight": ingest["flight"],
+        "images": ingest["images"],
+        "certificate": certificate,
+        "adjustment": adjusted["adjustment"],
+        "poses": adjusted["poses"],
+        "mosaic": mosaic["mosaic"],
+        "assessment": assessment["assessment"],
+        "diagnosis": diagnosis["diagnosis"],
+        "gcps": ingest["gcps"],
+    }
+
+    def compute(inp: StepInputs) -> dict:
+        from aerocal.report.figures import block_figure
+        from aerocal.report.html import CertificateTable, write_report
+
+        flight, adj, assess = inp.json("flight"), inp.json("adjustment"), inp.json("assessment")
+        diag, mos = inp.json("diagnosis"), inp.json("mosaic")
+        cert = Certificate.from_dict(inp.json("certificate"))
+        poses = inp.table("poses")
+        cp = assess.get("check_points", {})
+        summary = {
+            "flight": flight["name"],
+            "mode": flight["mode"],
+            "images": flight["n_images"],
+            "crs": flight["crs"],
+            "date": flight["date"],
+            "temperature_c": flight.get("temperature_range"),
+            "certificate": f"{cert.id} (version {cert.version})",
+            "sigma0": adj["sigma0"],
+            "reprojection_rms_px": adj["reprojection_rms_px"],
+            "check_rmse_m": adj.get("check_rmse_m"),
+            "rho": cp.get("rho"),
+            "verdict": cp.get("verdict"),
+            "diagnosis": diag.get("summary"),
+            "gsd_m": mos.get("gsd_m"),
+            "mosaic_frames": mos.get("frames"),
+            **config.extra,
+        }
+        centres = np.column_stack([poses.column("X").to_numpy(), poses.column("Y").to_numpy()])
+        figs = []
+        ids = adj.get("check_ids") or []
+        if ids:
+            gcps = inp.table("gcps")
+            where = {
+                g: (x, y)
+                for g, x, y in zip(
+                    gcps.column("gcp_id").to_pylist(),
+                    gcps.column("X").to_pylist(),
+                    gcps.column("Y").to_pylist(),
+                    strict=True,
+                )
+            }
+            en = np.array([where[i] for i in ids], dtype=float)
+            errs = np.asarray(adj["check_errors_m"], dtype=float).reshape(-1, 3)
+            figs.append(block_figure(centres, points_en=en, residuals=errs, ids=ids))
+        else:
+            figs.append(block_figure(centres))
+        table = CertificateTable.from_values(
+            f"Certificate {cert.id[:8]} (version {cert.version})",
+            {n: getattr(cert.camera, n) for n in cert.estimated} or {"f": cert.camera.f},
+            dict(cert.sigmas),
+            info={"camera": cert.identity.key, "conditions": cert.conditions.to_dict()},
+        )
+        work = Path(tempfile.mkdtemp(prefix="aerocal-report-"))
+        html = write_report(work, summary, figs, table, config.title or f"Flight report: {flight['name']}")
+        return {
+            "report": FileOutput(html, "report", temporary=True),
+            "report_summary": FileOutput(work / "summary.json", "report-summary", temporary=True),
+        }
+
+    return run_step(ctx, "report", inputs, config, compute)
+
+
+def export_file(ctx: StepContext, sha: str, target: Path) -> Path:
+    """Copy a stored artifact (verified) to ``target`` (atomically)."""
+    from aerocal.io import atomic_path
+
+    with ctx.database.session() as session:
+        src = ctx.store.verify(ctx.store.get(session, sha))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(target) as tmp:
+        shutil.copyfile(src, tmp)
+    return target
+
+
+mosaic_task = task(mosaic_step, name="dsm-mosaic", **_RETRY)
+assess_task = task(assess_step, name="assess", **_RETRY)
+diagnose_task = task(diagnose_step, name="diagnose", **_RETRY)
+report_task = task(report_step, name="report", **_RETRY)

@@ -1,0 +1,236 @@
+"""End to end: a small simulated thermal flight through ``process_flight`` under a Prefect test server.
+
+Checks what a user would: the certificate is stored and the run names it with the reason, every output
+artifact is registered with lineage back to the flight's manifest, the provenance is complete, the run
+folder's files open, and a crashed run resumes without recomputing its completed steps.
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import rasterio
+
+pytest_plugins = ["conftest_storage"]
+
+SEED = 3
+
+
+@pytest.fixture(scope="module")
+def prefect_server():
+    from prefect.settings import (
+        PREFECT_FLOWS_HEARTBEAT_FREQUENCY,
+        PREFECT_SERVER_ANALYTICS_ENABLED,
+        temporary_settings,
+    )
+    from prefect.testing.utilities import prefect_test_harness
+
+    with (
+        temporary_settings({PREFECT_SERVER_ANALYTICS_ENABLED: False}),
+        prefect_test_harness(),
+        temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}),
+    ):
+        yield
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """A 20-image thermal calibration flight in observations mode with a hidden focal-length slope."""
+    from aerocal.simulate import simulate_flight, write_flight
+
+    sim = simulate_flight("conte-calibration", seed=SEED, effects={"thermal_focal": 0.06}, max_images=20)
+    return write_flight(sim, tmp_path_factory.mktemp("flights") / "flight-a", mode="observations")
+
+
+def _json(ctx_store, session, sha):
+    return json.loads(ctx_store.read_bytes(ctx_store.get(session, sha)))
+
+
+def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path):
+    from aerocal.certificate import Certificate
+    from flows.flight import process_flight
+    from storage.certificates import get_certificate
+    from storage.database import connect
+    from storage.provenance import ancestors, provenance
+    from storage.runs import get_run
+
+    out = tmp_path / "run"
+    summary = process_flight(
+        flight, out, "none", database_url=storage_url, artifact_root=str(tmp_path / "art")
+    )
+
+    computed = {k for k, v in summary["steps"].items() if v["status"] == "computed"}
+    assert {"ingest", "orient", "calibrate", "adjust", "mosaic", "assess", "diagnose", "report"} <= computed
+    assert summary["steps"]["match"]["status"] == "skipped", summary["steps"]["match"]
+    db = connect(storage_url)
+    with db.session() as session:
+        run = get_run(session, summary["run_id"])
+        assert run.status == "completed", run.error
+        cert = get_certificate(session, summary["certificate_id"])
+        assert cert.camera.model == "TS9260" and cert.version >= 1
+        assert "self-calibration" in summary["certificate_reason"]
+        prov = provenance(session, summary["run_id"]).to_dict()
+        # inputs: the flight's manifest; outputs: every step output; certificate with reason; configuration
+        input_kinds = {a["kind"] for a in prov["inputs"]}
+        assert "flight-manifest" in input_kinds, input_kinds
+        out_shas = {a["sha256"] for a in prov["outputs"]}
+        missing = {n for n, sha in summary["outputs"].items() if sha not in out_shas and n != "certificate"}
+        assert not missing, f"outputs not recorded on the run: {missing}"
+        assert prov["certificate"]["id"] == summary["certificate_id"]
+        assert "self-calibration" in prov["certificate"]["reason"]
+        conf = prov["configuration"]
+        assert conf["certificate"] == "none"
+        assert conf["process"]["calibration"]["adjust"]["adaptive"] is True
+        # the flight declares its GNSS sigmas; the effective configuration records them
+        declared = json.loads((flight / "flight.json").read_text())["gnss_sigma_m"]
+        assert conf["effective"]["block_adjust"]["gnss_sigma_m"][2] == pytest.approx(declared[1])
+        for step in ("ingest", "orient", "calibrate", "adjust", "mosaic", "assess", "diagnose", "report"):
+            assert step in prov["timings"], f"no timing for {step}: {prov['timings']}"
+        # lineage: the orthomosaic side (DSM) and the report descend from the flight's manifest
+        from storage.artifacts import ArtifactStore
+
+        store = ArtifactStore(tmp_path / "art")
+        for name in ("dsm", "report", "poses", "diagnosis"):
+            kinds = {a.kind for a in ancestors(session, store.get(session, summary["outputs"][name]))}
+            assert "flight-manifest" in kinds, f"{name} has no lineage to the flight: {kinds}"
+        adjustment = _json(store, session, summary["outputs"]["adjustment"])
+    db.dispose()
+
+    # the run folder: report, DSM in the flight CRS, certificate, provenance
+    files = summary["files"]
+    assert "<html" in (out / "report.html").read_text()[:200].lower()
+    with rasterio.open(files["dsm"]) as ds:
+        assert ds.crs.to_epsg() == 32632
+        assert ds.read(1).size > 100
+    stored = Certificate.from_json((out / "certificate.json").read_text())
+    assert stored.id == summary["certificate_id"]
+    # conditions count the control points the calibration used (check points are held out)
+    from aerocal import tables
+
+    gcps = tables.read(flight / "observations" / "gcps.parquet", "gcps")
+    seen = set(tables.read(flight / "observations" / "gcp_observations.parquet", "gcp_observations")
+               .column("gcp_id").to_pylist())
+    control = {g for g, r in zip(gcps.column("gcp_id").to_pylist(), gcps.column("role").to_pylist(),
+                                 strict=True) if r == "control"}
+    assert stored.conditions.n_gcp == len(control & seen)
+    assert stored.conditions.n_images == 20
+    dropped = {n: s.dropped for n, s in stored.significance.items() if s.dropped}
+    assert all(not why.startswith("dropped") for why in dropped.values()), dropped
+    assert json.loads((out / "provenance.json").read_text())["run_id"] == summary["run_id"]
+
+    # the adjusted block is as good as its noise: sigma0 near 1 and check points inside a loose bound
+    assert 0.7 < adjustment["sigma0"] < 1.4, adjustment["sigma0"]
+    rho = summary["accuracy"]["rho"]
+    assert all(r is not None and r < 2.5 for r in rho.values()), f"seed {SEED}: rho {rho}"
+    assert isinstance(summary["diagnosis"], str) and summary["diagnosis"]
+
+
+def test_crashed_run_resumes_after_the_last_completed_step(prefect_server, flight, tmp_path, monkeypatch):
+    import tasks.block
+    from flows.flight import process_flight
+    from storage.database import connect
+    from storage.runs import list_runs
+
+    url, art = f"sqlite:///{tmp_path / 'aerocal.db'}", str(tmp_path / "art")
+
+    def crash(*args, **kwargs):
+        raise RuntimeError("power cut during the block adjustment")
+
+    monkeypatch.setattr(tasks.block, "adjust_fixed_io", crash)
+    with pytest.raises(RuntimeError, match="power cut"):
+        process_flight(flight, tmp_path / "run", "none", database_url=url, artifact_root=art)
+    monkeypatch.undo()
+
+    db = connect(url)
+    with db.session() as session:
+        (first,) = list_runs(session, kind="process_flight")
+        assert first.status == "failed" and "power cut" in first.error
+        assert {"ingest", "orient", "calibrate"} <= set(first.timings), first.timings
+        assert "adjust" not in first.timings
+        first_id = first.id
+
+    summary = process_flight(flight, tmp_path / "run", "none", database_url=url, artifact_root=art)
+    steps = summary["steps"]
+    for step in ("ingest", "orient", "calibrate"):
+        assert steps[step]["status"] == "reused", (step, steps[step])
+        assert steps[step]["computed_by"] == first_id
+    assert steps["adjust"]["status"] == "computed"
+    with db.session() as session:
+        runs = {r.id: r for r in list_runs(session, kind="process_flight")}
+        second = runs[summary["run_id"]]
+        assert second.status == "completed"
+        assert "ingest (reused)" in second.timings and "ingest" not in second.timings
+        assert "calibrate (reused)" in second.timings and "adjust" in second.timings
+        # the certificate made before the crash is the one the resumed run uses
+        assert second.certificate_id == summary["certificate_id"]
+    db.dispose()
+
+
+def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path):
+    """Rendered frames (no observations given): ingest reads them, enhance + match run tile-parallel SIFT on
+    a local Dask cluster, and the tracks tie every frame; a second call reuses the stored step."""
+    import numpy as np
+
+    from aerocal.simulate import simulate_flight, write_flight
+    from storage.migrations import upgrade
+    from storage.runs import start_run
+    from tasks.flight import MatchStepConfig, ingest_step, match_step, register_manifest
+    from tasks.resume import StepContext
+
+    sim = simulate_flight("conte-calibration", seed=5, max_images=4)
+    folder = write_flight(sim, tmp_path / "flight", mode="images")
+    url = f"sqlite:///{tmp_path / 'aerocal.db'}"
+    upgrade(url)
+    ctx = StepContext(url, str(tmp_path / "art"), "run-images")
+    with ctx.database.session() as session:
+        start_run(session, ctx.run_id, "test")
+        session.commit()
+    ing = ingest_step(ctx, folder, register_manifest(ctx, folder))
+    matched = match_step(ctx, ing, MatchStepConfig(dask_workers=2))
+    assert not matched.reused
+    with ctx.database.session() as session:
+        obs = ctx.store.read_table(ctx.store.get(session, matched["observations"]), "observations")
+        images = ctx.store.read_table(ctx.store.get(session, ing["images"]), "images")
+    assert images.num_rows == 4
+    ids = images.column("image_id").to_numpy()
+    per_image = np.bincount(obs.column("image_id").to_numpy(), minlength=ids.max() + 1)[ids]
+    assert per_image.min() > 100, f"observations per image {per_image.tolist()}"
+    track_len = np.bincount(obs.column("track_id").to_numpy())
+    assert track_len[track_len > 0].min() >= 2
+    again = match_step(ctx, ing, MatchStepConfig(dask_workers=2))
+    assert again.reused and again.outputs == matched.outputs
+
+
+def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
+    """A flight larger than ``whole_flight_max_images`` calibrates on the sub-block that
+    :func:`aerocal.subset.propose_subset` predicts best; the certificate's conditions describe it."""
+    from aerocal.certificate import Certificate
+    from aerocal.subset import SubsetConfig
+    from storage.migrations import upgrade
+    from storage.runs import start_run
+    from tasks.calibration import CalibrationStepConfig, calibrate_step
+    from tasks.flight import ingest_step, register_manifest
+    from tasks.resume import StepContext
+
+    url = f"sqlite:///{tmp_path / 'aerocal.db'}"
+    upgrade(url)
+    ctx = StepContext(url, str(tmp_path / "art"), "run-subset")
+    with ctx.database.session() as session:
+        start_run(session, ctx.run_id, "test")
+        session.commit()
+    ing = ingest_step(ctx, flight, register_manifest(ctx, flight))
+    config = CalibrationStepConfig(
+        whole_flight_max_images=10, subset=SubsetConfig(strip_counts=(2, 3), images_per_strip=(3, 4))
+    )
+    cal = calibrate_step(ctx, ing, ing["observations"], config)
+    with ctx.database.session() as session:
+        doc = json.loads(ctx.store.read_bytes(ctx.store.get(session, cal["calibration"])))
+        cert_art = ctx.store.get(session, cal["certificate"])
+        cert = Certificate.from_dict(json.loads(ctx.store.read_bytes(cert_art)))
+    subset = doc["subset"]
+    assert 10 <= len(subset["image_ids"]) < 20, subset
+    assert "candidates scored" in subset["reasons"][0]
+    assert cert.conditions.n_images == len(subset["image_ids"])
+    assert cert.conditions.transversal_strip == subset["transversal"]
+    assert cert.sigmas["f"] < 3.0, cert.sigmas
