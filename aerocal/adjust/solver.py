@@ -246,7 +246,13 @@ def schur_complement(Jc, Jp, Hpp, r, lam: float):
         Hcc[np.diag_indices_from(Hcc)] *= 1.0 + lam
         d = np.einsum("pii->pi", Hpp_d)
         d *= 1.0 + lam
-    Hpp_inv = np.linalg.inv(Hpp_d)
+    try:
+        Hpp_inv = np.linalg.inv(Hpp_d)
+    except np.linalg.LinAlgError:
+        # a point seen along (nearly) one ray has a singular block: load its diagonal so that it simply
+        # does not move, instead of failing the whole adjustment
+        load = 1e-9 * np.maximum(np.einsum("pii->p", Hpp_d) / 3.0, 1e-12)
+        Hpp_inv = np.linalg.inv(Hpp_d + load[:, None, None] * np.eye(3))
     P = len(Hpp)
     Hpp_inv_sp = sp.bsr_matrix((Hpp_inv, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
     HcpHi = (Hcp @ Hpp_inv_sp).tocsr()
