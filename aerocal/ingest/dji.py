@@ -24,7 +24,6 @@ import struct
 import numpy as np
 
 from aerocal.ingest.jpeg import JpegStructure
-from aerocal.ingest.numbers import describe_bad_number, to_float
 from aerocal.ingest.recorded_pose import RecordedPose
 
 PREFIX = "drone-dji:"
@@ -73,13 +72,7 @@ def read_dji_xmp(xmp: dict[str, str]) -> RecordedPose:
     pose = RecordedPose(source="xmp:drone-dji", alt_reference="DJI AbsoluteAltitude (reference undocumented)")
 
     def number(name: str) -> float | None:
-        raw = xmp.get(PREFIX + name)
-        if raw is None:
-            return None
-        value = to_float(raw)
-        if value is None:
-            pose.notes.append((PREFIX + name, f"{describe_bad_number(raw)}; ignored"))
-        return value
+        return pose.number(xmp, PREFIX + name)
 
     pose.lat = number("GpsLatitude")
     lon_name = "GpsLongitude" if PREFIX + "GpsLongitude" in xmp else "GpsLongtitude"

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from aerocal.ingest.numbers import describe_bad_number, to_float
+
 
 @dataclass
 class RecordedPose:
@@ -26,3 +28,13 @@ class RecordedPose:
     utc_time: str | None = None
     extra: dict[str, float | str] = field(default_factory=dict)
     notes: list[tuple[str, str]] = field(default_factory=list)
+
+    def number(self, fields: dict[str, str], key: str) -> float | None:
+        """The number stored under ``key`` in ``fields`` (an XMP dict); a bad value is noted and None."""
+        raw = fields.get(key)
+        if raw is None:
+            return None
+        value = to_float(raw)
+        if value is None:
+            self.notes.append((key, f"{describe_bad_number(raw)}; ignored"))
+        return value

@@ -10,7 +10,6 @@ Fields (namespace ``http://ns.sensefly.com/sensefly/1.0/``, one element each, as
 
 from __future__ import annotations
 
-from aerocal.ingest.numbers import describe_bad_number, to_float
 from aerocal.ingest.recorded_pose import RecordedPose
 
 PREFIX = "sensefly:"
@@ -39,13 +38,7 @@ def read_sensefly(xmp: dict[str, str]) -> RecordedPose:
     )
 
     def number(name: str) -> float | None:
-        raw = xmp.get(PREFIX + name)
-        if raw is None:
-            return None
-        value = to_float(raw)
-        if value is None:
-            pose.notes.append((PREFIX + name, f"{describe_bad_number(raw)}; ignored"))
-        return value
+        return pose.number(xmp, PREFIX + name)
 
     pose.lat, pose.lon = number("Latitude"), number("Longitude")
     pose.alt = number("AltitudeWGS84")
