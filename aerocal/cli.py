@@ -165,7 +165,8 @@ def _print_summary(title: str, summary: dict) -> None:
 
 @app.command()
 def diagnose(
-    flight: Path = typer.Argument(..., help="A processed flight folder (observations/*.parquet, flight.json)."),
+    flight: Path = typer.Argument(..., help="A run folder of 'aerocal process' (shows its diagnosis), or a flight "
+                                            "folder with observations/*.parquet (diagnoses it now)."),
     certificate: Path | None = typer.Option(None, "--certificate", help="Certificate file (aerocal JSON, "
                                             "OpenCV YAML, COLMAP, OpenSfM, Metashape): IO fixed from it."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object (effects, gain, hypotheses)."),
@@ -174,10 +175,22 @@ def diagnose(
 
     Without --certificate the baseline self-calibrates f, cx, cy, k1, k2, p1, p2 from camera.json.
 
-    Example: aerocal diagnose flight --certificate cam.json --json
+    Examples: aerocal diagnose runs/2016-03-14 --json; aerocal diagnose flight --certificate cam.json
     """
-    from aerocal.diagnose.run import DiagnoseInputError, diagnose_folder
+    from aerocal.diagnose.run import DiagnoseInputError, diagnose_folder, read_run_diagnosis
 
+    try:
+        stored = read_run_diagnosis(flight) if certificate is None else None
+    except DiagnoseInputError as exc:
+        fail(str(exc))
+    if stored is not None:  # a processing run's folder: show the diagnosis it made
+        if as_json:
+            console.print_json(json.dumps(stored))
+        else:
+            console.print(f"[bold]verdict:[/bold] {stored.get('summary')}")
+            for note in stored.get("notes", []):
+                console.print(f"note: {note}")
+        return
     try:
         result = diagnose_folder(flight, certificate)
     except DiagnoseInputError as exc:

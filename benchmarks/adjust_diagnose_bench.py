@@ -20,7 +20,7 @@ def main() -> None:
     from aerocal.diagnose.model import fit_baseline
     from aerocal.simulate import simulate_flight
 
-    sim = simulate_flight("conte-city", seed=1, effects={"thermal_focal": 0.08})
+    sim = simulate_flight("conte-city", seed=1, effects={"thermal_focal": 0.2})
     s = sim.spec.sensors
     priors = dict(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m),
                   attitude_sigma_deg=s.imu_sigma_deg)
@@ -42,7 +42,7 @@ def main() -> None:
                         sim.gcps, sim.gcp_observations)
     d = diagnose_baseline(base, DiagnoseConfig(reference_temperature=s.reference_temperature_c))
     t_diag = time.perf_counter() - t0
-    lines = [f"conte-city: {sim.images.num_rows} images, {n_obs} tie observations, hidden thermal_focal=0.08 "
+    lines = [f"conte-city: {sim.images.num_rows} images, {n_obs} tie observations, hidden thermal_focal=0.2 "
              "px/degC", "", "| step | time | iterations |", "|---|---|---|"]
     lines += [f"| {name} | {t:.1f} s | {it} |" for name, t, it in rows]
     lines += [

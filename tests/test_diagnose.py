@@ -189,3 +189,21 @@ def test_per_image_jitter_is_measured_and_does_not_pass_for_an_effect():
     d = diagnose_baseline(base, DiagnoseConfig(reference_temperature=SPEC.sensors.reference_temperature_c))
     assert d.overdispersion > 2.0, f"seed {seed}: overdispersion {d.overdispersion:.2f} not detected"
     assert not d.effects, f"seed {seed}: named {d.summary()} on per-image jitter"
+
+
+def test_cli_diagnose_shows_a_runs_stored_diagnosis(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from aerocal.cli import app
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "diagnosis.json").write_text(json.dumps({"summary": "boresight = 0.01, 0, 0 +- 0.001 deg",
+                                                    "effects": [{"name": "boresight"}], "notes": []}))
+    out = CliRunner().invoke(app, ["diagnose", str(run)])
+    assert out.exit_code == 0 and "boresight = 0.01" in out.output
+    (run / "diagnosis.json").write_text("{broken")
+    bad = CliRunner().invoke(app, ["diagnose", str(run)])
+    assert bad.exit_code != 0 and "diagnosis.json" in bad.output and "not valid JSON" in " ".join(bad.output.split())

@@ -63,3 +63,14 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
                                  attitude_sigma_deg=tuple(imu) if imu else None)
     config = config or DiagnoseConfig(reference_temperature=t0)
     return diagnose(images, observations, camera, adjust_config, gcps, gcp_obs, config)
+
+
+def read_run_diagnosis(folder: str | Path) -> dict | None:
+    """The diagnosis a processing run stored (``diagnosis.json`` of a run folder), or None."""
+    path = Path(folder) / "diagnosis.json"
+    if not path.is_file() or (Path(folder) / "observations").is_dir():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DiagnoseInputError(f"{path}: not valid JSON ({exc}); re-run the diagnose step") from exc
