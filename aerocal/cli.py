@@ -99,7 +99,7 @@ def simulate(
     source: Path | None = typer.Option(None, "--source", help="Image folder of a measured preset (seneca); "
                                                               "default ../shared/data/seneca/images."),
 ) -> None:
-    """Simulate a flight and write a flight folder (and truth.json, for tests and studies only).
+    """Simulate a flight and write a flight folder (with the truth beside it, for tests and studies only).
 
     Example: aerocal simulate conte-calibration --out flight --seed 3 --effect thermal_focal=0.05
     """

@@ -76,7 +76,7 @@ def require_postgres() -> URL:
         )
         if os.environ.get("CI"):
             pytest.fail(f"{message} -- CI is set, so the PostgreSQL storage tests must run", pytrace=False)
-        pytest.skip(message)
+        pytest.skip(message)  # postgres unreachable outside CI only
     return url
 
 

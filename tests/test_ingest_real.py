@@ -14,9 +14,8 @@ from aerocal.ingest import IngestConfig, ingest_folder, read_raw, summary_rows
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
-pytestmark = pytest.mark.skipif(
-    not DATA.is_dir(), reason=f"measured data not found at {DATA} (a clone without ../shared/data)"
-)
+SHARED_MISSING = f"measured data not found at {DATA} (a clone without ../shared/data)"
+pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=SHARED_MISSING)  # only without ../shared/data
 
 
 @pytest.fixture(scope="module")

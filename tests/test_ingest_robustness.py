@@ -27,9 +27,8 @@ from aerocal.ingest.problems import ProblemLog
 from aerocal.ingest.tiff import parse_tiff
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-needs_data = pytest.mark.skipif(
-    not DATA.is_dir(), reason=f"measured data not found at {DATA} (a clone without ../shared/data)"
-)
+SHARED_MISSING = f"measured data not found at {DATA} (a clone without ../shared/data)"
+needs_data = pytest.mark.skipif(not DATA.is_dir(), reason=SHARED_MISSING)  # only without ../shared/data
 FUZZ_SEED = int(os.environ.get("AEROCAL_FUZZ_SEED", "20240611"))
 
 

@@ -58,8 +58,7 @@ def test_paper_setups_quick_writes_every_table(tmp_path):
 
 def test_seneca_quick_writes_every_table(tmp_path):
     if not (DATA / "seneca" / "images").is_dir():
-        pytest.skip(f"measured data not found at {DATA / 'seneca' / 'images'} (a clone without "
-                    "../shared/data)")
+        pytest.skip(f"measured data not found at {DATA / 'seneca' / 'images'} (no ../shared/data)")
     seneca = _study("seneca")
     md = seneca.main(["--quick", "--out", str(tmp_path)])
     text = md.read_text()
