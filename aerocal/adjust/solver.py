@@ -308,8 +308,9 @@ class SparseInverse:
     points with), so one sparse LU factorisation (SuperLU, Jacobi-scaled) and a solve for the columns
     a caller needs beats forming the dense inverse: conte-city, 818 images (4908 unknowns), the dense
     Cholesky inverse alone took 33 s on the loaded 2-core machine; with this class the whole adjustment
-    took 33 s instead of 59 s there (11-14 s on the idle machine, benchmarks/RESULTS.md). Indexing works like a dense array for ``[a:b, a:b]`` and
-    ``[np.ix_(rows, cols)]``; ``dense()`` forms the whole inverse when it is really wanted.
+    took 33 s instead of 59 s there (11-14 s on the idle machine, benchmarks/RESULTS.md).
+    Indexing works like a dense array for ``[a:b, a:b]`` and ``[np.ix_(rows, cols)]``; ``dense()`` forms
+    the whole inverse when it is really wanted.
     """
 
     def __init__(self, S: np.ndarray) -> None:
