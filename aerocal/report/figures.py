@@ -89,6 +89,7 @@ def block_figure(
         ax.annotate("", xy=(x0 + ref * k, y0), xytext=(x0, y0),
                     arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 1.5})
         ax.text(x0, y0 - 0.02 * extent, f"{ref:g} m", color="tab:red", va="top")
+        ax.plot([x0], [y0 - 0.07 * extent], alpha=0.0)  # keep the scale arrow and its label inside the axes
         numbers.update({"exaggeration": k, "scale_arrow_m": ref, "points": [
             {"id": ids[i] if ids is not None else str(i), "E": float(p[i, 0]), "N": float(p[i, 1]),
              "dE_m": _f(r[i, 0]), "dN_m": _f(r[i, 1])} for i in range(len(p))]})
