@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import csv
 import re
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,3 +91,38 @@ def find_column(header: list[str], aliases: tuple[str, ...]) -> int | None:
         if alias in header:
             return header.index(alias)
     return None
+
+
+def keyed_rows(
+    text: TextLines,
+    n_cols: int,
+    key_col: int,
+    problems: ProblemLog,
+    seen: Mapping[str, object],
+    key_label: str,
+    key_field: str,
+    count_field: str,
+    repeat_prefix: str = "",
+) -> Iterator[tuple[int, list[str], str]]:
+    """Data rows (line, fields, key) of a CSV with a header, keyed by column ``key_col``.
+
+    A row whose field count differs from the header's, whose key is empty, or whose key is already in
+    ``seen`` (the caller's records, each with a ``line``; checked when the row is reached) is reported
+    by file, line and field and skipped.
+    """
+    path = text.path
+    for line, raw in text.lines[1:]:
+        fields = split_csv(raw)
+        if len(fields) != n_cols:
+            problems.error(path, f"has {len(fields)} fields, the header has {n_cols}; row ignored", count_field,
+                           line)
+            continue
+        key = fields[key_col]
+        if not key:
+            problems.error(path, f"{key_label} is empty; row ignored", key_field, line)
+            continue
+        if key in seen:
+            previous = seen[key].line  # type: ignore[attr-defined]
+            problems.error(path, f"{repeat_prefix}{key} repeats line {previous}; row ignored", key_field, line)
+            continue
+        yield line, fields, key

@@ -31,7 +31,7 @@ import numpy as np
 
 from aerocal.geometry import CONVENTIONS, transformer
 from aerocal.ingest.crs_strings import CrsTextError, crs_kind, normalise_crs
-from aerocal.ingest.delimited import find_column, normalise_header, read_text_lines, split_csv
+from aerocal.ingest.delimited import find_column, keyed_rows, normalise_header, read_text_lines, split_csv
 from aerocal.ingest.numbers import PLAUSIBLE_RANGES, describe_bad_number, in_range, to_float
 from aerocal.ingest.problems import ProblemLog
 
@@ -158,23 +158,8 @@ def read_eo_csv(
             )
 
     out = EoFile(path, src_crs or "EPSG:4326", convention, c_temp is not None)
-    n_cols = len(header)
-    for line, raw in text.lines[1:]:
-        fields = split_csv(raw)
-        if len(fields) != n_cols:
-            problems.error(
-                path, f"has {len(fields)} fields, the header has {n_cols}; row ignored", "row", line
-            )
-            continue
-        name = fields[c_img]
-        if not name:
-            problems.error(path, "image name is empty; row ignored", "image", line)
-            continue
-        if name in out.records:
-            problems.error(
-                path, f"image {name} repeats line {out.records[name].line}; row ignored", "image", line
-            )
-            continue
+    rows = keyed_rows(text, len(header), c_img, problems, out.records, "image name", "image", "row", "image ")
+    for line, fields, name in rows:
         rec = EoRecord(line, name)
 
         def number(col: int | None, label: str, fields: list[str] = fields, line: int = line) -> float | None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from aerocal.ingest.crs_strings import CrsTextError, crs_kind, normalise_crs
-from aerocal.ingest.delimited import find_column, normalise_header, read_text_lines, split_csv
+from aerocal.ingest.delimited import find_column, keyed_rows, normalise_header, read_text_lines, split_csv
 from aerocal.ingest.gcp_records import GcpCoordinate, GcpFile
 from aerocal.ingest.numbers import PLAUSIBLE_RANGES, describe_bad_number, in_range, to_float
 from aerocal.ingest.problems import ProblemLog
@@ -92,21 +92,7 @@ def read_gcp_csv(path: str | Path, problems: ProblemLog, crs: str | None = None)
     if c_z is None:
         problems.warning(path, "no height column: heights are unknown and set to 0.0", "Z", header_line)
         out.heights_unknown = out.heights_absent = True
-    n_cols = len(header)
-    for line, raw in text.lines[1:]:
-        fields = split_csv(raw)
-        if len(fields) != n_cols:
-            problems.error(
-                path, f"has {len(fields)} fields, the header has {n_cols}; row ignored", "columns", line
-            )
-            continue
-        gcp_id = fields[c_id]
-        if not gcp_id:
-            problems.error(path, "GCP id is empty; row ignored", "id", line)
-            continue
-        if gcp_id in out.points:
-            problems.error(path, f"{gcp_id} repeats line {out.points[gcp_id].line}; row ignored", "id", line)
-            continue
+    for line, fields, gcp_id in keyed_rows(text, len(header), c_id, problems, out.points, "GCP id", "id", "columns"):
         cols = [(c_x, header[c_x]), (c_y, header[c_y])] + ([(c_z, header[c_z])] if c_z is not None else [])
         values = [to_float(fields[c]) for c, _ in cols]
         bad = [(name, fields[c]) for (c, name), v in zip(cols, values, strict=True) if v is None]
