@@ -158,14 +158,14 @@ def mosaic_target_residuals(
 ) -> PointResiduals:
     """Planimetric residuals (E, N, metres) of signalised targets located in an orthomosaic.
 
-    Each target is searched around its surveyed E, N with :func:`aerocal.simulate.render.locate_targets`
+    Each target is searched around its surveyed E, N with :func:`aerocal.targets.locate_targets`
     (intensity-weighted centroid of the bright disc; ``window_px`` must be smaller than the target's dark
     square in mosaic pixels). Nodata pixels in the window are replaced by the window's median. Targets
     not found (outside the mosaic, no blob) are left out; ``n`` says how many were found.
     """
     import rasterio
 
-    from aerocal.simulate.render import locate_targets
+    from aerocal.targets import locate_targets
 
     ids, xyz, _ = _gcp_arrays(gcps, role)
     mosaic_path = Path(mosaic_path)

@@ -52,3 +52,18 @@ def test_processing_code_never_reads_the_truth():
             if "simulate" in path.parts or path.name == "cli.py":
                 continue
             assert "truth.json" not in path.read_text(), f"{path.relative_to(ROOT)} mentions truth.json"
+
+
+def test_processing_never_imports_the_simulator():
+    """Diagnosis, adjustment and products must work from measurements alone, never from the simulator
+    (imports anywhere in a module, lazy ones included)."""
+    offenders = []
+    for path in (ROOT / "aerocal").rglob("*.py"):
+        if "simulate" in path.parts or path.name == "cli.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            if any(n.startswith("aerocal.simulate") for n in names):
+                offenders.append(str(path.relative_to(ROOT)))
+    assert not offenders, f"processing modules import the simulator: {offenders}"
