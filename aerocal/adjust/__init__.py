@@ -1,12 +1,14 @@
 """Bundle adjustment with self-calibration, thermal IO model, GNSS/IMU priors and weighted ground control.
 
 Entry points: :func:`adjust` (tables in, :class:`AdjustmentResult` out) and :func:`run_strategy`
-(Conte 2018's strategies: fixed IO, self-calibration of the whole block, certificate from a subset).
+(Conte 2018's strategies: fixed IO, self-calibration of the whole block, certificate from a subset);
+:func:`fit_thermal_model` fits a linear thermal IO model to calibrations at several temperatures.
 """
 
 from aerocal.adjust.bundle import AdjustmentResult, adjust
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError
 from aerocal.adjust.strategy import STRATEGIES, StrategyResult, adjust_fixed_io, run_strategy, select_images
+from aerocal.adjust.thermal import ThermalFit, fit_thermal_model, thermal_certificate
 
 __all__ = [
     "STRATEGIES",
@@ -14,8 +16,11 @@ __all__ = [
     "AdjustmentError",
     "AdjustmentResult",
     "StrategyResult",
+    "ThermalFit",
     "adjust",
     "adjust_fixed_io",
+    "fit_thermal_model",
     "run_strategy",
     "select_images",
+    "thermal_certificate",
 ]

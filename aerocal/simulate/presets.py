@@ -142,6 +142,36 @@ _register(FlightSpec(
 ))
 
 _register(FlightSpec(
+    name="daakir-calibration",
+    description="Calibration block for the Daakir 2019 CamLight: 44 convergent frames (4 strips of 8 and a "
+                "transversal strip of 12, attitude spread 25 deg) at 30 m over a built-up 80 x 80 m field, "
+                "20 GCPs (5 mm), target-quality measurements (0.15 px), sensor temperature held at a plateau",
+    identity=PRESETS["daakir-uav"].identity,
+    camera_true=PRESETS["daakir-uav"].camera_true,
+    camera_nominal=PRESETS["daakir-uav"].camera_nominal,
+    plan=FlightPlanConfig(height_agl_m=30.0, forward_overlap=0.75, side_overlap=0.60, speed_m_s=3.0,
+                          direction="ew", n_strips=4, images_per_strip=8, extend_images=0, transversal_strips=1,
+                          transversal_images=12, turn_time_s=30.0, attitude_jitter_deg=25.0, height_jitter_m=1.0),
+    area_m=(80.0, 80.0),
+    scene=SceneSpec(cell_m=0.25, terrain_relief_m=5.0, building_density=0.3, building_height_m=(6.0, 30.0),
+                    vegetation_density=0.2, origin_e=650_000.0, origin_n=5_400_000.0, crs="EPSG:32631"),
+    sensors=SensorConfig(gnss_sigma_h_m=0.03, gnss_sigma_v_m=0.05, tie_sigma_px=0.15, gcp_sigma_px=0.15,
+                         gcp_survey_sigma_m=(0.005, 0.005),
+                         temperature=TemperatureCurve(start_c=27.5, equilibrium_c=27.5),
+                         reference_temperature_c=PRESETS["daakir-uav"].sensors.reference_temperature_c),
+    n_gcp=20, n_check=6,
+    modality="rgb",
+    points_per_image=700,
+    start_time="2017-06-19T10:00:00+00:00",
+    notes="Daakir calibrated on a terrestrial field (43 convergent and rotated images, 28 GCPs at 0.5 mm, "
+          "GSD 0.5-1.5 mm; moving-camera reprojection 0.16-0.2 px). The simulator flies aerial blocks, so the "
+          "convergence comes from a 25 deg attitude spread over a low block with 6-30 m buildings: a "
+          "nadir block at constant height cannot separate the focal length from the flying height. "
+          "Same camera truth and reference temperature as daakir-uav; to calibrate at T degC set "
+          "sensors.temperature to TemperatureCurve(T, T) (a plateau).",
+))
+
+_register(FlightSpec(
     name="mitishita-block",
     description="Mitishita: UltraCam Xp 17310x11310, 6 um, 100.5 mm, 2500 m, GSD 0.15 m, 6 strips in four "
                 "directions, 80/60 %, POS AV GNSS/IMU, 30 signalised points",

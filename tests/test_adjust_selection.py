@@ -1,0 +1,118 @@
+"""Adaptive selection of the self-calibration parameters (``AdjustConfig(adaptive=True)``).
+
+conte-calibration's true camera has k3 = b1 = b2 = 0, tiny decentring (p1 2e-4, p2 -1.5e-4), and a
+clear radial distortion (k1 -0.08); its k1, k2, k3 are strongly correlated on a nadir block.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from aerocal.adjust import AdjustConfig, adjust
+from aerocal.adjust.selection import choose_drop
+from aerocal.camera import PARAM_NAMES
+from aerocal.simulate import simulate_flight
+
+SEED = 0
+CORR = re.compile(
+    r"dropped (\w+): \|corr\((\w+), (\w+)\)\| = ([\d.]+) > ([\d.]+) \(t\((\w+)\) = ([\d.]+), t\((\w+)\) = ([\d.]+)\)$"
+)
+TEST = re.compile(r"dropped (\w+): t = ([\d.]+) < ([\d.]+) \(not significant at 95 %\)$")
+KEPT = re.compile(r"kept (.+): all significant, no \|correlation\| above ([\d.]+)$")
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_flight("conte-calibration", seed=SEED)
+
+
+def _config(sim, free, adaptive: bool) -> AdjustConfig:
+    s = sim.spec.sensors
+    return AdjustConfig(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m),
+                        attitude_sigma_deg=s.imu_sigma_deg, free=tuple(free), adaptive=adaptive)
+
+
+def _run(sim, free, adaptive: bool):
+    return adjust(sim.images, sim.observations, sim.camera_nominal, _config(sim, free, adaptive), sim.gcps,
+                  sim.gcp_observations)
+
+
+def _parse(reasons: list[str]) -> tuple[list[tuple], list[str]]:
+    """(dropped: (name, kind, match), kept names) from the selection sentences; every sentence must parse."""
+    dropped = []
+    for r in reasons[:-1]:
+        m = CORR.match(r) or TEST.match(r)
+        assert m, f"seed {SEED}: reason does not name the parameter and the number: {r!r}"
+        dropped.append((m.group(1), "corr" if m.re is CORR else "t", m))
+    k = KEPT.match(reasons[-1])
+    assert k, f"seed {SEED}: last reason should list what was kept: {reasons[-1]!r}"
+    kept = [part.split(" t=")[0] for part in k.group(1).split(", ")]
+    return dropped, kept
+
+
+def test_adaptive_selection_drops_zero_parameters_keeps_f_cx_cy_and_k1(sim):
+    full = _run(sim, PARAM_NAMES, adaptive=False)
+    res = _run(sim, PARAM_NAMES, adaptive=True)
+    for r in res.selection:
+        print(r)
+    dropped, kept = _parse(res.selection)
+    names = [d[0] for d in dropped]
+    assert kept == res.names, f"seed {SEED}: kept {kept}, result has {res.names}"
+    assert set(names) | set(res.names) == set(PARAM_NAMES) and not set(names) & set(res.names)
+    assert {"f", "cx", "cy"} <= set(res.names) and "k1" in res.names, f"seed {SEED}: kept {res.names}"
+    assert {"k3", "b1", "b2"} <= set(names), f"seed {SEED}: parameters with zero truth kept: {res.names}"
+    cfg = res.config
+    for name, kind, m in dropped:
+        if kind == "t":
+            assert float(m.group(2)) < cfg.t_limit, f"seed {SEED}: {m.string}"
+        else:
+            assert float(m.group(4)) > cfg.corr_limit and name in (m.group(2), m.group(3)), m.string
+            t = {m.group(6): float(m.group(7)), m.group(8): float(m.group(9))}
+            assert t[name] == min(t.values()), f"seed {SEED}: the better determined one was dropped: {m.string}"
+    # the first decision is taken on the full model: its numbers are the full adjustment's
+    name, kind, m = dropped[0]
+    i = full.names.index(name)
+    if kind == "t":
+        assert float(m.group(2)) == pytest.approx(full.t_values[i], abs=0.006)
+    else:
+        a, b = full.names.index(m.group(2)), full.names.index(m.group(3))
+        assert float(m.group(4)) == pytest.approx(abs(full.correlation[a, b]), abs=6e-4)
+    # what is left is significant and not near-singular
+    t = dict(zip(res.names, res.t_values, strict=True))
+    assert all(t[n] >= cfg.t_limit for n in res.names if n not in cfg.always_keep), f"seed {SEED}: {t}"
+    c = np.abs(res.correlation - np.eye(len(res.names)))
+    assert c.max() <= cfg.corr_limit, f"seed {SEED}: |correlation| {c.max():.3f} left among {res.names}"
+
+
+def test_near_singular_pair_drops_the_weaker_member_and_names_the_correlation(sim):
+    radial = ("f", "cx", "cy", "k1", "k2", "k3")
+    full = _run(sim, radial, adaptive=False)
+    a, b = full.names.index("k2"), full.names.index("k3")
+    r = abs(full.correlation[a, b])
+    print(f"|corr(k2, k3)| = {r:.4f} on the full radial model; t(k2) = {full.t_values[a]:.2f}, "
+          f"t(k3) = {full.t_values[b]:.2f}")
+    assert r > 0.95, f"seed {SEED}: the radial terms are expected near-singular here, |corr| = {r:.3f}"
+    res = _run(sim, radial, adaptive=True)
+    for line in res.selection:
+        print(line)
+    dropped, _ = _parse(res.selection)
+    name, kind, m = dropped[0]
+    weaker = "k2" if full.t_values[a] < full.t_values[b] else "k3"
+    assert kind == "corr" and name == weaker, f"seed {SEED}: first decision {m.string!r}, expected {weaker}"
+    assert {m.group(2), m.group(3)} == {"k2", "k3"} and float(m.group(4)) == pytest.approx(r, abs=6e-4)
+    assert "k1" in res.names and weaker not in res.names
+
+
+def test_pair_of_kept_parameters_is_left_and_the_next_pair_decides():
+    names = ["f", "cx", "k1", "k2"]
+    corr = np.eye(4)
+    corr[0, 1] = corr[1, 0] = 0.99  # f and cx: both always kept
+    corr[2, 3] = corr[3, 2] = 0.97
+    t = np.array([50.0, 40.0, 8.0, 1.5])
+    name, why = choose_drop(names, corr, t, AdjustConfig())
+    assert name == "k2" and "|corr(k1, k2)| = 0.970 > 0.95" in why and "t(k2) = 1.50" in why
+    name, why = choose_drop(names[:2], corr[:2, :2], t[:2], AdjustConfig())
+    assert name is None and why.startswith("kept f t=50.0, cx t=40.0")
