@@ -45,6 +45,8 @@ class AdjustmentResult:
       for f, cx, cy and against zero for the other parameters and the slopes.
     * ``residuals``: predicted minus observed pixels (M, 2) aligned with the rows of the observations
       table (NaN for observations of tracks that could not be triangulated).
+    * ``obs_weight``: the robust weight rho'(s) (M,) of each tie observation at the solution, aligned
+      the same way (1 without a robust loss; near 0 for a blunder; NaN where ``residuals`` is NaN).
     * check points: ``check_errors`` triangulated minus surveyed (K, 3) metres (E, N, Up);
       ``check_sigma`` predicted std per axis (marginal covariance scaled by sigma0^2, plus survey
       variance); ``rho`` = RMSE / sqrt(mean predicted variance) per axis.
@@ -79,6 +81,7 @@ class AdjustmentResult:
     config: AdjustConfig
     selection: list[str] = field(default_factory=list)
     crs: str | None = None
+    obs_weight: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def summary(self) -> dict:
         """Figures a user checks, JSON-serialisable."""
@@ -220,6 +223,8 @@ def _result(
     res = np.full((n_obs_rows, 2), np.nan)
     rows = block.obs_row
     res[rows[rows >= 0]] = sol.obs_residual_px[rows >= 0]
+    weight = np.full(n_obs_rows, np.nan)
+    weight[rows[rows >= 0]] = sol.obs_weight[rows >= 0]
     tie_res = sol.obs_residual_px[block.obs_is_tie]
     rms = float(np.sqrt(np.mean(np.sum(tie_res**2, axis=1)) / 2.0)) if len(tie_res) else float("nan")
     # control points: adjusted minus surveyed
@@ -259,6 +264,7 @@ def _result(
         rho=accuracy_ratio(err, var),
         config=config,
         crs=block.crs,
+        obs_weight=weight,
     )
 
 
@@ -282,6 +288,19 @@ def adjust(
     block re-adjusted; ``result.selection`` says why each was dropped.
     """
     config = config or AdjustConfig()
+    n_rows = observations.num_rows
+    kept = np.arange(n_rows)
+    rejection: list[str] = []
+    if config.robust_loss != "none" and config.reject_chi2 is not None:
+        # a robust pass finds the blunders, they are removed, and the block is adjusted by least squares
+        # (data snooping): sigma0, covariances and the check-point prediction then describe clean data
+        robust_cfg = dataclasses.replace(config, adaptive=False, max_iterations=config.robust_iterations)
+        first = adjust(images, observations, camera, dataclasses.replace(robust_cfg, reject_chi2=None), gcps,
+                       gcp_observations, thermal_correction, initial_poses)
+        kept, why = _snoop(observations, first, config.reject_chi2)
+        rejection.append(why)
+        observations = observations.take(pa.array(kept, pa.int64()))
+        config = dataclasses.replace(config, robust_loss="none")
     block0 = build_block(
         images,
         observations,
@@ -299,17 +318,55 @@ def adjust(
     else:
         t0 = 0.0
     block, start = initial_state(block0, camera)
-    n_rows = observations.num_rows
 
     def run(cfg: AdjustConfig) -> AdjustmentResult:
         sol = solve(Problem(block, cfg, t0), start)
-        return _result(block, sol, camera, cfg, n_rows)
+        return _result(block, sol, camera, cfg, observations.num_rows)
 
     if not config.adaptive:
-        return run(config)
-    result, reasons, _ = select_parameters(run, config)
-    result.selection = reasons
+        result = run(config)
+    else:
+        result, reasons, _ = select_parameters(run, config)
+        result.selection = reasons
+    if rejection:
+        result.selection = rejection + result.selection
+        res = np.full((n_rows, 2), np.nan)
+        res[kept] = result.residuals
+        weight = np.zeros(n_rows)  # a rejected observation has weight 0
+        weight[kept] = result.obs_weight
+        result.residuals, result.obs_weight = res, weight
     return result
+
+
+def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tuple[np.ndarray, str]:
+    """Rows of ``observations`` kept after a robust adjustment ``first``, and a sentence saying what went.
+
+    An observation is rejected when its squared residual, normalised by its sigma and by the robust
+    variance factor, exceeds ``chi2``; tracks left with fewer than two observations go too. The robust
+    variance factor is the median of the squared normalised residuals over 1.386 (the median of
+    chi-square with 2 degrees of freedom) divided by the mean redundancy (dof / residual components):
+    residuals of an adjustment are smaller than the errors they stand for by that much on average.
+    """
+    sigma = observations.column("sigma").to_numpy(zero_copy_only=False).astype(float)
+    s = np.sum(first.residuals**2, axis=1) / sigma**2
+    finite = np.isfinite(s)
+    if not finite.any():
+        return np.arange(observations.num_rows), "no residuals to screen for blunders"
+    redundancy = float(np.clip(first.dof / (2.0 * np.count_nonzero(finite)), 0.1, 1.0))
+    scale = max(float(np.median(s[finite])) / (2.0 * np.log(2.0)) / redundancy, 1e-12)
+    bad = finite & (s > chi2 * scale)
+    track = observations.column("track_id").to_numpy(zero_copy_only=False)
+    _, inv, counts = np.unique(track[~bad], return_inverse=True, return_counts=True)
+    lone = np.zeros(len(s), dtype=bool)
+    lone[np.flatnonzero(~bad)[counts[inv] < 2]] = True
+    kept = np.flatnonzero(~bad & ~lone)
+    why = (
+        f"rejected {int(bad.sum())} of {len(s)} tie observations as blunders after a robust "
+        f"({first.config.robust_loss}) pass: normalised squared residual above {chi2:g} x the robust "
+        f"variance factor {scale:.3f} (sigma0 {np.sqrt(scale):.3f}); {int(lone.sum())} more left alone in "
+        "their tracks; the block was then adjusted by least squares"
+    )
+    return kept, why
 
 
 __all__ = ["PARAM_NAMES", "AdjustConfig", "AdjustmentResult", "adjust"]

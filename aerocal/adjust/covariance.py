@@ -37,13 +37,15 @@ def global_covariance(solution: Solution, scale: bool = True) -> np.ndarray:
     """Covariance of the free IO parameters and thermal slopes (order of :func:`global_names`)."""
     ng = solution.layout.n_global
     cov = solution.cov_camera[:ng, :ng]
-    return cov * solution.sigma0**2 if scale else cov.copy()
+    cov = 0.5 * (cov + cov.T)  # the Schur-complement inverse is symmetric only to rounding
+    return cov * solution.sigma0**2 if scale else cov
 
 
 def correlation(cov: np.ndarray) -> np.ndarray:
     """Correlation matrix of a covariance matrix."""
     s = np.sqrt(np.maximum(np.diag(cov), 1e-300))
-    return cov / s[:, None] / s[None, :]
+    c = cov / s[:, None] / s[None, :]
+    return 0.5 * (c + c.T)
 
 
 def t_values(estimates: np.ndarray, references: np.ndarray, sigmas: np.ndarray) -> np.ndarray:

@@ -40,9 +40,18 @@ class AdjustConfig:
       degrees; ``None`` (default) = attitude not used as an observation (only as starting value).
     * ``use_gcps``: GCPs with role "control" enter as weighted observations with their survey sigmas.
     * ``robust_loss``: "none" (default), "huber" or "cauchy", on tie-point observations only, with
-      ``robust_scale`` in units of the observation's sigma (default 3).
-    * ``max_iterations`` / ``tolerance``: Levenberg-Marquardt stops when the relative decrease of the
-      cost falls below ``tolerance`` (default 1e-10) or after ``max_iterations`` (default 50).
+      ``robust_scale`` in units of the observation's sigma (default 3). With a robust loss and
+      ``reject_chi2`` (default 13.8, the 99.9 % point of chi-square with 2 degrees of freedom) the robust
+      pass (at most ``robust_iterations``, default 15) only screens: observations whose squared
+      normalised residual exceeds ``reject_chi2`` times the robust variance factor are removed and the
+      block is adjusted again by least squares, so sigma0 and the covariances describe clean data;
+      ``reject_chi2=None`` keeps the robust solution itself.
+    * ``max_iterations`` / ``tolerance`` / ``step_tolerance``: Levenberg-Marquardt stops when the relative
+      decrease of the cost falls below ``tolerance`` (default 1e-10), when the step of the camera-side
+      unknowns (poses, IO, slopes) is below ``step_tolerance`` (default 1e-3) of their standard deviation
+      in the Mahalanobis norm of the reduced normal matrix (this ends the tail in which only undetermined
+      tie points still move, e.g. two-ray tracks holding a blunder under a robust loss), or after
+      ``max_iterations`` (default 50).
     * ``scale_covariance``: multiply the covariance by the a-posteriori variance factor sigma0^2
       (default True).
     * ``adaptive``: drop insignificant or near-singular parameters and re-adjust (default False);
@@ -58,8 +67,11 @@ class AdjustConfig:
     use_gcps: bool = True
     robust_loss: str = "none"
     robust_scale: float = 3.0
+    reject_chi2: float | None = 13.8
+    robust_iterations: int = 15
     max_iterations: int = 50
     tolerance: float = 1e-10
+    step_tolerance: float = 1e-3
     scale_covariance: bool = True
     adaptive: bool = False
     corr_limit: float = 0.95

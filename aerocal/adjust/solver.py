@@ -376,7 +376,11 @@ def solve(problem: Problem, start: State) -> Solution:
             history.append(cost)
             lam = max(lam / 10.0, 1e-12)
             cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True)
-            if rel < cfg.tolerance:
+            # camera-side step in its own metric (dc' S dc = dc' rhs): below step_tolerance^2 the cameras
+            # and IO moved by less than step_tolerance of their standard deviation; what still moves then
+            # are tie points without a determined position (e.g. a two-ray track with a blunder under a
+            # robust loss, which slides off along its rays and would keep the cost creeping down)
+            if rel < cfg.tolerance or abs(float(dc @ rhs)) < cfg.step_tolerance**2:
                 converged = True
                 break
         else:
