@@ -225,6 +225,17 @@ class BinnedResiduals:
                 "mean_px": [[[_f(v) for v in cell] for cell in row] for row in m],
                 "count": self.count.tolist()}
 
+    @classmethod
+    def from_dict(cls, d: Mapping) -> BinnedResiduals:
+        """The inverse of :meth:`to_dict` (empty bins, ``None`` there, get a zero mean and count 0)."""
+        count = np.asarray(d["count"], dtype=np.int64)
+        mean = np.array([[[np.nan if v is None else float(v) for v in cell] for cell in row]
+                         for row in d["mean_px"]], dtype=float).reshape(*count.shape, 2)
+        mean[count == 0] = 0.0
+        if tuple(d.get("bins", count.shape)) != count.shape:
+            raise ValueError(f"binned residuals: bins {d['bins']} but counts of shape {count.shape}")
+        return cls(width=int(d["width"]), height=int(d["height"]), mean=np.nan_to_num(mean), count=count)
+
 
 def bin_residuals(xy: np.ndarray, residuals: np.ndarray, width: int, height: int,
                   bins: tuple[int, int] = (6, 8)) -> BinnedResiduals:

@@ -9,7 +9,9 @@
 * :func:`diagnose_step`: residual analysis against the catalogue of unmodelled effects
   (:func:`aerocal.diagnose.engine.diagnose`), IO fixed from the certificate.
 * :func:`report_step`: the self-contained HTML report and its ``summary.json``
-  (:func:`aerocal.report.html.write_report`).
+  (:func:`aerocal.report.html.write_report`): the block with check-point residuals, reprojection
+  residuals over the image, the IO each image was adjusted with against its sensor temperature, the DSM
+  minus a reference surface (when the flight folder holds one, :data:`REFERENCE_DSM`) and the certificate.
 """
 
 from __future__ import annotations
@@ -37,6 +39,17 @@ _RETRY = {
 
 def _thermal(cert: Certificate):
     return None if cert.thermal is None else cert.thermal.model
+
+
+#: a reference surface for the DSM (e.g. a LiDAR DSM) in the flight folder: a single-band north-up GeoTIFF
+#: of heights in metres, in the flight's CRS
+REFERENCE_DSM = Path("reference") / "dsm.tif"
+
+
+def reference_dsm_path(flight: dict) -> Path | None:
+    """The flight folder's reference DSM (:data:`REFERENCE_DSM`), or ``None`` when it has none."""
+    path = Path(flight["folder"]) / REFERENCE_DSM
+    return path if path.is_file() else None
 
 
 def frame_paths(flight: dict, images) -> dict[int, Path]:
@@ -256,10 +269,35 @@ def diagnose_step(
 # ------------------------------------------------------------------------------------------- report
 @dataclass(frozen=True)
 class ReportStepConfig:
-    """``title`` of the report (default "Flight report: <flight name>")."""
+    """``title`` of the report (default "Flight report: <flight name>"); ``extra`` key figures added to
+    the summary; DSM cells within ``measured_within_m`` (2 m) of a tie point count as measured in the
+    DSM-minus-reference statistics (:func:`aerocal.report.flight.dem_difference_for_flight`)."""
 
     title: str | None = None
     extra: dict = field(default_factory=dict)
+    measured_within_m: float = 2.0
+
+
+def _check_point_block(poses, adj: dict, gcps):
+    """The block figure: camera centres and the check-point residuals of the adjustment."""
+    from aerocal.report.figures import block_figure
+
+    centres = np.column_stack([poses.column("X").to_numpy(), poses.column("Y").to_numpy()])
+    ids = adj.get("check_ids") or []
+    if not ids:
+        return block_figure(centres)
+    where = {
+        g: (x, y)
+        for g, x, y in zip(
+            gcps.column("gcp_id").to_pylist(),
+            gcps.column("X").to_pylist(),
+            gcps.column("Y").to_pylist(),
+            strict=True,
+        )
+    }
+    en = np.array([where[i] for i in ids], dtype=float)
+    errs = np.asarray(adj["check_errors_m"], dtype=float).reshape(-1, 3)
+    return block_figure(centres, points_en=en, residuals=errs, ids=ids)
 
 
 def report_step(
@@ -272,7 +310,12 @@ def report_step(
     diagnosis: StepResult,
     config: ReportStepConfig | None = None,
 ) -> StepResult:
-    """Outputs ``report`` (self-contained HTML) and ``report_summary`` (its numbers as JSON)."""
+    """Outputs ``report`` (self-contained HTML) and ``report_summary`` (its numbers as JSON).
+
+    Inputs beyond the step outputs: the flight folder's reference DSM (:data:`REFERENCE_DSM`), when it
+    exists, is stored as an artifact (kind ``reference-dsm``) and keys the step by its content; without
+    one the report says that the DSM was not compared.
+    """
     config = config or ReportStepConfig()
     inputs = {
         "flight": ingest["flight"],
@@ -280,20 +323,34 @@ def report_step(
         "certificate": certificate,
         "adjustment": adjusted["adjustment"],
         "poses": adjusted["poses"],
+        "points": adjusted["points"],
+        "dsm": mosaic["dsm"],
         "mosaic": mosaic["mosaic"],
         "assessment": assessment["assessment"],
         "diagnosis": diagnosis["diagnosis"],
         "gcps": ingest["gcps"],
     }
+    with ctx.database.session() as session:
+        flight_doc = json.loads(ctx.store.read_bytes(ctx.store.get(session, ingest["flight"])))
+        reference = reference_dsm_path(flight_doc)
+        if reference is not None:
+            inputs["reference_dsm"] = ctx.store.put_file(session, reference, "reference-dsm").sha256
+            session.commit()
 
     def compute(inp: StepInputs) -> dict:
-        from aerocal.report.figures import block_figure
+        from aerocal.dsm import read_dsm
+        from aerocal.report.flight import (
+            FigureSkipped,
+            dem_difference_for_flight,
+            image_residuals_from_assessment,
+            temperature_io_for_flight,
+        )
         from aerocal.report.html import CertificateTable, write_report
 
         flight, adj, assess = inp.json("flight"), inp.json("adjustment"), inp.json("assessment")
         diag, mos = inp.json("diagnosis"), inp.json("mosaic")
         cert = Certificate.from_dict(inp.json("certificate"))
-        poses = inp.table("poses")
+        images = inp.table("images")
         cp = assess.get("check_points", {})
         summary = {
             "flight": flight["name"],
@@ -303,6 +360,7 @@ def report_step(
             "date": flight["date"],
             "temperature_c": flight.get("temperature_range"),
             "certificate": f"{cert.id} (version {cert.version})",
+            "thermal_model": cert.thermal.kind if cert.thermal is not None else None,
             "sigma0": adj["sigma0"],
             "reprojection_rms_px": adj["reprojection_rms_px"],
             "check_rmse_m": adj.get("check_rmse_m"),
@@ -311,27 +369,54 @@ def report_step(
             "diagnosis": diag.get("summary"),
             "gsd_m": mos.get("gsd_m"),
             "mosaic_frames": mos.get("frames"),
-            **config.extra,
         }
-        centres = np.column_stack([poses.column("X").to_numpy(), poses.column("Y").to_numpy()])
-        figs = []
-        ids = adj.get("check_ids") or []
-        if ids:
-            gcps = inp.table("gcps")
-            where = {
-                g: (x, y)
-                for g, x, y in zip(
-                    gcps.column("gcp_id").to_pylist(),
-                    gcps.column("X").to_pylist(),
-                    gcps.column("Y").to_pylist(),
-                    strict=True,
+        figs = [_check_point_block(inp.table("poses"), adj, inp.table("gcps"))]
+        notes: list[str] = []
+        temps = dict(
+            zip(
+                images.column("image_id").to_pylist(),
+                images.column("temperature_c").to_pylist(),
+                strict=True,
+            )
+        )
+
+        def dem_difference():
+            if not inp.has("reference_dsm"):
+                raise FigureSkipped(
+                    f"DSM minus reference: not drawn, the flight folder has no reference DSM "
+                    f"({REFERENCE_DSM.as_posix()}, a GeoTIFF of surface heights in the flight's CRS)."
                 )
+            points = inp.table("points")
+            tie_en = np.column_stack([points.column("X").to_numpy(), points.column("Y").to_numpy()])
+            return dem_difference_for_flight(
+                read_dsm(inp.path("dsm")),
+                read_dsm(inp.path("reference_dsm")),
+                tie_en,
+                config.measured_within_m,
+                f"the reference DSM ({REFERENCE_DSM.as_posix()})",
+            )
+
+        builders = (
+            lambda: image_residuals_from_assessment(assess),
+            lambda: temperature_io_for_flight(
+                cert.camera,
+                _thermal(cert),
+                temps,
+                None if cert.thermal is None else cert.thermal.valid_range,
+            ),
+            dem_difference,
+        )
+        for build in builders:
+            try:
+                figs.append(build())
+            except FigureSkipped as why:
+                notes.append(str(why))
+        dem = next((f.numbers for f in figs if f.name == "dem_difference"), None)
+        if dem is not None:
+            summary["dsm_minus_reference_m"] = {
+                k: dem[k] for k in ("n", "mean_m", "median_m", "nmad_m", "rmse_m")
             }
-            en = np.array([where[i] for i in ids], dtype=float)
-            errs = np.asarray(adj["check_errors_m"], dtype=float).reshape(-1, 3)
-            figs.append(block_figure(centres, points_en=en, residuals=errs, ids=ids))
-        else:
-            figs.append(block_figure(centres))
+        summary.update(config.extra)
         table = CertificateTable.from_values(
             f"Certificate {cert.id[:8]} (version {cert.version})",
             {n: getattr(cert.camera, n) for n in cert.estimated} or {"f": cert.camera.f},
@@ -339,7 +424,9 @@ def report_step(
             info={"camera": cert.identity.key, "conditions": cert.conditions.to_dict()},
         )
         work = Path(tempfile.mkdtemp(prefix="aerocal-report-"))
-        html = write_report(work, summary, figs, table, config.title or f"Flight report: {flight['name']}")
+        html = write_report(
+            work, summary, figs, table, config.title or f"Flight report: {flight['name']}", notes=notes
+        )
         return {
             "report": FileOutput(html, "report", temporary=True),
             "report_summary": FileOutput(work / "summary.json", "report-summary", temporary=True),

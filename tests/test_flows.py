@@ -2,12 +2,14 @@
 
 Checks what a user would: the certificate is stored and the run names it with the reason, every output
 artifact is registered with lineage back to the flight's manifest, the provenance is complete, the run
-folder's files open, and a crashed run resumes without recomputing its completed steps.
+folder's files open, the report shows every figure with its numbers in summary.json, and a crashed run
+resumes without recomputing its completed steps.
 """
 
 from __future__ import annotations
 
 import json
+from html.parser import HTMLParser
 
 import pytest
 import rasterio
@@ -27,11 +29,15 @@ def prefect_server():
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory):
-    """A 20-image thermal calibration flight in observations mode with a hidden focal-length slope."""
+    """A 20-image thermal calibration flight in observations mode with a hidden focal-length slope, and
+    beside it a reference DSM (as a LiDAR survey would give): the scene's surface over the flight."""
     from aerocal.simulate import simulate_flight, write_flight
+    from tasks.products import REFERENCE_DSM
 
     sim = simulate_flight("conte-calibration", seed=SEED, effects={"thermal_focal": 0.06}, max_images=20)
-    return write_flight(sim, tmp_path_factory.mktemp("flights") / "flight-a", mode="observations")
+    folder = write_flight(sim, tmp_path_factory.mktemp("flights") / "flight-a", mode="observations")
+    assert (folder / REFERENCE_DSM).is_file(), "the simulator writes the scene's surface as the reference"
+    return folder
 
 
 def _json(ctx_store, session, sha):
@@ -91,6 +97,7 @@ def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path
     # the run folder: report, DSM in the flight CRS, certificate, provenance
     files = summary["files"]
     assert "<html" in (out / "report.html").read_text()[:200].lower()
+    check_report_shows_every_figure(out)
     with rasterio.open(files["dsm"]) as ds:
         assert ds.crs.to_epsg() == 32632
         assert ds.read(1).size > 100
@@ -115,6 +122,101 @@ def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path
     rho = summary["accuracy"]["rho"]
     assert all(r is not None and r < 2.5 for r in rho.values()), f"seed {SEED}: rho {rho}"
     assert isinstance(summary["diagnosis"], str) and summary["diagnosis"]
+
+
+class _Report(HTMLParser):
+    """The ``<img>`` sources and ``<figure>`` ids of a report."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.srcs: list[str] = []
+        self.figures: list[str] = []
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "img":
+            self.srcs.append(a.get("src") or "")
+        elif tag == "figure":
+            self.figures.append(a.get("id") or "")
+
+
+def check_report_shows_every_figure(run_dir):
+    """What a reader of the run folder's report checks: every image it references opens as a PNG, the
+    four figures are there (the flight has a reference DSM), and summary.json carries their numbers:
+    the DSM difference, the binned residual grid of the assessment, the IO the certificate gives each
+    image at its temperature. ``aerocal report`` prints the run folder's key figures."""
+    import base64
+    import io
+
+    import numpy as np
+    from PIL import Image
+    from typer.testing import CliRunner
+
+    from aerocal.certificate import Certificate
+    from aerocal.cli import app
+    from aerocal.report import io_at_temperatures
+
+    text = (run_dir / "report.html").read_text()
+    parsed = _Report()
+    parsed.feed(text)
+    assert len(parsed.srcs) == text.count("<img") >= 4, parsed.srcs
+    for src in parsed.srcs:
+        if src.startswith("data:"):
+            assert src.startswith("data:image/png;base64,"), src[:40]
+            data = base64.b64decode(src.split(",", 1)[1])
+        else:
+            assert (run_dir / src).is_file(), f"the report references {src}, which is not in {run_dir}"
+            data = (run_dir / src).read_bytes()
+        with Image.open(io.BytesIO(data)) as img:
+            assert img.format == "PNG"
+            img.load()
+            assert img.width > 300 and img.height > 200, img.size
+            assert np.asarray(img.convert("L")).std() > 10, "the figure has content"
+    kinds = {"block", "image_residuals", "temperature_io", "dem_difference"}
+    assert set(parsed.figures) == kinds, parsed.figures
+    assert "Figures not drawn" not in text
+
+    doc = json.loads((run_dir / "summary.json").read_text())
+    assert doc["notes"] == [] and set(doc["figures"]) == kinds
+    dem = doc["figures"]["dem_difference"]
+    assert doc["summary"]["dsm_minus_reference_m"]["mean_m"] == dem["mean_m"]
+    measured = dem["measured_cells"]
+    rmse_u = doc["summary"]["check_rmse_m"][2]
+    print(f"DSM minus reference: all {dem['n']} cells mean {dem['mean_m']:.3f} m NMAD {dem['nmad_m']:.3f} m; "
+          f"{measured['n']} measured cells mean {measured['mean_m']:.3f} m NMAD {measured['nmad_m']:.3f} m; "
+          f"check points RMSE Up {rmse_u:.3f} m")
+    # where the DSM is measured its offset from the reference is the block's height error, which the check
+    # points measure (plus the tie-point DSM's own ~0.1 m, aerocal.dsm); interpolation across roofs and
+    # trees spreads the differences elsewhere (aerocal.dsm): the measured cells scatter less than all
+    assert abs(measured["mean_m"]) < 2.0 * rmse_u + 0.1, f"seed {SEED}: {measured}, check RMSE Up {rmse_u}"
+    assert measured["nmad_m"] < dem["nmad_m"], f"seed {SEED}: measured {measured}, all cells {dem}"
+    assert measured["n"] > 0.02 * dem["n"], f"seed {SEED}: few measured cells {measured['n']} of {dem['n']}"
+
+    binned = doc["figures"]["image_residuals"]
+    stored = json.loads((run_dir / "assessment.json").read_text())["reprojection"]
+    assert binned["bins"] == [6, 8] and binned["count"] == stored["binned"]["count"]
+    assert binned["mean_px"] == stored["binned"]["mean_px"]
+    assert sum(map(sum, binned["count"])) == stored["n"] > 1000
+    worst = max(np.hypot(*c) for row in binned["mean_px"] for c in row if c[0] is not None)
+    print(f"binned residuals: {stored['n']} observations, largest bin mean {worst:.3f} px, "
+          f"RMS {stored['rms_px']:.3f} px")
+
+    cert = Certificate.from_json((run_dir / "certificate.json").read_text())
+    tio = doc["figures"]["temperature_io"]
+    model = None if cert.thermal is None else cert.thermal.model
+    expected = io_at_temperatures(cert.camera, model, tio["temperature_c"])
+    assert len(tio["temperature_c"]) == 20 and tio["thermal_model"] == (model is not None)
+    if model is None:  # the flat line and the sentence that explains it
+        assert "The certificate has no thermal model" in text and len(set(tio["f_px"])) == 1
+    np.testing.assert_allclose(tio["f_px"], expected["f"], rtol=1e-12)
+    np.testing.assert_allclose(tio["cy_px"], expected["cy"], rtol=1e-12)
+    print(f"certificate thermal model: {None if model is None else model.to_dict()}; f over the flight "
+          f"{min(tio['f_px']):.3f}-{max(tio['f_px']):.3f} px at {min(tio['temperature_c']):.2f}-"
+          f"{max(tio['temperature_c']):.2f} degC")
+
+    result = CliRunner().invoke(app, ["report", str(run_dir)])
+    assert result.exit_code == 0, result.output
+    assert "dsm_minus_reference_m" in result.output and "report.html" in result.output
 
 
 def test_crashed_run_resumes_after_the_last_completed_step(prefect_server, flight, tmp_path, monkeypatch):

@@ -84,3 +84,108 @@ def test_report_refuses_duplicate_figure_names_and_writes_nothing(tmp_path):
     else:
         raise AssertionError("duplicate figure names accepted")
     assert not (tmp_path / "run").exists()
+
+
+# ------------------------------------------------------------------ figures of a processed flight
+def test_thermal_io_of_a_similarity_model_matches_the_linear_drift_it_was_fitted_to():
+    """A similarity model fitted (Daakir's way) to measurements drifting by a linear IO model gives, as its
+    equivalent focal length and principal point, the linear model's IO at every temperature."""
+    from aerocal.camera import SimilarityThermalModel
+    from aerocal.report import io_at_temperatures
+
+    cam = Camera(640, 480, f=1668.0, cx=321.0, cy=238.5)
+    linear = LinearThermalModel(t0=20.0, df_dt=0.21, dcx_dt=-0.05, dcy_dt=0.08)
+    temps = (10.0, 20.0, 30.0)
+    u, v = np.meshgrid(np.linspace(0, 640, 12), np.linspace(0, 480, 9))
+    ref = np.column_stack([u.ravel(), v.ravel()])
+    fits = []
+    for t in temps:  # where the camera at t sees the grid the reference camera sees at ref
+        c_t = linear.camera_at(cam, t)
+        seen = c_t.normalised_to_pixels((ref - [cam.cx, cam.cy]) / cam.f)
+        fits.append(SimilarityThermalModel.fit_one(seen, ref, (320.0, 240.0)))
+    sim = SimilarityThermalModel(temps, *(tuple(x) for x in zip(*fits, strict=True)), centre=(320.0, 240.0))
+    at = np.array([12.0, 20.0, 27.5])
+    got, want = io_at_temperatures(cam, sim, at), io_at_temperatures(cam, linear, at)
+    for name in ("f", "cx", "cy"):
+        np.testing.assert_allclose(got[name], want[name], atol=0.01, err_msg=name)
+    assert want["f"][0] == cam.f + 0.21 * (12.0 - 20.0)
+    assert (io_at_temperatures(cam, None, at)["f"] == cam.f).all(), "no thermal model: constant IO"
+
+
+def test_temperature_figure_without_a_thermal_model_draws_the_constant_io_and_says_so():
+    from aerocal.report import FigureSkipped, temperature_io_for_flight
+
+    cam = Camera(640, 480, f=1668.0, cx=321.0, cy=238.5)
+    temps = {1: 18.2, 2: 18.6, 3: None, 4: 19.0}
+    fig = temperature_io_for_flight(cam, None, temps)
+    assert "no thermal model" in fig.caption and "18.2 to 19.0 degC" in fig.caption
+    assert fig.numbers["image_id"] == [1, 2, 4] and fig.numbers["f_px"] == [1668.0] * 3
+    assert fig.numbers["thermal_model"] is False and fig.numbers["model"] is None
+    img = cv2.imdecode(np.frombuffer(fig.png, np.uint8), cv2.IMREAD_COLOR)
+    assert img is not None and img.std() > 10
+
+    model = LinearThermalModel(t0=20.0, df_dt=0.21, valid_range=(19.0, 30.0))
+    fig = temperature_io_for_flight(cam, model, temps, valid_range=model.valid_range)
+    assert fig.numbers["f_px"] == [cam.f + 0.21 * (t - 20.0) for t in (18.2, 18.6, 19.0)]
+    assert "leave the model's valid range" in fig.caption
+    assert abs(fig.numbers["fitted_slope_px_per_degC"]["f"] - 0.21) < 1e-9
+    try:
+        temperature_io_for_flight(cam, None, {1: None})
+    except FigureSkipped as why:
+        assert "no image of the flight records a sensor temperature" in str(why)
+    else:
+        raise AssertionError("a flight without temperatures got a temperature figure")
+
+
+def test_dem_difference_for_a_flight_compares_inside_the_reference_and_on_measured_cells():
+    from aerocal.report import FigureSkipped, dem_difference_for_flight
+
+    seed = 4
+    rng = np.random.default_rng(seed)
+    heights = (50.0 + rng.normal(0, 0.05, (60, 80))).astype(np.float32)
+    dsm = Dsm(heights=heights + np.float32(0.4), west=686000, north=4929060, cell_m=1.0, crs="EPSG:32632")
+    # the reference covers the western half only and is 1.0 m higher on its northern 10 rows
+    ref_h = heights[:, :40].copy()
+    ref_h[:10] += 1.0
+    ref = Dsm(heights=ref_h, west=686000, north=4929060, cell_m=1.0, crs="EPSG:32632")
+    ties = np.array([[686010.5, 4929030.5], [686030.5, 4929020.5], [686075.5, 4929020.5]])
+    fig = dem_difference_for_flight(dsm, ref, ties, measured_within_m=2.0)
+    n = fig.numbers
+    assert n["n"] == 60 * 40, "only cells inside the reference are compared (no edge extension)"
+    assert abs(n["mean_m"] - (0.4 - 10 / 60)) < 0.01, f"seed {seed}: mean {n['mean_m']}"
+    assert abs(n["median_m"] - 0.4) < 0.01, f"seed {seed}: median {n['median_m']}"
+    m = n["measured_cells"]
+    assert m["n"] == 2 * 13, f"two tie points inside the reference, 13 cells each within 2 m: {m}"
+    assert abs(m["mean_m"] - 0.4) < 0.01 and "within 2 m" in m["selection"]
+    assert "NMAD" in fig.caption and str(n["n"]) in fig.caption
+    for other, why in ((Dsm(heights=ref_h, west=686000, north=4929060, cell_m=1.0, crs="EPSG:32633"), "EPSG:32633"),
+                       (Dsm(heights=ref_h, west=690000, north=4929060, cell_m=1.0, crs="EPSG:32632"), "no heights")):
+        try:
+            dem_difference_for_flight(dsm, other)
+        except FigureSkipped as exc:
+            assert why in str(exc), str(exc)
+        else:
+            raise AssertionError(f"compared against an unusable reference ({why})")
+
+
+def test_binned_residuals_survive_the_assessment_json_and_missing_figures_become_notes(tmp_path):
+    from aerocal.assess import BinnedResiduals
+    from aerocal.report import FigureSkipped, image_residuals_from_assessment
+
+    *_, xy, r, _, _ = _inputs(2)
+    binned = bin_residuals(xy[:40], r[:40], 640, 480)  # few points: some bins stay empty
+    assert (binned.count == 0).any()
+    back = BinnedResiduals.from_dict(json.loads(json.dumps(binned.to_dict())))
+    np.testing.assert_array_equal(back.count, binned.count)
+    np.testing.assert_allclose(back.mean, binned.mean)
+    fig = image_residuals_from_assessment({"reprojection": {"n": 40, "rms_px": 0.5, "binned": binned.to_dict()}})
+    assert fig.numbers["count"] == binned.count.tolist() and "RMS 0.5 px over 40" in fig.caption
+    try:
+        image_residuals_from_assessment({"reprojection": {"binned": None}})
+    except FigureSkipped as why:
+        note = str(why)
+    else:
+        raise AssertionError("no binned residuals, yet a figure")
+    path = write_report(tmp_path, {"flight": "f"}, [fig], notes=[note])
+    assert note in path.read_text() and "Figures not drawn" in path.read_text()
+    assert json.loads((tmp_path / "summary.json").read_text())["notes"] == [note]

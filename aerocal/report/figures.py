@@ -141,38 +141,76 @@ def _rect(w: float, h: float):
     return Rectangle((0, 0), w, h, fill=False, edgecolor="0.4")
 
 
+def io_at_temperatures(camera, model, temperatures) -> dict[str, np.ndarray]:
+    """Focal length and principal point (pixels) that a thermal IO ``model`` gives ``camera`` (IO at the
+    model's reference temperature) at each of ``temperatures`` (degC): ``{"f", "cx", "cy"}`` arrays.
+
+    ``model=None`` (a certificate without a thermal model) gives the constant IO of ``camera``. A model
+    with ``camera_at`` (:class:`~aerocal.camera.LinearThermalModel`) is evaluated exactly; a model that
+    only corrects measurements (``correct(uv, T)``: similarity, polynomial) is summarised by the
+    equivalent IO: the scale ``s`` and shift ``a`` of the least-squares fit ``correct(p, T) = a + s p`` over
+    a grid of pixels ``p`` of the frame give ``f(T) = f / s`` and ``(cx, cy)(T) = ((cx, cy) - a) / s``.
+    """
+    t = np.atleast_1d(np.asarray(temperatures, dtype=float))
+    out = {n: np.full(t.shape, float(getattr(camera, n))) for n in ("f", "cx", "cy")}
+    if model is None:
+        return out
+    if hasattr(model, "camera_at"):
+        for i, x in enumerate(t):
+            c = model.camera_at(camera, x)
+            out["f"][i], out["cx"][i], out["cy"][i] = c.f, c.cx, c.cy
+        return out
+    u, v = np.meshgrid(np.linspace(0.0, camera.width, 9), np.linspace(0.0, camera.height, 7))
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    design = np.zeros((2 * len(uv), 3))
+    design[0::2, 0] = 1.0
+    design[1::2, 1] = 1.0
+    design[0::2, 2] = uv[:, 0]
+    design[1::2, 2] = uv[:, 1]
+    for i, x in enumerate(t):
+        ax_, ay_, s = np.linalg.lstsq(design, np.asarray(model.correct(uv, x), dtype=float).ravel(), rcond=None)[0]
+        out["f"][i], out["cx"][i], out["cy"][i] = camera.f / s, (camera.cx - ax_) / s, (camera.cy - ay_) / s
+    return out
+
+
 def temperature_io_figure(
     temperatures: np.ndarray, f: np.ndarray, cx: np.ndarray, cy: np.ndarray,
     model=None, camera=None, title: str = "Interior orientation against sensor temperature",
+    caption: str | None = None,
 ) -> Figure:
-    """Per-image focal length and principal point (pixels) against sensor temperature (degC); with a
-    ``LinearThermalModel`` and its reference ``camera`` the model's lines are drawn too."""
+    """Per-image focal length and principal point (pixels) against sensor temperature (degC). With a
+    ``camera`` (IO at the model's reference temperature) the certificate's line is drawn too over the
+    images' temperatures: the thermal ``model`` (:func:`io_at_temperatures`), or, with ``model=None``,
+    the constant IO of a certificate without a thermal model."""
     t = np.asarray(temperatures, dtype=float)
     series = {"f": np.asarray(f, dtype=float), "cx": np.asarray(cx, dtype=float), "cy": np.asarray(cy, dtype=float)}
     fig = _canvas(7.0, 7.0)
     axes = fig.subplots(3, 1, sharex=True)
     numbers: dict = {"temperature_c": t.tolist()}
     slopes = {}
+    line = None
+    if camera is not None and np.isfinite(t).any():
+        tt = np.linspace(np.nanmin(t), np.nanmax(t), 20)
+        line = (tt, io_at_temperatures(camera, model, tt),
+                "thermal model" if model is not None else "certificate: constant IO (no thermal model)")
     for ax, (name, v) in zip(axes, series.items(), strict=True):
         ax.plot(t, v, "o", markersize=4, label="per image")
         ok = np.isfinite(t) & np.isfinite(v)
         if ok.sum() >= 2 and np.ptp(t[ok]) > 0:
             slopes[name] = float(np.polyfit(t[ok], v[ok], 1)[0])
-        if model is not None and camera is not None:
-            tt = np.linspace(np.nanmin(t), np.nanmax(t), 20)
-            vals = [getattr(model.camera_at(camera, x), name) for x in tt]
-            ax.plot(tt, vals, "-", color="tab:orange", label="thermal model")
+        if line is not None:
+            ax.plot(line[0], line[1][name], "-", color="tab:orange", label=line[2])
         ax.set_ylabel(f"{name} (px)")
+        ax.ticklabel_format(axis="y", useOffset=False, style="plain")
         ax.grid(alpha=0.3)
         numbers[f"{name}_px"] = [_f(x) for x in v]
     axes[0].legend(fontsize=8)
     axes[-1].set_xlabel("sensor temperature (degC)")
     axes[0].set_title(title)
     numbers["fitted_slope_px_per_degC"] = slopes
-    if model is not None:
-        numbers["model"] = model.to_dict()
-    return Figure("temperature_io", title, _png(fig), "Focal length and principal point against the "
-                  "sensor temperature of each image.", numbers)
+    numbers["model"] = model.to_dict() if model is not None else None
+    return Figure("temperature_io", title, _png(fig), caption or "Focal length and principal point against "
+                  "the sensor temperature of each image.", numbers)
 
 
 def dem_difference_figure(diff, title: str = "DSM minus reference") -> Figure:

@@ -98,11 +98,13 @@ def write_report(
     figures: Sequence[Figure] = (),
     certificate: CertificateTable | None = None,
     title: str = "Flight report",
+    notes: Sequence[str] = (),
 ) -> Path:
     """Write ``run_dir/report.html`` (self-contained) and ``run_dir/summary.json``; return the HTML path.
 
-    ``summary.json`` holds ``summary``, every figure's numbers under ``figures.<name>`` and the
-    certificate. Both files are written atomically.
+    ``summary.json`` holds ``summary``, every figure's numbers under ``figures.<name>``, the ``notes``
+    (one sentence per figure the data could not support, shown after the figures) and the certificate.
+    Both files are written atomically.
     """
     from aerocal.io import write_json_atomic, write_text_atomic
 
@@ -113,6 +115,7 @@ def write_report(
     machine = {
         "title": title, "created_utc": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
         "summary": dict(summary), "figures": {f.name: {"title": f.title, **f.numbers} for f in figures},
+        "notes": [str(n) for n in notes],
         "certificate": certificate.to_dict() if certificate else None,
     }
     json.dumps(machine, default=str)  # fail before writing anything if it is not serialisable
@@ -128,6 +131,9 @@ def write_report(
         parts.append(f"<h2>{html.escape(f.title)}</h2><figure id='{html.escape(f.name)}'>"
                      f"<img alt='{html.escape(f.title)}' src='data:image/png;base64,{data}'>"
                      f"<figcaption>{html.escape(f.caption)}</figcaption></figure>")
+    if notes:
+        items = "".join(f"<li>{html.escape(str(n))}</li>" for n in notes)
+        parts.append(f"<h2>Figures not drawn</h2><ul class='notes'>{items}</ul>")
     if certificate is not None:
         parts.append(_certificate_html(certificate))
     parts.append("</body></html>\n")

@@ -315,6 +315,18 @@ def _gcp_files(sim: SimulatedFlight) -> tuple[str, str]:
     return "\n".join(csv) + "\n", "\n".join(odm) + "\n"
 
 
+def _write_reference_dsm(sim: SimulatedFlight, path: Path) -> None:
+    """The scene's surface over the flight (plus 50 cells) as a reference DSM, as a city's LiDAR survey
+    would supply it (``reference/dsm.tif``: what the flight report compares its DSM with)."""
+    from aerocal.dsm import Dsm, write_dsm
+
+    scene = sim.scene
+    west, _, _, north = scene.bounds()
+    surface = Dsm(heights=scene.dsm, west=west, north=north, cell_m=scene.config.cell_m, crs=sim.crs)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_dsm(surface.window(sim.bounds, margin_cells=50), path)
+
+
 def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observations",
                  progress=None) -> Path:
     """Write the flight folder atomically: everything goes to a temporary sibling, renamed at the end."""
@@ -350,6 +362,7 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
             from aerocal.simulate.rendering import render_flight_images
 
             render_flight_images(sim, tmp / "images", progress=progress)
+        _write_reference_dsm(sim, tmp / "reference" / "dsm.tif")
         tables.write(true_poses(sim), tmp / "truth" / "poses.parquet", "poses")
         pts = sim.tie.points
         tables.write(tables.from_columns("points", {
