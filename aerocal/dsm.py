@@ -175,15 +175,21 @@ def bilinear(grid: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
     return top + fr * (bottom - top)
 
 
-def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float) -> np.ndarray:
-    """Boolean mask of the points (N, 3) kept by the local-median test (see the module docstring)."""
+def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float,
+                    return_supported: bool = False):
+    """Boolean mask of the points (N, 3) kept by the local-median test (see the module docstring).
+
+    With ``return_supported`` also the mask of points with at least 3 neighbours to test against
+    (isolated points are kept but do not set the DSM's extent).
+    """
     from scipy.spatial import cKDTree
 
     pts = np.asarray(points, dtype=float)
     n = len(pts)
     k = min(config.outlier_neighbours, n - 1)
     if k < 3:
-        return np.ones(n, dtype=bool)
+        everything = np.ones(n, dtype=bool)
+        return (everything, everything) if return_supported else everything
     tree = cKDTree(pts[:, :2])
     dist, idx = tree.query(pts[:, :2], k=k + 1, distance_upper_bound=config.outlier_radius_cells * cell_m)
     dist, idx = dist[:, 1:], idx[:, 1:]  # drop the point itself
@@ -197,7 +203,8 @@ def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float) -> np.
             med = np.nanmedian(z, axis=1)
             nmad = 1.4826 * np.nanmedian(np.abs(z - med[:, None]), axis=1)
     limit = np.maximum(config.outlier_min_m, config.outlier_nmad * nmad)
-    return ~enough | (np.abs(pts[:, 2] - med) <= limit)
+    keep = ~enough | (np.abs(pts[:, 2] - med) <= limit)
+    return (keep, enough) if return_supported else keep
 
 
 def _cell_medians(rows_idx: np.ndarray, cols_idx: np.ndarray, z: np.ndarray, shape: tuple[int, int]):
@@ -238,10 +245,13 @@ def dsm_from_points(
     if len(pts) < 3:
         raise ValueError(f"dsm_from_points: need at least 3 finite points, got {len(pts)}")
     cell = config.cell_size(gsd_m)
-    keep = reject_outliers(pts, config, cell)
+    keep, supported = reject_outliers(pts, config, cell, return_supported=True)
     good = pts[keep]
-    w, s, e, n = bounds if bounds is not None else (good[:, 0].min(), good[:, 1].min(),
-                                                      good[:, 0].max(), good[:, 1].max())
+    # the extent comes from points with neighbours: a lone point (a weakly intersected tie point far off
+    # the block) would otherwise stretch the grid over kilometres of nothing
+    core = pts[keep & supported] if np.count_nonzero(keep & supported) >= 3 else good
+    w, s, e, n = bounds if bounds is not None else (core[:, 0].min(), core[:, 1].min(),
+                                                      core[:, 0].max(), core[:, 1].max())
     m = config.margin_cells * cell
     west = np.floor((w - m) / cell) * cell
     north = np.ceil((n + m) / cell) * cell

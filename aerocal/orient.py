@@ -24,6 +24,7 @@ import pyarrow as pa
 from aerocal import tables
 from aerocal.camera import Camera
 from aerocal.geometry import (
+    R_cw_to_opk,
     Similarity,
     attitude_to_R_cw,
     estimate_similarity,
@@ -76,6 +77,33 @@ def orient_from_priors(images: pa.Table) -> pa.Table:
                   zip(im["attitude_convention"], im["roll"], im["pitch"], im["yaw"], strict=True)])
     C = np.column_stack([im["gnss_x"], im["gnss_y"], im["gnss_z"]]).astype(float)
     return poses_table(np.asarray(im["image_id"]), R, C, tables.crs_of(images))
+
+
+def images_with_poses(images: pa.Table, poses: pa.Table) -> pa.Table:
+    """The images that have a pose, their exterior orientation taken from ``poses``.
+
+    For blocks oriented by SfM: ``gnss_x/y/z`` become the oriented projection centres (flight CRS,
+    metres) and the attitude omega-phi-kappa degrees (``attitude_convention = "opk"``), so every later
+    step reads one images table. These are starting values, not measurements: the adjustment of such a
+    block must run without GNSS and attitude observations (``gnss_sigma_m=None``,
+    ``attitude_sigma_deg=None``). Images without a pose (not registered) are left out.
+    """
+    ids, R, C = poses_arrays(poses)
+    where = {int(k): i for i, k in enumerate(ids)}
+    image_ids = images.column("image_id").to_numpy(zero_copy_only=False)
+    keep = np.flatnonzero([int(i) in where for i in image_ids])
+    out = images.take(pa.array(keep, pa.int64()))
+    rows = np.array([where[int(i)] for i in image_ids[keep]], dtype=np.int64).reshape(-1)
+    opk = np.array([R_cw_to_opk(R[k]) for k in rows]).reshape(-1, 3)
+    cols = {
+        "gnss_x": C[rows, 0], "gnss_y": C[rows, 1], "gnss_z": C[rows, 2],
+        "roll": opk[:, 0], "pitch": opk[:, 1], "yaw": opk[:, 2],
+    }
+    for name, values in cols.items():
+        out = out.set_column(out.schema.get_field_index(name), out.schema.field(name),
+                             pa.array(values, pa.float64()))
+    conv = out.schema.get_field_index("attitude_convention")
+    return out.set_column(conv, out.schema.field(conv), pa.array(["opk"] * out.num_rows, pa.string()))
 
 
 def _colmap_camera(camera: Camera, model: str):

@@ -77,6 +77,24 @@ def _step_info(res: StepResult) -> dict[str, Any]:
     }
 
 
+def _record_configuration(ctx, config, certificate, flight_dir, out_dir, dask_address, cal_cfg, blk_cfg) -> None:
+    """Record the run's configuration, with the adjustment settings in effect, on its ``runs`` row."""
+    with ctx.database.session() as session:
+        run = get_run(session, ctx.run_id)
+        run.configuration = {
+            "process": config.to_json(),
+            "certificate": certificate,
+            "flight_dir": str(flight_dir),
+            "out_dir": str(out_dir),
+            "dask": dask_address,
+            "effective": {
+                "calibration_adjust": configuration_json(cal_cfg),
+                "block_adjust": configuration_json(blk_cfg),
+            },
+        }
+        session.commit()
+
+
 def _process(
     ctx: StepContext,
     flight_dir: Path,
@@ -116,27 +134,26 @@ def _process(
         if not observations_mode(flight_dir) and config.matched_robust_loss != "none":
             cal_cfg = dataclasses.replace(cal_cfg, robust_loss=config.matched_robust_loss)
             blk_cfg = dataclasses.replace(blk_cfg, robust_loss=config.matched_robust_loss)
-        run.configuration = {
-            "process": config.to_json(),
-            "certificate": certificate,
-            "flight_dir": str(flight_dir),
-            "out_dir": str(out_dir),
-            "dask": dask_address,
-            "effective": {
-                "calibration_adjust": configuration_json(cal_cfg),
-                "block_adjust": configuration_json(blk_cfg),
-            },
-        }
         session.commit()
+    _record_configuration(ctx, config, certificate, flight_dir, out_dir, dask_address, cal_cfg, blk_cfg)
 
+    matched = None
     if observations_mode(flight_dir):
         observations = ing["observations"]
         steps["enhance"] = steps["match"] = _step_info(skip_step(ctx, "match", "observations mode"))
     else:
-        mt = match_task(ctx, ing, config.match, dask_address)
-        steps["match"] = _step_info(mt)
-        observations = mt["observations"]
-    steps["orient"] = _step_info(orient_task(ctx, ing, observations, config.orient))
+        matched = match_task(ctx, ing, config.match, dask_address)
+        steps["match"] = _step_info(matched)
+        observations = matched["observations"]
+    ori = orient_task(ctx, ing, observations, config.orient, matched)
+    steps["orient"] = _step_info(ori)
+    if ori.extra.get("method") == "incremental":
+        # oriented by SfM: later steps read the registered images with the oriented poses, which are
+        # starting values, not GNSS/IMU measurements; the datum comes from the control GCPs
+        ing = dataclasses.replace(ing, outputs={**ing.outputs, "images": ori["images"]})
+        cal_cfg = dataclasses.replace(cal_cfg, gnss_sigma_m=None, attitude_sigma_deg=None)
+        blk_cfg = dataclasses.replace(blk_cfg, gnss_sigma_m=None, attitude_sigma_deg=None)
+        _record_configuration(ctx, config, certificate, flight_dir, out_dir, dask_address, cal_cfg, blk_cfg)
 
     chosen = None
     if certificate == "auto" and not calibrate_only:

@@ -224,7 +224,16 @@ def calibrate_step(
             )
         sub_images = select_images(images, ids)
         sub_gobs = select_images(gobs, ids)
-        cal = adjust(sub_images, select_images(obs, ids), camera, acfg, gcps, sub_gobs)
+        run_cfg = acfg
+        temps = sub_images.column("temperature_c").to_numpy(zero_copy_only=False).astype(float)
+        if acfg.thermal and not np.isfinite(temps).all():
+            # a temperature slope cannot be estimated without every image's sensor temperature
+            run_cfg = dataclasses.replace(acfg, thermal=())
+            subset_info["thermal"] = (
+                f"thermal slopes {list(acfg.thermal)} not estimated: {int(np.sum(~np.isfinite(temps)))} of "
+                f"{len(temps)} sub-block images have no sensor temperature"
+            )
+        cal = adjust(sub_images, select_images(obs, ids), camera, run_cfg, gcps, sub_gobs)
         identity = CameraIdentity(
             **{
                 k: str(cam_doc.get("identity", {}).get(k) or "unknown")

@@ -211,13 +211,16 @@ def ingest_step(
 class MatchStepConfig:
     """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
     :class:`aerocal.matching.FeatureConfig`, :class:`aerocal.matching.MatchConfig`); ``min_overlap`` of
-    candidate footprints (0.1); ``dask_workers`` of the local cluster when no address is given (2)."""
+    candidate footprints (0.1); ``dask_workers`` of the local cluster when no address is given (2);
+    flights without a recorded position and attitude for every image are matched exhaustively (all
+    pairs) up to ``exhaustive_max_images`` (150, ~11,000 pairs)."""
 
     enhance: Any = None
     features: Any = None
     match: Any = None
     min_overlap: float = 0.1
     dask_workers: int = 2
+    exhaustive_max_images: int = 150
 
 
 def _enhanced(path: str, params: Any, config: Any) -> np.ndarray:
@@ -226,6 +229,19 @@ def _enhanced(path: str, params: Any, config: Any) -> np.ndarray:
     from aerocal.ingest import read_raw
 
     return enhance(read_raw(path), params, config)
+
+
+def _terrain_height(images: pa.Table, gcps: pa.Table, flight: dict) -> float:
+    """Ground height (metres, datum of ``gnss_z``) for footprints: the GCPs' mean, else flying height."""
+    if gcps.num_rows:
+        return float(np.mean(gcps.column("Z").to_numpy()))
+    if flight.get("height_agl_m"):
+        z = images.column("gnss_z").to_numpy(zero_copy_only=False).astype(float)
+        return float(np.nanmean(z)) - float(flight["height_agl_m"])
+    raise FlightInputError(
+        f"{flight.get('folder')}: no GCPs and no height_agl_m in flight.json; the "
+        "terrain height for candidate pairs is unknown, give one of them"
+    )
 
 
 def match_images(
@@ -239,7 +255,7 @@ def match_images(
     """Enhance and match the frames of an ``images`` table: (keypoints, matches, observations, pairs tried).
 
     Candidate pairs come from the GNSS/IMU footprints on a plane at the GCPs' mean height, else at the
-    mean GNSS height minus ``flight["height_agl_m"]``.
+    mean GNSS height minus ``flight["height_agl_m"]``; without GNSS/IMU for every image, all pairs.
     """
     from aerocal.enhance import EnhanceConfig, stretch_params
     from aerocal.ingest import read_raw
@@ -248,27 +264,30 @@ def match_images(
         MatchConfig,
         build_tracks,
         candidate_pairs_from_footprints,
+        exhaustive_pairs,
         extract_features,
         local_client,
         match_pairs,
     )
+    from aerocal.orient import has_priors
 
     config = config or MatchStepConfig()
     paths = images.column("path").to_pylist()
     ecfg = config.enhance or EnhanceConfig()
     params = stretch_params(paths, percent=ecfg.percent, loader=read_raw)
     loader = functools.partial(_enhanced, params=params, config=ecfg)
-    z = images.column("gnss_z").to_numpy(zero_copy_only=False).astype(float)
-    if gcps.num_rows:
-        terrain = float(np.mean(gcps.column("Z").to_numpy()))
-    elif flight.get("height_agl_m"):
-        terrain = float(np.nanmean(z)) - float(flight["height_agl_m"])
+    if has_priors(images):
+        pairs = candidate_pairs_from_footprints(
+            images, camera, _terrain_height(images, gcps, flight), min_overlap=config.min_overlap
+        )
+    elif images.num_rows <= config.exhaustive_max_images:
+        pairs = exhaustive_pairs(images.column("image_id").to_numpy())
     else:
         raise FlightInputError(
-            f"{flight.get('folder')}: no GCPs and no height_agl_m in flight.json; the "
-            "terrain height for candidate pairs is unknown, give one of them"
+            f"{flight.get('folder')}: {images.num_rows} images without a recorded position and attitude for "
+            f"every one; all-pairs matching is limited to exhaustive_max_images = "
+            f"{config.exhaustive_max_images}: give an EO file (--eo FILE) or raise the limit"
         )
-    pairs = candidate_pairs_from_footprints(images, camera, terrain, min_overlap=config.min_overlap)
     mcfg = config.match or MatchConfig()
     if dask_address:
         from distributed import Client
@@ -319,50 +338,100 @@ def match_step(
 # ------------------------------------------------------------------------------------------- orient
 @dataclass(frozen=True)
 class OrientStepConfig:
-    """Initial orientation: poses from the recorded GNSS/IMU exterior orientation
-    (:func:`aerocal.orient.orient_from_priors`), which the adjustment starts from. No options yet; the
-    class keeps the step's configuration recorded with the run like every other step's."""
+    """Initial orientation. With a recorded position and attitude for every image the poses are those
+    records (:func:`aerocal.orient.orient_from_priors`). Without them, and when the frames were matched,
+    incremental SfM on our matches (:func:`aerocal.orient.orient_incremental`, options ``incremental``,
+    default :class:`aerocal.orient.IncrementalConfig`) georeferenced on the control GCPs
+    (:func:`aerocal.orient.georeference`); images it cannot register are left out of the block and named."""
+
+    incremental: Any = None
 
 
 def orient_step(
-    ctx: StepContext, ingest: StepResult, observations: str, config: OrientStepConfig | None = None
+    ctx: StepContext,
+    ingest: StepResult,
+    observations: str,
+    config: OrientStepConfig | None = None,
+    matched: StepResult | None = None,
 ) -> StepResult:
-    """Initial poses from GNSS/IMU (``poses``) and the tie-point statistics the adjustment starts from."""
+    """Initial poses (``initial_poses``) and the tie-point statistics the adjustment starts from.
+
+    A block oriented by SfM also outputs ``images``: the registered images with the oriented exterior
+    orientation in place of the missing records (:func:`aerocal.orient.images_with_poses`), and
+    ``extra["method"] == "incremental"``; later steps then adjust it without GNSS/IMU observations.
+    """
     config = config or OrientStepConfig()
+    inputs = {"images": ingest["images"], "observations": observations, "flight": ingest["flight"]}
+    if matched is not None:
+        inputs.update(
+            keypoints=matched["keypoints"],
+            matches=matched["matches"],
+            camera=ingest["camera"],
+            gcps=ingest["gcps"],
+            gcp_observations=ingest["gcp_observations"],
+        )
 
     def compute(inp: StepInputs) -> dict:
-        from aerocal.orient import OrientationError, orient_from_priors
+        from aerocal.orient import (
+            OrientationError,
+            georeference,
+            has_priors,
+            images_with_poses,
+            orient_from_priors,
+            orient_incremental,
+        )
 
         images, obs = inp.table("images"), inp.table("observations")
-        try:
-            poses = orient_from_priors(images)
-        except OrientationError as exc:
-            raise FlightInputError(
-                f"{inp.json('flight')['folder']}: {exc}; give an EO file with positions and attitudes "
-                "(--eo FILE): the adjustment starts from the recorded exterior orientation"
-            ) from None
-        per_image = np.bincount(obs.column("image_id").to_numpy().astype(int))
-        seen = per_image[images.column("image_id").to_numpy().astype(int)] if per_image.size else per_image
-        return {
-            "initial_poses": TableOutput(poses, "poses"),
-            "_extra": JsonOutput(
-                {
-                    "images": images.num_rows,
-                    "observations": obs.num_rows,
-                    "tracks": len(set(obs.column("track_id").to_pylist())),
-                    "images_without_observations": int(np.sum(seen == 0)),
-                },
-                "extra",
-            ),
-        }
+        folder = inp.json("flight")["folder"]
+        out: dict = {}
+        info: dict = {"method": "priors"}
+        if has_priors(images) or not inp.has("keypoints"):
+            try:
+                poses = orient_from_priors(images)
+            except OrientationError as exc:
+                raise FlightInputError(
+                    f"{folder}: {exc}; give an EO file with positions and attitudes (--eo FILE): an "
+                    "observations-mode block starts from the recorded exterior orientation"
+                ) from None
+        else:
+            camera = Camera.from_dict(inp.json("camera")["camera"])
+            gcps = inp.table("gcps")
+            try:
+                local, _, _ = orient_incremental(
+                    images, inp.table("keypoints"), inp.table("matches"), camera, config.incremental
+                )
+                poses, sim = georeference(local, camera, gcps, inp.table("gcp_observations"))
+            except OrientationError as exc:
+                raise FlightInputError(f"{folder}: no GNSS/IMU for every image, and {exc}") from None
+            oriented = images_with_poses(images, poses)
+            registered = set(oriented.column("image_id").to_pylist())
+            missing = [n for i, n in zip(images.column("image_id").to_pylist(), images.column("name").to_pylist(),
+                                         strict=True) if i not in registered]
+            info = {
+                "method": "incremental",
+                "registered": oriented.num_rows,
+                "not_registered": missing,
+                "georeference_scale": float(sim.scale),
+            }
+            images = oriented
+            out["images"] = TableOutput(oriented, "images")
+        ids = images.column("image_id").to_numpy().astype(int)
+        per_image = np.bincount(obs.column("image_id").to_numpy().astype(int), minlength=ids.max() + 1)
+        seen = per_image[ids]
+        out["initial_poses"] = TableOutput(poses, "poses")
+        out["_extra"] = JsonOutput(
+            {
+                **info,
+                "images": images.num_rows,
+                "observations": obs.num_rows,
+                "tracks": len(set(obs.column("track_id").to_pylist())),
+                "images_without_observations": int(np.sum(seen == 0)),
+            },
+            "extra",
+        )
+        return out
 
-    return run_step(
-        ctx,
-        "orient",
-        {"images": ingest["images"], "observations": observations, "flight": ingest["flight"]},
-        config,
-        compute,
-    )
+    return run_step(ctx, "orient", inputs, config, compute)
 
 
 # ------------------------------------------------------------------------------------- Prefect tasks

@@ -14,7 +14,7 @@ def prefect_harness():
 
     with (
         temporary_settings({PREFECT_SERVER_ANALYTICS_ENABLED: False}),
-        prefect_test_harness(),
+        prefect_test_harness(server_startup_timeout=180),  # a loaded 2-core machine starts it slowly
         temporary_settings({PREFECT_FLOWS_HEARTBEAT_FREQUENCY: None}),
     ):
         yield

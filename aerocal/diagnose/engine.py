@@ -246,6 +246,18 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
                      "and a thermal drift of the principal point's mean; fix IO from a certificate to test them")
     if {"f", "k1"} <= free:
         notes.append("f and k1 are self-calibrated: they absorb refraction at a constant flying height")
+    T = baseline.block.temperature
+    if not (np.isfinite(T).all() and np.ptp(T) > 0):
+        untestable = [n for n in names if n in THERMAL_HYPOTHESES]
+        if untestable:
+            names = [n for n in names if n not in untestable]
+            notes.append(f"{', '.join(untestable)} not tested: the images have no sensor temperature, or one "
+                         "temperature only")
+    if baseline.config.gnss_sigma_m is None:
+        untestable = [n for n in names if n in GNSS_HYPOTHESES]
+        if untestable:
+            names = [n for n in names if n not in untestable]
+            notes.append(f"{', '.join(untestable)} not tested: the block was adjusted without GNSS observations")
     if baseline.config.free:
         names = [n for n in names if not (n == "radial_k3" and "k3" in baseline.config.free)
                  and not (n == "affinity_skew" and {"b1", "b2"} <= set(baseline.config.free))]
@@ -301,6 +313,11 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
                      extended, notes, phi)
 
 
+#: hypotheses that need every image's sensor temperature, and those that act on GNSS observations
+THERMAL_HYPOTHESES = ("thermal_focal", "thermal_principal_point")
+GNSS_HYPOTHESES = ("gnss_bias", "gnss_time_offset", "lever_arm")
+
+
 def _extended_model(effects: list[NamedEffect], ctx: hyp.Context, camera: Camera) -> dict:
     model: dict = {"camera": camera.to_dict()}
     thermal = {e.name: e.magnitude for e in effects if e.name in ("thermal_focal", "thermal_principal_point")}
@@ -317,7 +334,20 @@ def _extended_model(effects: list[NamedEffect], ctx: hyp.Context, camera: Camera
 def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_config: AdjustConfig,
              gcps: pa.Table | None = None, gcp_observations: pa.Table | None = None,
              config: DiagnoseConfig | None = None) -> Diagnosis:
-    """Adjust the block with ``adjust_config`` and diagnose it."""
+    """Adjust the block with ``adjust_config`` and diagnose it.
+
+    With a robust loss (and ``adjust_config.reject_chi2``) the blunders are found by a robust adjustment
+    and removed first (:func:`aerocal.adjust.bundle.adjust`), then the clean block is diagnosed by least
+    squares: a systematic effect is looked for in the data, not in the mismatches.
+    """
+    if adjust_config.robust_loss != "none" and adjust_config.reject_chi2 is not None:
+        from aerocal.adjust import adjust
+
+        screened = adjust(images, observations, camera, dataclasses.replace(adjust_config, adaptive=False),
+                          gcps, gcp_observations)
+        keep = np.flatnonzero(screened.obs_weight != 0)
+        observations = observations.take(pa.array(keep, pa.int64()))
+        adjust_config = dataclasses.replace(adjust_config, robust_loss="none")
     base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations)
     return diagnose_baseline(base, config)
 
