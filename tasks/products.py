@@ -200,10 +200,16 @@ def assess_step(ctx: StepContext, ingest: StepResult, observations: str, adjuste
         out: dict[str, Any] = {}
         e = np.asarray(adj["check_errors_m"], dtype=float).reshape(-1, 3)
         s = np.asarray(adj["check_sigma_m"], dtype=float).reshape(-1, 3) if adj["check_sigma_m"] else None
-        if len(e) >= 2 and s is not None:
-            out["check_points"] = accuracy_ratio(e, s).to_dict()
+        ids = list(adj.get("check_ids") or [])
+        measured = (np.isfinite(e).all(axis=1) & (s > 0).all(axis=1)) if s is not None else np.zeros(len(e), bool)
+        unmeasured = [ids[i] if i < len(ids) else str(i) for i in np.flatnonzero(~measured)]
+        if measured.sum() >= 2:
+            out["check_points"] = accuracy_ratio(e[measured], s[measured]).to_dict()
         else:
-            out["check_points"] = {"n": len(e), "verdict": "fewer than 2 check points: accuracy not assessed"}
+            out["check_points"] = {"n": int(measured.sum()),
+                                   "verdict": "fewer than 2 check points: accuracy not assessed"}
+        if unmeasured:  # e.g. seen in one image only: no intersection, no prediction
+            out["check_points"]["not_measured"] = unmeasured
         c = np.asarray(adj["control_errors_m"], dtype=float).reshape(-1, 3)
         out["control_points"] = {
             "n": len(c),
