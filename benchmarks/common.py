@@ -16,8 +16,10 @@ RESULTS = Path(__file__).resolve().parent / "RESULTS.md"
 
 
 def machine() -> str:
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
     return (f"{platform.node()} {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"{dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC")
+            f"{dt.datetime.now(dt.UTC):%Y-%m-%d %H:%M} UTC, load average {load} at the end (above 2 means "
+            "other jobs shared the cores)")
 
 
 def peak_rss_mb() -> float:
