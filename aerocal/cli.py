@@ -86,7 +86,8 @@ def fail(message: str, code: int = 2) -> None:
 @app.command()
 def simulate(
     preset: str = typer.Argument(..., help="Flight preset: conte-city, conte-calibration, daakir-uav, "
-                                            "mitishita-block, seneca (stations read from real images)."),
+                                            "daakir-calibration, mitishita-block, seneca (stations read "
+                                            "from real images)."),
     out: Path = typer.Option(..., "--out", help="Flight folder to write (must not exist or be empty)."),
     seed: int = typer.Option(0, help="Random seed; the same seed gives the same flight."),
     mode: str = typer.Option("observations", help="observations (image measurements, fast) or images "
