@@ -253,7 +253,8 @@ def test_interrupted_write_leaves_nothing(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize(
     "args, message",
-    [(["conte-x"], "valid presets: conte-calibration, conte-city, daakir-calibration, daakir-uav, mitishita-block, seneca"),
+    [(["conte-x"], "valid presets: conte-calibration, conte-city, daakir-calibration, daakir-uav, "
+                   "mitishita-block, seneca"),
      (["conte-calibration", "--effect", "foo=1"], "valid effects: thermal_focal"),
      (["conte-calibration", "--effect", "boresight=0.1"], "boresight takes 3"),
      (["conte-calibration", "--effect", "thermal_focal=abc"], "thermal_focal takes 1"),
