@@ -128,16 +128,19 @@ def verify(xy1: np.ndarray, xy2: np.ndarray, config: MatchConfig | None = None):
         return none
     p1 = np.ascontiguousarray(xy1, dtype=np.float64)
     p2 = np.ascontiguousarray(xy2, dtype=np.float64)
-    if config.geometry == "fundamental":
-        model, mask = cv2.findFundamentalMat(
-            p1, p2, cv2.USAC_MAGSAC, config.ransac_threshold, config.ransac_confidence,
-            config.ransac_max_iters,
-        )
-    else:
-        model, mask = cv2.findHomography(
-            p1, p2, cv2.USAC_MAGSAC, config.ransac_threshold, maxIters=config.ransac_max_iters,
-            confidence=config.ransac_confidence,
-        )
+    try:
+        if config.geometry == "fundamental":
+            model, mask = cv2.findFundamentalMat(
+                p1, p2, cv2.USAC_MAGSAC, config.ransac_threshold, config.ransac_confidence,
+                config.ransac_max_iters,
+            )
+        else:
+            model, mask = cv2.findHomography(
+                p1, p2, cv2.USAC_MAGSAC, config.ransac_threshold, maxIters=config.ransac_max_iters,
+                confidence=config.ransac_confidence,
+            )
+    except cv2.error:  # USAC asserts on some degenerate samples (`!model.empty()`): no model, not verified
+        return none
     if model is None or mask is None or model.shape != (3, 3):
         return none
     inl = mask.ravel().astype(bool)
