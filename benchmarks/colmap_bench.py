@@ -26,6 +26,10 @@ GCPs the model holds, weighted by their sigmas: COLMAP's ``model_aligner`` on GN
 ``gcps`` when at least 3 control GCPs are in the model, else ``gnss``). Sub-blocks of the frames nearest
 the centre hold few control GCPs (2 in the central 100 frames).
 
+Two departures from COLMAP's defaults can be asked for, to tell where its result comes from:
+``--colmap-input wallis`` feeds it aerocal's enhanced 8-bit frames instead of the min-max stretch, and
+``--colmap-fixed-camera`` holds the nominal camera fixed in its mapping.
+
 Run: ``python -m benchmarks.colmap_bench [--frames N] [--source DIR]``.
 """
 
@@ -109,20 +113,25 @@ def pycolmap_version() -> str:
     return str(pycolmap.__version__)
 
 
-def frames_to_png(paths: list[str], out: Path) -> list[str]:
-    """Each frame as an 8-bit PNG in ``out`` by a per-frame min-max linear stretch; the PNG names."""
+def frames_to_png(paths: list[str], out: Path, method: str = "none") -> list[str]:
+    """Each frame as an 8-bit PNG in ``out``; the PNG names.
+
+    ``method`` is :class:`aerocal.enhance.EnhanceConfig`'s: ``"none"`` (default) a plain per-frame
+    min-max linear stretch, what a user feeding COLMAP would do; ``"wallis"`` aerocal's own enhancement
+    (dataset-wide 2 % stretch and Wallis filter), to tell the conversion's share from COLMAP's.
+    """
     import cv2
 
+    from aerocal.enhance import EnhanceConfig, enhance, stretch_params
     from aerocal.ingest import read_raw
 
+    config = EnhanceConfig(method=method)
+    params = None if method == "none" else stretch_params(paths, percent=config.percent, loader=read_raw)
     out.mkdir(parents=True, exist_ok=True)
     names = []
     for p in paths:
-        raw = read_raw(p).astype(np.float64)
-        lo, hi = float(raw.min()), float(raw.max())
-        img = np.round((raw - lo) * (255.0 / max(hi - lo, 1e-12))).astype(np.uint8)
         name = Path(p).stem + ".png"
-        cv2.imwrite(str(out / name), img)
+        cv2.imwrite(str(out / name), enhance(read_raw(p), params, config))
         names.append(name)
     return names
 
@@ -180,8 +189,14 @@ def georeference_colmap(local_poses, camera, images, gcps, gobs, datum: str, gns
             "in the model)")
 
 
-def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: float | None = None) -> PipelineRun:
-    """pycolmap's pipeline on the flight's frames (module docstring)."""
+def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: float | None = None,
+               refine_camera: bool = True, conversion: str = "none") -> PipelineRun:
+    """pycolmap's pipeline on the flight's frames (module docstring).
+
+    ``conversion``: how the 16-bit frames become 8-bit PNGs (:func:`frames_to_png`).
+    ``refine_camera=False`` departs from COLMAP's defaults: the nominal camera is held fixed in mapping
+    and bundle adjustment (what aerocal's notes recommend for flat nadir thermal blocks).
+    """
     import pycolmap
 
     from aerocal.assess import point_residuals, triangulate_gcps
@@ -191,7 +206,7 @@ def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: floa
     from aerocal.orient import poses_table
 
     pycolmap.logging.minloglevel = 2
-    run = PipelineRun("COLMAP")
+    run = PipelineRun("COLMAP" if refine_camera else "COLMAP (camera fixed)")
     clock = _Stopwatch(run)
     # the flight's records (not part of COLMAP's pipeline: the image list, GNSS and GCPs it is given)
     res = ingest_folder(folder)
@@ -204,7 +219,7 @@ def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: floa
     png = work / "colmap-png"
     db_path = work / "colmap.db"
     with clock("8-bit conversion"):
-        names = frames_to_png(images.column("path").to_pylist(), png)
+        names = frames_to_png(images.column("path").to_pylist(), png, conversion)
     with clock("features (SIFT)"):
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "SIMPLE_RADIAL"
@@ -231,16 +246,21 @@ def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: floa
         pairing.max_distance = float(max_distance)
         pycolmap.match_spatial(str(db_path), pairing_options=pairing, device=pycolmap.Device.cpu)
     db = pycolmap.Database.open(str(db_path))
-    n_pairs, n_verified = db.num_matched_image_pairs(), db.num_verified_image_pairs()
+    n_pairs = db.num_matched_image_pairs()
+    n_verified = sum(len(g.inlier_matches) > 0 for g in db.read_two_view_geometries()[1])
     n_keypoints = db.num_keypoints()
     db.close()
     with clock("incremental mapping + BA"):
         (work / "colmap-sparse").mkdir(exist_ok=True)
-        recs = pycolmap.incremental_mapping(str(db_path), str(png), str(work / "colmap-sparse"))
+        opts = pycolmap.IncrementalPipelineOptions()
+        if not refine_camera:
+            opts.ba_refine_focal_length = opts.ba_refine_extra_params = False
+            opts.mapper.abs_pose_refine_focal_length = opts.mapper.abs_pose_refine_extra_params = False
+        recs = pycolmap.incremental_mapping(str(db_path), str(png), str(work / "colmap-sparse"), options=opts)
     sizes = sorted((r.num_reg_images() for r in recs.values()), reverse=True)
     run.notes += [
         f"{n_keypoints} SIFT keypoints; spatial pairs within {max_distance:.0f} m (at most "
-        f"{pairing.max_num_neighbors} neighbours): {n_pairs} matched, {n_verified} verified",
+        f"{pairing.max_num_neighbors} neighbours): {n_pairs} matched, {n_verified} with a verified geometry",
         f"{len(recs)} model(s), registered images per model: {sizes}",
     ]
     if not recs:
@@ -385,6 +405,11 @@ def main(argv: list[str] | None = None) -> None:
                     help="how COLMAP's model is georeferenced (module docstring)")
     ap.add_argument("--spatial-max-distance", type=float, default=None,
                     help="COLMAP's spatial matching radius, metres (default: a footprint's ground diagonal)")
+    ap.add_argument("--colmap-input", choices=("none", "wallis"), default="none",
+                    help="8-bit frames COLMAP reads: none = per-frame min-max stretch (default), "
+                         "wallis = aerocal's enhancement (a departure, to isolate the conversion's share)")
+    ap.add_argument("--colmap-fixed-camera", action="store_true",
+                    help="hold the nominal camera fixed in COLMAP's mapping (a departure from its defaults)")
     args = ap.parse_args(argv)
     from flows.environment import quiet_prefect
 
@@ -396,7 +421,8 @@ def main(argv: list[str] | None = None) -> None:
         folder = subset_folder(full, args.frames, work) if args.frames else full
         n = len(list((folder / "images").iterdir()))
         t0 = time.perf_counter()
-        colmap = run_colmap(folder, work, args.datum, args.spatial_max_distance)
+        colmap = run_colmap(folder, work, args.datum, args.spatial_max_distance,
+                            refine_camera=not args.colmap_fixed_camera, conversion=args.colmap_input)
         ours = run_aerocal(folder)
         wall = time.perf_counter() - t0
         lines = [f"{full.name}: {n} frames 640x480 16-bit thermal"
@@ -404,9 +430,12 @@ def main(argv: list[str] | None = None) -> None:
                  + "; both pipelines in this run, one after the other, 2 cores each (COLMAP's threads, "
                  "aerocal's 2 Dask workers)", "",
                  *comparison(colmap, ours),
-                 f"- COLMAP {pycolmap_version()}: pycolmap defaults, CPU SIFT; frames converted to 8-bit PNG by "
-                 "a per-frame min-max stretch (timed); one shared SIMPLE_RADIAL camera seeded from camera.json, "
-                 "refined by COLMAP; GNSS positions as pose priors for spatial matching only (mapping ignores "
+                 f"- COLMAP {pycolmap_version()}: pycolmap defaults, CPU SIFT; frames converted to 8-bit PNG "
+                 + ("by a per-frame min-max stretch" if args.colmap_input == "none" else
+                    "by aerocal's enhancement (dataset-wide 2 % stretch + Wallis)")
+                 + " (timed); one shared SIMPLE_RADIAL camera seeded from camera.json, "
+                 + ("held fixed" if args.colmap_fixed_camera else "refined by COLMAP")
+                 + "; GNSS positions as pose priors for spatial matching only (mapping ignores "
                  "them, its default); the flight's records (image list, GNSS, GCPs) read untimed",
                  f"- benchmark wall time {wall:.0f} s", ""]
         record("COLMAP comparison: pycolmap's pipeline vs aerocal on rendered conte-city frames", lines)
