@@ -381,3 +381,57 @@ def test_match_pairs_returns_an_empty_valid_table_for_featureless_images():
     m = match_pairs([[0, 1]], kp)
     assert isinstance(m, pa.Table) and m.num_rows == 0
     tables.validate(m, "matches")
+
+
+
+def _reference_matches(d1: np.ndarray, d2: np.ndarray, ratio: float) -> set[tuple[int, int]]:
+    """Mutual nearest neighbours passing the ratio test both ways, from float64 distances, by definition."""
+    a, b = d1.astype(np.float64), d2.astype(np.float64)
+    dist = np.sqrt(np.maximum((a * a).sum(1)[:, None] + (b * b).sum(1)[None] - 2 * a @ b.T, 0))
+    out = set()
+    for i in range(len(a)):
+        j = int(np.argmin(dist[i]))
+        row, col = np.sort(dist[i]), np.sort(dist[:, j])
+        if int(np.argmin(dist[:, j])) == i and row[0] < ratio * row[1] and col[0] < ratio * col[1]:
+            out.add((i, j))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_exact_matcher_finds_the_true_mutual_neighbours_in_one_piece_and_in_blocks(seed, monkeypatch):
+    import importlib
+
+    verify_module = importlib.import_module("aerocal.matching.verify")  # the package exports a function too
+    rng = np.random.default_rng(seed)
+    n1, n2, shared = 700, 600, 400
+    base = rng.integers(0, 120, (shared, 128))
+    d1 = np.vstack([base, rng.integers(0, 120, (n1 - shared, 128))])
+    d2 = np.vstack([base + rng.integers(-6, 7, base.shape), rng.integers(0, 120, (n2 - shared, 128))])
+    d1, d2 = np.clip(d1, 0, 255).astype(np.uint8), np.clip(d2, 0, 255).astype(np.uint8)
+    p1, p2 = rng.permutation(n1), rng.permutation(n2)  # row r of d1 holds generated descriptor p1[r]
+    d1, d2 = d1[p1], d2[p2]
+    dup = int(np.nonzero(p2 == 0)[0][0])
+    d2 = np.vstack([d2, d2[dup]])  # a duplicated descriptor: generated descriptor 0 has no unique neighbour
+
+    truth = _reference_matches(d1, d2, 0.8)
+    found = set(map(tuple, verify_module.match_descriptors(d1, d2, MatchConfig()).tolist()))
+    monkeypatch.setattr(verify_module, "EXACT_MAX_CELLS", 97 * len(d2))  # 97-row blocks, each direction alone
+    blocks = set(map(tuple, verify_module.match_descriptors(d1, d2, MatchConfig()).tolist()))
+    print(f"seed {seed}: {len(found)} matches, {len(truth)} by definition")
+    assert found == truth, f"seed {seed}: {len(found ^ truth)} matches differ from the definition"
+    assert blocks == truth, f"seed {seed}: the block-wise matcher differs from the definition"
+    planted = {(int(np.nonzero(p1 == k)[0][0]), int(np.nonzero(p2 == k)[0][0])) for k in range(1, shared)}
+    assert len(found & planted) > 0.95 * len(planted) and not found - planted, f"seed {seed}"
+    assert not any(j in (dup, len(d2) - 1) for _, j in found), f"seed {seed}: a tie was matched"
+
+
+def test_exact_and_flann_matchers_agree_on_real_frames(seneca_strip):
+    from aerocal.matching.features import image_features
+    from aerocal.matching.verify import match_descriptors
+
+    feats = image_features(seneca_strip[2])
+    d1, d2 = feats[0][2], feats[1][2]
+    exact = set(map(tuple, match_descriptors(d1, d2, MatchConfig()).tolist()))
+    flann = set(map(tuple, match_descriptors(d1, d2, MatchConfig(matcher="flann")).tolist()))
+    print(f"exact {len(exact)}, FLANN {len(flann)}, both {len(exact & flann)}")
+    assert len(exact & flann) > 0.95 * len(flann) and len(exact) >= 0.99 * len(flann)

@@ -1,4 +1,4 @@
-"""Descriptor matching (FLANN, ratio test, mutual check) and RANSAC geometric verification.
+"""Descriptor matching (exact or FLANN nearest neighbours, ratio test, mutual check) and RANSAC geometric verification.
 
 Image coordinates are aerocal pixels (origin at the top-left corner of the top-left pixel); the
 fundamental matrices and homographies estimated here refer to that convention. Pairs are matched in
@@ -69,17 +69,90 @@ def _ratio_nn(idx: np.ndarray, dist: np.ndarray, ratio: float) -> np.ndarray:
     return np.where(ok, idx[:, 0], -1)
 
 
+#: Largest distance matrix (query rows x train columns) computed in one piece, cells: 4096 x 4096 float32
+#: cells are 64 MB. Bigger sets are matched in row blocks, each direction on its own.
+EXACT_MAX_CELLS = 4096 * 4096
+
+
+def _squared_distances(a: np.ndarray, b: np.ndarray, na: np.ndarray, nb: np.ndarray) -> np.ndarray:
+    """Squared L2 distances (float32, len(a) x len(b)) of float32 descriptor rows, from one GEMM.
+
+    ``|a|^2 + |b|^2 - 2 a.b``: SIFT descriptors have norms near 512, so a squared distance carries an
+    absolute float32 rounding error of ~0.03 against values of 10^4-10^5; clipped at 0.
+    """
+    d = a @ b.T
+    d *= -2.0
+    d += na[:, None]
+    d += nb[None, :]
+    np.maximum(d, 0.0, out=d)
+    return d
+
+
+def _nearest_two(a: np.ndarray, b: np.ndarray, na: np.ndarray, nb: np.ndarray):
+    """For every row of ``a``: index of its nearest row of ``b``, squared distances to the nearest two."""
+    n = len(a)
+    idx, d1, d2 = np.zeros(n, np.int64), np.zeros(n, np.float32), np.zeros(n, np.float32)
+    step = max(1, EXACT_MAX_CELLS // max(len(b), 1))
+    for s in range(0, n, step):
+        d = _squared_distances(a[s : s + step], b, na[s : s + step], nb)
+        r = np.arange(len(d))
+        j = d.argmin(axis=1)
+        idx[s : s + step], d1[s : s + step] = j, d[r, j]
+        d[r, j] = np.inf
+        d2[s : s + step] = d.min(axis=1)
+    return idx, d1, d2
+
+
+def _exact_matches(desc1: np.ndarray, desc2: np.ndarray, ratio: float, mutual: bool) -> np.ndarray:
+    """Exact nearest neighbours, ratio test (and the mutual check with the reverse ratio test): (M, 2).
+
+    Small sets use one distance matrix for both directions: a column's nearest row is found through its
+    minimum (a column-wise argmin walks the matrix with a stride and costs as much as the product), and a
+    column's second-nearest by masking the mutual pairs. Written for this project on numpy's BLAS;
+    measured against OpenCV's ``BFMatcher.knnMatch`` (4x slower per direction at 1700 x 1700 features)
+    and FLANN (see :class:`MatchConfig`).
+    """
+    a = np.ascontiguousarray(desc1, dtype=np.float32)
+    b = np.ascontiguousarray(desc2, dtype=np.float32)
+    na, nb = np.einsum("ij,ij->i", a, a), np.einsum("ij,ij->i", b, b)
+    r2 = np.float32(ratio * ratio)
+    if len(a) * len(b) > EXACT_MAX_CELLS:
+        j1, best, second = _nearest_two(a, b, na, nb)
+        q = np.nonzero(best < r2 * second)[0]
+        if mutual:
+            i1, best21, second21 = _nearest_two(b, a, nb, na)
+            q = q[(i1[j1[q]] == q) & (best21[j1[q]] < r2 * second21[j1[q]])]
+        return np.stack([q, j1[q]], axis=1).astype(np.int64)
+    d = _squared_distances(a, b, na, nb)
+    r = np.arange(len(a))
+    j1 = d.argmin(axis=1)
+    best = d[r, j1]
+    d[r, j1] = np.inf
+    second = d.min(axis=1)
+    d[r, j1] = best
+    q = np.nonzero(best < r2 * second)[0]
+    if mutual:
+        q = q[best[q] <= d.min(axis=0)[j1[q]]]  # q is the nearest row of its nearest column
+        q = q[np.bincount(j1[q], minlength=len(b))[j1[q]] == 1]  # ties: no unique nearest row
+        d[q, j1[q]] = np.inf
+        q = q[best[q] < r2 * d.min(axis=0)[j1[q]]]
+    return np.stack([q, j1[q]], axis=1).astype(np.int64)
+
+
 def match_descriptors(
     desc1: np.ndarray, desc2: np.ndarray, config: MatchConfig | None = None, index1=None, index2=None
 ) -> np.ndarray:
     """Putative matches between two descriptor sets: int array (M, 2) of row indices.
 
-    FLANN randomised KD-trees (``index1``/``index2`` may be prebuilt ``cv2.flann_Index`` of the
-    sets), Lowe's ratio test in both directions and, with ``config.mutual``, the mutual check.
+    Nearest neighbours by ``config.matcher``: exact (brute force on BLAS) or FLANN randomised
+    KD-trees (``index1``/``index2`` may be prebuilt ``cv2.flann_Index`` of the sets); Lowe's ratio test
+    and, with ``config.mutual``, the mutual check with the ratio test in the reverse direction too.
     """
     config = config or MatchConfig()
     if len(desc1) < 2 or len(desc2) < 2:
         return np.zeros((0, 2), dtype=np.int64)
+    if config.matcher == "exact":
+        return _exact_matches(desc1, desc2, config.ratio, config.mutual)
     cache = _IndexCache(config)
     index2 = index2 if index2 is not None else cache.get(2, desc2)
     nn12 = _ratio_nn(*_knn2(index2, desc1, config.flann_checks), config.ratio)
@@ -162,7 +235,10 @@ def _match_batch(pairs: np.ndarray, features: dict[int, Features], config: Match
         id2, xy2, d2 = features.get(int(j), empty)
         m = np.zeros((0, 2), dtype=np.int64)
         if len(d1) >= 2 and len(d2) >= 2:
-            m = match_descriptors(d1, d2, config, cache.get(int(i), d1), cache.get(int(j), d2))
+            if config.matcher == "flann":
+                m = match_descriptors(d1, d2, config, cache.get(int(i), d1), cache.get(int(j), d2))
+            else:
+                m = match_descriptors(d1, d2, config)
         inl, _, rms = verify(xy1[m[:, 0]], xy2[m[:, 1]], config)
         ok = bool(inl.sum() >= config.min_matches)
         stats[k] = (len(m), inl.sum(), rms, ok)
