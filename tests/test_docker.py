@@ -125,3 +125,12 @@ def test_workers_share_the_data_volume_and_artifact_root(compose):
         assert mounts.get("data") == "/data", f"{name} does not mount the data volume at /data"
         assert _env(services[name])["AEROCAL_ARTIFACT_ROOT"].startswith("/data/")
     assert (Path(__file__).resolve().parents[1] / "docker" / "README.md").read_text().count("compose") >= 2
+
+
+def test_image_workers_get_the_same_environment_as_local_clusters():
+    """The image's Dask configuration unsets Dask's MALLOC_TRIM_THRESHOLD_ like aerocal's local clusters."""
+    from aerocal.matching.cluster import WORKER_ENVIRONMENT
+
+    assert "COPY docker/dask.yaml /etc/dask/" in (DOCKER / "Dockerfile").read_text()
+    config = yaml.safe_load((DOCKER / "dask.yaml").read_text())
+    assert config["distributed"]["nanny"]["pre-spawn-environ"] == WORKER_ENVIRONMENT

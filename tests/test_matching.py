@@ -78,6 +78,15 @@ def client():
         yield c
 
 
+def test_local_cluster_workers_keep_one_blas_thread_and_glibc_malloc_defaults(client):
+    import os
+
+    env = client.run(lambda: {k: os.environ.get(k) for k in ("MALLOC_TRIM_THRESHOLD_", "OPENBLAS_NUM_THREADS")})
+    assert len(env) == 2
+    for worker, values in env.items():
+        assert values == {"MALLOC_TRIM_THRESHOLD_": None, "OPENBLAS_NUM_THREADS": "1"}, (worker, values)
+
+
 @pytest.fixture(scope="module")
 def h20t_paths() -> list[Path]:
     _need(H20T)
