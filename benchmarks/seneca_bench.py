@@ -1,0 +1,309 @@
+"""seneca (real), end to end through ``process_flight``, measured.
+
+Data: ``../shared/data/seneca/images``, 166 of the 167 nadir JPEGs of a senseFly Swinglet CAM (Canon
+PowerShot ELPH 300 HS, 1800x1350) whose camera cooled from 37 to 23 degC; GNSS and autopilot attitude in
+the senseFly XMP, camera temperature in the Canon maker notes. The first image (IMG_0446) is 1620x1215,
+another size than the rest: it is left out, as in ``studies/seneca.py``.
+
+The flight folder is built in a temporary directory, the images are not copied:
+
+* ``images/``: symbolic links to the shared JPEGs;
+* ``camera.json``: the camera identity from the EXIF make and model (the camera records no serial
+  number; it is built into the airframe, so the serial is that of the senseFly frame in the XMP,
+  ``SC-05-110``: the store refuses an identity without a serial), and the nominal camera: width and
+  height of the images, the EXIF focal length (4.3 mm) over the pixel pitch of the 1/2.3" sensor
+  (6.17 mm / 1800 px = 3.43 um; EXIF carries no focal-plane resolution), principal point at the centre;
+* ``flight.json``: no GCPs, so the terrain height for candidate pairs comes from ``height_agl_m``: the
+  mean GNSS height minus the take-off ground (GNSS height minus senseFly's height above take-off, median
+  over the images); consumer GNSS and autopilot attitude sigmas (``gnss_sigma_m`` 2.5 m horizontal, 5 m
+  vertical; ``imu_sigma_deg`` 5/5/10 deg), the values of ``studies/seneca.py``.
+
+Then ``flows.flight.process_flight`` (the code of ``aerocal process FLIGHT_DIR OUT_DIR``) runs with its
+default configuration and ``certificate="none"`` (self-calibration), SQLite and artifacts in the
+temporary directory, Prefect's temporary local server, a local Dask cluster of 2 workers per step that
+needs one. Recorded: time per step and wall time, peak memory of this process and of its children (the
+Dask workers), images registered, tie points per image, reprojection RMS and sigma0 of the calibration and
+of the block adjustment, blunders rejected, the certificate's f, cx, cy with sigmas and the thermal slope,
+the diagnosis. Figure: ``benchmarks/output/seneca_tie_points.png`` (tie points per image over the image
+order, sensor temperature on a twin axis); the per-image numbers in ``seneca_per_image.csv`` beside it.
+
+Run: ``python -m benchmarks.seneca_bench`` (``--quick``: strips 0, 2 and 4 only, ~30 images).
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import os
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import peak_rss_mb, record
+
+ROOT = Path(__file__).resolve().parents[1]
+IMAGES = ROOT.parent / "shared" / "data" / "seneca" / "images"
+OUTPUT = Path(__file__).resolve().parent / "output"
+#: width of the 1/2.3" CMOS of the PowerShot ELPH 300 HS, mm (maker's data; not in the EXIF)
+SENSOR_WIDTH_MM = 6.17
+#: consumer single-frequency GNSS (horizontal, vertical) and autopilot attitude (camera x, y, z), as in
+#: studies/seneca.py
+GNSS_SIGMA_M = (2.5, 5.0)
+IMU_SIGMA_DEG = (5.0, 5.0, 10.0)
+QUICK_STRIPS = (0, 2, 4)
+#: an image with fewer tie points than this in the block adjustment is named in the results
+WEAK_TIE_POINTS = 50
+
+
+def children_peak_mb() -> float:
+    """Peak resident memory of the largest terminated child process so far (Dask workers), MB."""
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+
+
+def build_flight(work: Path, quick: bool = False) -> tuple[Path, dict]:
+    """The flight folder under ``work`` (image links, camera.json, flight.json) and what was left out."""
+    from aerocal.camera import Camera
+    from aerocal.ingest import ingest_folder
+
+    res = ingest_folder(IMAGES)
+    im, extra = res.images, res.extra
+    w, h = im.column("width").to_numpy(), im.column("height").to_numpy()
+    sizes, counts = np.unique(np.column_stack([w, h]), axis=0, return_counts=True)
+    width, height = (int(v) for v in sizes[np.argmax(counts)])
+    keep = (w == width) & (h == height)
+    names = np.asarray(im.column("name").to_pylist())
+    other_size = [f"{n} ({a}x{b})" for n, a, b in zip(names[~keep], w[~keep], h[~keep], strict=True)]
+    if quick:
+        strip = np.array([-1 if s is None else s for s in im.column("strip").to_pylist()])
+        keep &= np.isin(strip, QUICK_STRIPS)
+
+    by_id = {r["image_id"]: r for r in extra.to_pylist()}
+    ids = im.column("image_id").to_numpy()
+    focal_mm = float(np.median([by_id[i]["exif_focal_length_mm"] for i in ids[keep]]))
+    camera = Camera.from_mm(width, height, focal_mm=focal_mm, pixel_size_um=SENSOR_WIDTH_MM / width * 1000.0)
+    make, model, serial, lens = (im.column("camera_id")[int(np.flatnonzero(keep)[0])].as_py().split("|") + [""] * 4)[:4]
+    if not serial:  # the camera records none; it is built into the airframe whose serial the XMP holds
+        frames = {by_id[i]["sensefly_frame_serial"] for i in ids[keep]} - {None}
+        serial = f"senseFly frame {frames.pop()}" if len(frames) == 1 else ""
+    z = im.column("gnss_z").to_numpy()[keep]
+    above_takeoff = np.array([by_id[i]["sensefly_height_above_takeoff_m"] for i in ids[keep]], dtype=float)
+    ground = float(np.nanmedian(z - above_takeoff))
+
+    folder = work / "seneca"
+    shutil.rmtree(folder, ignore_errors=True)  # links and two JSON files of an unfinished run
+    (folder / "images").mkdir(parents=True)
+    for path, name in zip(np.asarray(im.column("path").to_pylist())[keep], names[keep], strict=True):
+        os.symlink(path, folder / "images" / name)
+    (folder / "camera.json").write_text(json.dumps({
+        "identity": {"make": make, "model": model, "serial": serial, "lens": lens},
+        "camera": camera.to_dict(),
+    }, indent=1))
+    (folder / "flight.json").write_text(json.dumps({
+        "description": "seneca: senseFly Swinglet CAM over farm fields, camera cooling from 37 to 23 degC",
+        "height_agl_m": float(np.nanmean(z)) - ground,
+        "gnss_sigma_m": list(GNSS_SIGMA_M),
+        "imu_sigma_deg": list(IMU_SIGMA_DEG),
+    }, indent=1))
+    return folder, {"left_out": other_size, "images": int(keep.sum()), "camera": camera,
+                    "ground_m": ground, "height_agl_m": float(np.nanmean(z)) - ground}
+
+
+def _stats(values: np.ndarray) -> str:
+    values = np.asarray(values)
+    if values.size == 0:
+        return "none"
+    return f"{int(values.min())} / {float(np.median(values)):.0f} / {int(values.max())}"
+
+
+def _rejected(selection: list[str]) -> str:
+    import re
+
+    for s in selection or []:
+        m = re.match(r"rejected (\d+) of (\d+)", s)
+        if m:
+            return f"{m.group(1)} of {m.group(2)}"
+    return "none (no robust pass)"
+
+
+def tie_point_figure(names: list[str], per_image: np.ndarray, used: np.ndarray, temperature: np.ndarray,
+                     path: Path) -> Path:
+    """Bars of tie points per image (matched and used by the block adjustment) over the image order, the
+    sensor temperature on a twin axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    x = np.arange(len(names))
+    fig, ax = plt.subplots(figsize=(12, 4.5))
+    ax.bar(x, per_image, width=0.9, color="0.75", label="tie points matched (tracks seen)")
+    ax.bar(x, used, width=0.5, color="tab:blue", label="used by the block adjustment")
+    ax.set_xlabel("image (flight order)")
+    ax.set_ylabel("tie points per image")
+    step = max(1, len(names) // 20)
+    ax.set_xticks(x[::step], [n.rsplit(".", 1)[0] for n in names[::step]], rotation=60, fontsize=7)
+    ax.set_xlim(-1, len(names))
+    tw = ax.twinx()
+    tw.plot(x, temperature, color="tab:red", lw=1.5, label="sensor temperature")
+    tw.set_ylabel("sensor temperature (degC)", color="tab:red")
+    tw.tick_params(axis="y", colors="tab:red")
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = tw.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
+    ax.set_title("seneca: tie points per image (process_flight)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help=f"strips {QUICK_STRIPS} only")
+    ap.add_argument("--work", type=Path, default=None,
+                    help="keep the flight folder, store and run output here (default: a temporary folder, "
+                    "removed at the end); given again, the measured run found there is reported again")
+    args = ap.parse_args(argv)
+    if not IMAGES.is_dir():
+        raise SystemExit(f"{IMAGES} not found: the seneca images are needed")
+    from flows.environment import quiet_prefect
+
+    work = args.work.resolve() if args.work else Path(tempfile.mkdtemp(prefix="aerocal-seneca-"))
+    work.mkdir(parents=True, exist_ok=True)
+    quiet_prefect(work / "prefect")
+    db, artifacts = f"sqlite:///{work / 'aerocal.db'}", str(work / "artifacts")
+    measured_path = work / "measured.json"
+    done = False
+    try:
+        from aerocal.camera import Camera
+        from aerocal.certificate import Certificate
+        from tasks.resume import StepContext
+
+        if measured_path.exists():
+            measured = json.loads(measured_path.read_text())
+        else:
+            from flows.flight import process_flight
+
+            folder, built = build_flight(work, args.quick)
+            t0 = time.perf_counter()
+            summary = process_flight(folder, work / "run", "none", database_url=db, artifact_root=artifacts)
+            measured = {"summary": summary, "wall_s": time.perf_counter() - t0, "peak_main_mb": peak_rss_mb(),
+                        "peak_children_mb": children_peak_mb(),
+                        "built": {**built, "camera": built["camera"].to_dict()}}
+            measured_path.write_text(json.dumps(measured, indent=1, default=str))
+        summary, wall, built = measured["summary"], measured["wall_s"], measured["built"]
+        built["camera"] = Camera.from_dict(built["camera"])
+        peak_main, peak_children = measured["peak_main_mb"], measured["peak_children_mb"]
+
+        run_dir = Path(summary["out_dir"])
+        adj = json.loads((run_dir / "adjustment.json").read_text())
+        cert = Certificate.from_dict(json.loads((run_dir / "certificate.json").read_text()))
+        ctx = StepContext(db, artifacts, "benchmark")
+        steps = summary["steps"]
+        with ctx.database.session() as session:
+            def art(sha):
+                return ctx.store.get(session, sha)
+
+            images = ctx.store.read_table(art(steps["ingest"]["outputs"]["images"]), "images")
+            obs = ctx.store.read_table(art(steps["match"]["outputs"]["observations"]), "observations")
+            cal = json.loads(ctx.store.read_bytes(art(steps["calibrate"]["outputs"]["calibration"])))
+            residuals = np.load(io.BytesIO(ctx.store.read_bytes(art(summary["outputs"]["residuals"]))))
+            poses = ctx.store.read_table(art(summary["outputs"]["poses"]), "poses")
+
+        order = np.argsort(images.column("time").to_numpy(), kind="stable")
+        ids = images.column("image_id").to_numpy()[order]
+        names = np.asarray(images.column("name").to_pylist())[order].tolist()
+        temps = images.column("temperature_c").to_numpy(zero_copy_only=False).astype(float)[order]
+        oid = obs.column("image_id").to_numpy()
+        track = obs.column("track_id").to_numpy()
+        n_max = int(max(ids.max(), oid.max())) + 1
+        per_image = np.bincount(oid, minlength=n_max)[ids]
+        used_rows = np.isfinite(np.asarray(residuals, dtype=float).reshape(len(oid), -1)).all(axis=1)
+        used = np.bincount(oid[used_rows], minlength=n_max)[ids]
+        _, track_len = np.unique(track, return_counts=True)
+        _, track_len_used = np.unique(track[used_rows], return_counts=True)
+        posed = np.isin(ids, poses.column("image_id").to_numpy())
+        registered = int(np.sum(posed & (used > 0)))
+        weak = [f"{n} ({u})" for n, u in zip(names, used, strict=True) if u < WEAK_TIE_POINTS]
+        stem = "seneca_quick" if args.quick else "seneca"
+        fig = tie_point_figure(names, per_image, used, temps, OUTPUT / f"{stem}_tie_points.png")
+        table = OUTPUT / f"{stem}_per_image.csv"
+        table.write_text("name,temperature_c,tie_points_matched,tie_points_used,posed\n" + "".join(
+            f"{n},{t:g},{a},{b},{int(p)}\n"
+            for n, t, a, b, p in zip(names, temps, per_image, used, posed, strict=True)))
+
+        ca = cal["adjustment"]
+        sub = cal["subset"]
+        orient = steps["orient"].get("extra", {})
+        match = steps["match"].get("extra", {})
+        lines = [
+            f"seneca (real): {built['images']} JPEGs {built['camera'].width}x{built['camera'].height} "
+            f"of a Canon PowerShot ELPH 300 HS, temperature {np.nanmin(temps):.0f}-{np.nanmax(temps):.0f} degC"
+            + (f", strips {QUICK_STRIPS} only" if args.quick else "")
+            + f"; left out (another size): {', '.join(built['left_out']) or 'none'}; no GCPs",
+            f"- nominal camera (camera.json): f {built['camera'].f:.1f} px (EXIF 4.3 mm / 3.43 um), principal "
+            f"point at the centre; flight.json: height_agl_m {built['height_agl_m']:.1f} m (take-off ground "
+            f"{built['ground_m']:.1f} m ellipsoidal), GNSS sigma {GNSS_SIGMA_M} m, IMU sigma {IMU_SIGMA_DEG} deg",
+            "- `process_flight`, default configuration, certificate `none` (self-calibration), SQLite, local "
+            "Dask cluster of 2 workers, full-size images",
+            "",
+            "| step | status | time |",
+            "|---|---|---|",
+        ]
+        for step, info in steps.items():
+            secs = info.get("seconds")
+            lines.append(f"| {step} | {info.get('status')} | "
+                         + (f"{secs:.1f} s |" if secs is not None else f"{info.get('reason', '')} |"))
+        lines += [
+            f"| **total (wall, flow start to report)** | | **{wall:.1f} s** |",
+            "",
+            f"- peak memory: main process {peak_main:.0f} MB, largest child (Dask worker) {peak_children:.0f} MB",
+            f"- matching: {match.get('pairs', '?')} candidate pairs, {obs.num_rows} observations, "
+            f"{len(track_len)} tracks (length min/median/max {_stats(track_len)})",
+            f"- images registered (posed by the block adjustment with tie points): {registered} of "
+            f"{images.num_rows}; orient: {orient.get('method')}, images without observations "
+            f"{orient.get('images_without_observations')}",
+            f"- images with fewer than {WEAK_TIE_POINTS} tie points used (held by their GNSS/attitude priors): "
+            f"{len(weak)}{': ' + ', '.join(weak) if weak else ''}",
+            f"- tie points (tracks) per image, min / median / max: matched {_stats(per_image)}, used by the "
+            f"block adjustment {_stats(used)}; tracks used {len(track_len_used)} (length min/median/max "
+            f"{_stats(track_len_used)})",
+            f"- calibration sub-block: {len(sub['image_ids'])} images ({'; '.join(sub.get('reasons', [])[:2])})",
+            f"- calibration: reprojection RMS {ca['reprojection_rms_px']:.3f} px, sigma0 {ca['sigma0']:.3f}, "
+            f"dof {ca['dof']}, blunders rejected {_rejected(ca.get('selection'))}",
+            f"- block adjustment (fixed IO): reprojection RMS {adj['reprojection_rms_px']:.3f} px, sigma0 "
+            f"{adj['sigma0']:.3f}, dof {adj['dof']}, converged {adj.get('converged')} in {adj.get('iterations')} "
+            f"iterations, blunders rejected {_rejected(adj.get('selection'))}",
+            f"- certificate: f {cert.camera.f:.2f} +- {cert.sigmas.get('f', float('nan')):.2f} px, cx "
+            f"{cert.camera.cx:.2f} +- {cert.sigmas.get('cx', float('nan')):.2f} px, cy {cert.camera.cy:.2f} +- "
+            f"{cert.sigmas.get('cy', float('nan')):.2f} px; estimated {', '.join(cert.estimated)}",
+        ]
+        if cert.thermal is not None:
+            m = cert.thermal.model
+            lines.append(f"- thermal slope: df/dT {m.df_dt:.4f} +- {cert.thermal.sigmas.get('df_dt', float('nan')):.4f}"
+                         f" px/degC (T0 {m.t0:.1f} degC)")
+        else:
+            dropped = [s for s in ca.get("selection") or [] if s.startswith("dropped df/dT")]
+            lines.append(f"- thermal slope: not in the certificate ({dropped[0] if dropped else 'not estimated'})")
+        lines += [
+            f"- selection (calibration): {'; '.join(ca.get('selection') or []) or 'none'}",
+            f"- diagnosis: {summary.get('diagnosis')}",
+            f"- figure: `{fig.relative_to(ROOT)}`; per image: `{table.relative_to(ROOT)}`",
+        ]
+        record("seneca (real), end to end" + (" (quick)" if args.quick else ""), lines)
+        done = True
+    finally:
+        if done and args.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+        else:
+            print(f"work folder kept: {work} (report it again with --work {work})")
+
+
+if __name__ == "__main__":
+    main()
