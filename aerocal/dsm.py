@@ -13,7 +13,13 @@ Method (what :func:`dsm_from_points` does)
    ``outlier_neighbours`` nearest neighbours (within ``outlier_radius_cells`` cells); it is rejected
    when it departs from that median by more than ``max(outlier_min_m, outlier_nmad * NMAD)`` of the
    neighbours. The NMAD term keeps roof points at building edges (mixed neighbourhoods, large NMAD)
-   and removes isolated blunders (a 30 m spike among flat neighbours).
+   and removes isolated blunders (a 30 m spike among flat neighbours). A point with fewer than 3
+   neighbours within the radius (sparse thermal tie points: one per ~150 cells on conte-city) is
+   compared with its nearest neighbours at whatever distance, and the limit grows by
+   ``outlier_isolated_slope`` times their median distance (terrain and roofs may differ that much
+   over that distance). Without this test, a rendered city flight kept tie points 7 km below the
+   ground (weak two-ray intersections), and the orthomosaic, whose frame footprints span the DSM's
+   height range, gave every tile every frame.
 2. **Median per cell** of the remaining points (robust to a residual blunder in a crowded cell).
 3. **Hole filling** by linear interpolation on the Delaunay triangulation of the filled cells
    (``scipy.interpolate.griddata``), nearest value outside their convex hull, optionally limited to
@@ -61,6 +67,7 @@ class DsmConfig:
     outlier_radius_cells: float = 10.0  #: neighbours farther than this (cells) are ignored
     outlier_min_m: float = 5.0  #: a point within this of the local median is always kept
     outlier_nmad: float = 4.0  #: ... and within this many local NMADs
+    outlier_isolated_slope: float = 1.0  #: height change per metre allowed to far neighbours (see above)
     fill: bool = True  #: interpolate holes (linear on the Delaunay triangulation, nearest outside)
     max_fill_distance_m: float | None = None  #: leave cells farther than this from data empty (None = fill all)
     margin_cells: int = 2  #: grid margin around the data (or given bounds), cells
@@ -70,6 +77,8 @@ class DsmConfig:
             raise ValueError(f"DsmConfig.cell_m must be positive, got {self.cell_m}")
         if not self.cell_gsd > 0:
             raise ValueError(f"DsmConfig.cell_gsd must be positive, got {self.cell_gsd}")
+        if not self.outlier_isolated_slope >= 0:
+            raise ValueError(f"DsmConfig.outlier_isolated_slope must be >= 0, got {self.outlier_isolated_slope}")
         if self.outlier_neighbours < 3:
             raise ValueError(f"DsmConfig.outlier_neighbours must be at least 3, got {self.outlier_neighbours}")
 
@@ -179,8 +188,9 @@ def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float,
                     return_supported: bool = False):
     """Boolean mask of the points (N, 3) kept by the local-median test (see the module docstring).
 
-    With ``return_supported`` also the mask of points with at least 3 neighbours to test against
-    (isolated points are kept but do not set the DSM's extent).
+    With ``return_supported`` also the mask of points with at least 3 neighbours within the radius
+    (isolated points, tested against their nearest neighbours at any distance, do not set the DSM's
+    extent).
     """
     from scipy.spatial import cKDTree
 
@@ -204,6 +214,16 @@ def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float,
             nmad = 1.4826 * np.nanmedian(np.abs(z - med[:, None]), axis=1)
     limit = np.maximum(config.outlier_min_m, config.outlier_nmad * nmad)
     keep = ~enough | (np.abs(pts[:, 2] - med) <= limit)
+    lone = np.flatnonzero(~enough)
+    if len(lone):
+        d, j = tree.query(pts[lone, :2], k=k + 1)
+        d, j = d[:, 1:], j[:, 1:]
+        zl = pts[j, 2]
+        med_l = np.median(zl, axis=1)
+        nmad_l = 1.4826 * np.median(np.abs(zl - med_l[:, None]), axis=1)
+        limit_l = np.maximum(config.outlier_min_m, config.outlier_nmad * nmad_l) + (
+            config.outlier_isolated_slope * np.median(d, axis=1))
+        keep[lone] = np.abs(pts[lone, 2] - med_l) <= limit_l
     return (keep, enough) if return_supported else keep
 
 

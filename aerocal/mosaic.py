@@ -30,7 +30,7 @@ beside tall buildings.
 
 Parallelism: the grid is cut into tiles of ``tile_px``; each tile is one task (on a Dask
 ``distributed.Client`` when one is passed, serially otherwise) that receives only the frames whose
-footprint (the image border cast onto planes at the DSM's minimum and maximum heights) touches it,
+footprint (the image border cast onto planes at the lowest and highest DSM heights under the frame) touches it,
 their pixels and the DSM window under the tile. Serial and Dask runs give identical bytes (the same
 function, frames summed in image-id order).
 """
@@ -303,14 +303,41 @@ class MosaicResult:
         return d
 
 
+def _footprint_box(frame: FrameGeometry, zmin: float, zmax: float) -> tuple[float, float, float, float]:
+    pts = frame.ground_footprint([zmin, zmax])
+    if len(pts) == 0:
+        return (np.inf, np.inf, -np.inf, -np.inf)
+    return (pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max())
+
+
 def _frame_bboxes(frames: Sequence[FrameGeometry], zmin: float, zmax: float) -> np.ndarray:
+    """(west, south, east, north) of every frame's footprint cast onto planes at ``zmin`` and ``zmax``."""
+    return np.asarray([_footprint_box(fr, zmin, zmax) for fr in frames], dtype=float)
+
+
+def _frame_bboxes_on(frames: Sequence[FrameGeometry], dsm: Dsm, start: float, rounds: int = 5) -> np.ndarray:
+    """Every frame's footprint box over the heights of the DSM under it.
+
+    Starts from the footprint on a plane at ``start``; each round casts the footprint onto the lowest and
+    highest DSM heights inside the current box, until the box stops growing. A frame then only reaches the
+    tiles it can see: a plane at the DSM's global extremes would hand a tile every frame that sees a
+    deep pit or a tall spike anywhere in the block.
+    """
     boxes = []
     for fr in frames:
-        pts = fr.ground_footprint([zmin, zmax])
-        if len(pts) == 0:
-            boxes.append((np.inf, np.inf, -np.inf, -np.inf))
-        else:
-            boxes.append((pts[:, 0].min(), pts[:, 1].min(), pts[:, 0].max(), pts[:, 1].max()))
+        box = _footprint_box(fr, start, start)
+        for _ in range(rounds):
+            if not np.isfinite(box).all():
+                break
+            h = dsm.window(box, margin_cells=1).heights
+            if not np.isfinite(h).any():
+                break
+            new = _footprint_box(fr, float(np.nanmin(h)), float(np.nanmax(h)))
+            grown = (min(box[0], new[0]), min(box[1], new[1]), max(box[2], new[2]), max(box[3], new[3]))
+            if grown == box:
+                break
+            box = grown
+        boxes.append(box)
     return np.asarray(boxes, dtype=float)
 
 
@@ -337,10 +364,9 @@ def build_mosaic(
         raise ValueError(f"build_mosaic: no pixels for image id(s) {missing[:10]}; pass every frame's image")
     if not frames:
         raise ValueError("build_mosaic: no frames")
-    zmin, zmax = dsm.height_range()
     zmed = float(np.nanmedian(dsm.heights))
     gsd = config.gsd_m or block_gsd(frames, zmed)
-    boxes = _frame_bboxes(frames, zmin, zmax)
+    boxes = _frame_bboxes_on(frames, dsm, zmed)
     if config.bounds is not None:
         w, s, e, n = config.bounds
     else:
