@@ -74,3 +74,25 @@ def test_tie_point_dsm_matches_the_true_surface_where_it_has_data():
     assert near.n > 1000
     assert abs(near.mean) < gsd, f"seed {seed}: mean difference {near.mean:.3f} m above 1 GSD ({gsd:.2f} m)"
     assert abs(near.median) < 0.2 * gsd, f"seed {seed}: median {near.median:.3f} m"
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_sparse_points_far_below_the_ground_are_rejected_and_the_grid_keeps_its_height_range(seed):
+    """Thermal tie points are sparse (tens of metres apart, no neighbour within the local radius); a weak
+    intersection 7 km below the ground among them must not survive, a roof 12 m up 20 m away must."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0, 2000, (4000, 2))  # one point per ~1000 m2: ~30 m apart
+    z = 50.0 + 0.01 * xy[:, 0] + rng.normal(0, 0.3, len(xy))
+    pts = np.column_stack([xy, z])
+    deep = np.array([[1000.0, 1000.0, -6941.0], [400.0, 1500.0, -800.0], [1600.0, 300.0, 900.0]])
+    roof = np.array([[xy[0, 0] + 20.0, xy[0, 1], z[0] + 12.0]])
+    d = dsm_from_points(np.vstack([pts, deep, roof]), "EPSG:32632", config=DsmConfig(cell_m=1.0))
+    lo, hi = d.height_range()
+    print(f"seed {seed}: rejected {d.stats['rejected_outliers']}, heights {lo:.1f}..{hi:.1f} m")
+    assert 45.0 < lo and hi < 90.0, f"seed {seed}: the DSM spans {lo:.1f}..{hi:.1f} m"
+    from aerocal.dsm import reject_outliers
+
+    keep = reject_outliers(np.vstack([pts, deep, roof]), DsmConfig(cell_m=1.0), 1.0)
+    assert not keep[len(pts):len(pts) + 3].any(), f"seed {seed}: a deep or high blunder kept"
+    assert keep[-1], f"seed {seed}: the isolated roof point was rejected"
+    assert keep[: len(pts)].mean() > 0.999, f"seed {seed}: ground points rejected"
