@@ -186,7 +186,7 @@ def _process(
         steps["mosaic"] = _step_info(mos)
         ass = assess_task(ctx, ing, observations, adj)
         steps["assess"] = _step_info(ass)
-        dia = diagnose_task(ctx, ing, observations, cert_sha, config.diagnose, blk_cfg)
+        dia = diagnose_task(ctx, ing, observations, cert_sha, config.diagnose, blk_cfg, adj)
         steps["diagnose"] = _step_info(dia)
         rep = report_task(ctx, ing, cert_sha, adj, mos, ass, dia, config.report)
         steps["report"] = _step_info(rep)

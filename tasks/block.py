@@ -37,8 +37,9 @@ def adjust_step(
     """Adjust the whole flight with the certificate's IO.
 
     Outputs: ``poses``, ``points`` (tables), ``adjustment`` (summary, check-point and control residuals,
-    predicted check-point sigmas; metres, E N Up) and ``residuals`` ((M, 2) pixels, predicted minus
-    observed, aligned with the observations table).
+    predicted check-point sigmas; metres, E N Up), ``residuals`` ((M, 2) pixels, predicted minus
+    observed, aligned with the observations table) and ``obs_weight`` ((M,) the weight of each
+    observation at the solution: 0 for a blunder the screening rejected, NaN for one the block left out).
     """
     config = config or BlockStepConfig()
     acfg = adjust_config or config.adjust
@@ -87,6 +88,7 @@ def adjust_step(
             "points": TableOutput(res.points, "points"),
             "adjustment": JsonOutput(summary, "adjustment"),
             "residuals": ArrayOutput(np.asarray(res.residuals, dtype=float), "residuals"),
+            "obs_weight": ArrayOutput(np.asarray(res.obs_weight, dtype=float), "obs_weight"),
         }
 
     return run_step(ctx, "adjust", inputs, {"config": config, "adjust": acfg}, compute)

@@ -6,6 +6,7 @@ are removed by the robust screening before the least-squares adjustment."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -71,3 +72,11 @@ def test_flight_without_gnss_is_oriented_by_sfm_and_georeferenced_on_control(pre
     assert np.all((rho > 0.3) & (rho < 2.5)), f"seed {SEED}: rho {rho}"
     with rasterio.open(summary["files"]["orthomosaic"]) as ds:
         assert ds.crs.to_string() == sim.crs and ds.count >= 1
+    # the diagnosis leaves out the blunders the block adjustment rejected instead of screening again
+    selection = " ".join(adj.get("selection") or [])
+    rejected = re.search(r"rejected (\d+) of \d+ tie observations.*?(\d+) more left alone", selection)
+    screening = json.loads((out / "diagnosis.json").read_text())["screening"]
+    print("diagnosis:", screening)
+    left_out = re.match(r"the block adjustment's screening: (\d+) of", screening or "")
+    assert rejected and left_out, f"seed {SEED}: block {selection!r}, diagnosis {screening!r}"
+    assert int(left_out.group(1)) == int(rejected.group(1)) + int(rejected.group(2)), (selection, screening)
