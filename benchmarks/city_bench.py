@@ -12,7 +12,8 @@
 
 The rendered flight is cached in ``benchmarks/data/`` (rendering it takes ~20 min on one core).
 
-Run: ``python -m benchmarks.city_bench`` (``--frames N``: only the N frames nearest the block centre).
+Run: ``python -m benchmarks.city_bench`` (``--frames N``: only the N frames nearest the block centre;
+``--parts e2e,matching``: only those parts).
 """
 
 from __future__ import annotations
@@ -191,7 +192,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=None, help="only the N frames nearest the block centre")
     ap.add_argument("--source", type=Path, default=None,
                     help="a rendered flight folder (default: conte-city seed 0, rendered on first use)")
+    ap.add_argument("--parts", default="e2e,matching,pairs,mosaic",
+                    help="comma-separated parts to run: e2e, matching, pairs, mosaic (mosaic needs e2e)")
     args = ap.parse_args(argv)
+    parts = set(args.parts.split(","))
+    if "mosaic" in parts and "e2e" not in parts:
+        ap.error("--parts mosaic needs e2e (it mosaics from the end-to-end run's poses and DSM)")
     from flows.environment import quiet_prefect
 
     DATA.mkdir(parents=True, exist_ok=True)
@@ -204,53 +210,63 @@ def main(argv: list[str] | None = None) -> None:
         lines = [f"conte-city rendered, {n} frames 640x480 16-bit thermal, seed 0"
                  + (f" ({n} nearest the centre)" if args.frames else ""), ""]
 
-        summary, wall = end_to_end(folder, work)
-        peak_flow, peak_workers = peak_rss_mb(), children_peak_mb()
-        lines += ["### End to end (`process_flight`, local Dask cluster of 2 workers, SQLite)", "",
-                  "| step | status | time |", "|---|---|---|"]
-        for step, info in summary["steps"].items():
-            lines.append(f"| {step} | {info.get('status')} | {info.get('seconds', float('nan')):.1f} s |")
-        run_dir = Path(summary["out_dir"])
-        adj = json.loads((run_dir / "adjustment.json").read_text())
-        mosaic = summary["steps"]["mosaic"]
-        lines += [
-            f"| **total (wall, flow start to report)** | | **{wall:.1f} s** |", "",
-            f"- peak memory: flow process {peak_flow:.0f} MB, largest Dask worker {peak_workers:.0f} MB",
-            f"- target: the whole flight in < 10 min: {'met' if wall < 600 else 'not met'}",
-            f"- block: sigma0 {adj['sigma0']:.3f}, reprojection RMS {adj['reprojection_rms_px']:.3f} px, check "
-            f"RMSE {np.round(adj['check_rmse_m'], 3).tolist()} m, rho {np.round(adj['rho'], 2).tolist()}",
-            f"- selection: {'; '.join(adj.get('selection') or []) or 'none'}",
-            f"- matching (features + matches): {summary['steps']['match'].get('seconds', float('nan')):.1f} s "
-            f"(target < 180 s for 800 frames)",
-            f"- DSM + orthomosaic: {mosaic.get('seconds', float('nan')):.1f} s (target < 120 s)",
-            "",
-        ]
+        if "e2e" not in parts:
+            summary, wall = None, 0.0
+        else:
+            summary, wall = end_to_end(folder, work)
+        if summary is not None:
+            peak_flow, peak_workers = peak_rss_mb(), children_peak_mb()
+            lines += ["### End to end (`process_flight`, local Dask cluster of 2 workers, SQLite)", "",
+                      "| step | status | time |", "|---|---|---|"]
+            for step, info in summary["steps"].items():
+                lines.append(f"| {step} | {info.get('status')} | {info.get('seconds', float('nan')):.1f} s |")
+            run_dir = Path(summary["out_dir"])
+            adj = json.loads((run_dir / "adjustment.json").read_text())
+            mosaic = summary["steps"]["mosaic"]
+            lines += [
+                f"| **total (wall, flow start to report)** | | **{wall:.1f} s** |", "",
+                f"- peak memory: flow process {peak_flow:.0f} MB, largest Dask worker {peak_workers:.0f} MB",
+                f"- target: the whole flight in < 10 min: {'met' if wall < 600 else 'not met'}",
+                f"- block: sigma0 {adj['sigma0']:.3f}, reprojection RMS {adj['reprojection_rms_px']:.3f} px, check "
+                f"RMSE {np.round(adj['check_rmse_m'], 3).tolist()} m, rho {np.round(adj['rho'], 2).tolist()}",
+                f"- selection: {'; '.join(adj.get('selection') or []) or 'none'}",
+                f"- matching (features + matches): {summary['steps']['match'].get('seconds', float('nan')):.1f} s "
+                f"(target < 180 s for 800 frames)",
+                f"- DSM + orthomosaic: {mosaic.get('seconds', float('nan')):.1f} s (target < 120 s)",
+                f"- diagnosis: {json.loads((run_dir / 'diagnosis.json').read_text()).get('summary')}",
+                "",
+            ]
 
-        sub = subset_folder(full, 150, work) if n > 150 else folder
-        rows = {w: matching_workers(sub, w) for w in (1, 2)}
-        lines += ["### Matching, Dask 1 vs 2 workers (150 frames nearest the centre)", "",
-                  "| workers | features + matches | keypoints | verified matches |", "|---|---|---|---|"]
-        for w, (_, secs, nk, nm) in rows.items():
-            lines.append(f"| {w} | {secs:.1f} s | {nk} | {nm} |")
-        lines += ["", f"- speed-up 2 vs 1 workers: {rows[1][1] / rows[2][1]:.2f}x", ""]
+        if "matching" in parts:
+            sub = subset_folder(full, 150, work) if n > 150 else folder
+            rows = {w: matching_workers(sub, w) for w in (1, 2)}
+            lines += ["### Matching, Dask 1 vs 2 workers (150 frames nearest the centre)", "",
+                      "| workers | features + matches | keypoints | verified matches |", "|---|---|---|---|"]
+            for w, (_, secs, nk, nm) in rows.items():
+                lines.append(f"| {w} | {secs:.1f} s | {nk} | {nm} |")
+            lines += ["", f"- speed-up 2 vs 1 workers: {rows[1][1] / rows[2][1]:.2f}x", ""]
 
-        small = subset_folder(full, 100, work) if n > 100 else folder
-        pr = pairs_recall(small)
-        fp, ex = pr["footprints"], pr["exhaustive"]
-        lines += ["### Candidate pairs, footprints vs exhaustive (100 frames nearest the centre)", "",
-                  "| pairs from | pairs | matching time | verified matches | pairs with >= 15 matches |",
-                  "|---|---|---|---|---|",
-                  f"| footprints | {fp['pairs']} | {fp['seconds']:.1f} s | {fp['matches']} | {len(fp['good_pairs'])} |",
-                  f"| exhaustive | {ex['pairs']} | {ex['seconds']:.1f} s | {ex['matches']} | {len(ex['good_pairs'])} |",
-                  "",
-                  f"- time ratio exhaustive / footprints: {ex['seconds'] / fp['seconds']:.1f}x",
-                  f"- recall of the footprint pairs: {pr['pair_recall']:.3f} of the well-matched pairs, "
-                  f"{pr['match_recall']:.3f} of the verified matches", ""]
+        if "pairs" in parts:
+            small = subset_folder(full, 100, work) if n > 100 else folder
+            pr = pairs_recall(small)
+            fp, ex = pr["footprints"], pr["exhaustive"]
+            lines += ["### Candidate pairs, footprints vs exhaustive (100 frames nearest the centre)", "",
+                      "| pairs from | pairs | matching time | verified matches | pairs with >= 15 matches |",
+                      "|---|---|---|---|---|",
+                      f"| footprints | {fp['pairs']} | {fp['seconds']:.1f} s | {fp['matches']} | "
+                      f"{len(fp['good_pairs'])} |",
+                      f"| exhaustive | {ex['pairs']} | {ex['seconds']:.1f} s | {ex['matches']} | "
+                      f"{len(ex['good_pairs'])} |",
+                      "",
+                      f"- time ratio exhaustive / footprints: {ex['seconds'] / fp['seconds']:.1f}x",
+                      f"- recall of the footprint pairs: {pr['pair_recall']:.3f} of the well-matched pairs, "
+                      f"{pr['match_recall']:.3f} of the verified matches", ""]
 
-        mos = {w: mosaic_workers(run_dir, folder, w, work) for w in (1, 2)}
-        lines += ["### Orthomosaic of the whole flight, Dask 1 vs 2 workers", "",
-                  "| workers | time |", "|---|---|"] + [f"| {w} | {s:.1f} s |" for w, s in mos.items()]
-        lines += ["", f"- speed-up 2 vs 1 workers: {mos[1] / mos[2]:.2f}x", ""]
+        if "mosaic" in parts:
+            mos = {w: mosaic_workers(run_dir, folder, w, work) for w in (1, 2)}
+            lines += ["### Orthomosaic of the whole flight, Dask 1 vs 2 workers", "",
+                      "| workers | time |", "|---|---|"] + [f"| {w} | {s:.1f} s |" for w, s in mos.items()]
+            lines += ["", f"- speed-up 2 vs 1 workers: {mos[1] / mos[2]:.2f}x", ""]
         record("City scale: conte-city rendered, end to end", lines)
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -133,3 +133,29 @@ def test_robust_weights_without_rejection_flag_the_blunders(runs):
     assert np.quantile(wb, 0.95) < 0.1, f"seed {SEED} {loss}: blunders keep weights {np.quantile(wb, 0.95):.3f}"
     assert np.median(wc) > 0.9, f"seed {SEED} {loss}: clean observations down-weighted ({np.median(wc):.3f})"
     assert np.all(out["none"].obs_weight[ok] == 1.0), "without a robust loss every weight is 1"
+
+
+@pytest.mark.parametrize("loss", ["huber", "cauchy"])
+def test_least_squares_after_screening_starts_from_the_robust_pass_and_lands_where_a_cold_start_lands(runs,
+                                                                                                      loss):
+    sim, _, out = runs
+    warm = out[loss]
+    kept = np.flatnonzero(warm.obs_weight != 0)
+    s = sim.spec.sensors
+    cfg = AdjustConfig(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m),
+                       attitude_sigma_deg=s.imu_sigma_deg, free=("f", "cx", "cy", "k1", "k2", "p1", "p2"))
+    dirty, _ = _with_blunders(sim.observations, np.random.default_rng(SEED))
+    cold = adjust(sim.images, dirty.take(pa.array(kept, pa.int64())), sim.camera_nominal, cfg, sim.gcps,
+                  sim.gcp_observations)
+    print(f"{loss}: least squares after screening {warm.iterations} iterations from the robust pass, "
+          f"{cold.iterations} from the recorded poses; sigma0 {warm.sigma0:.4f} / {cold.sigma0:.4f}")
+    assert warm.converged and cold.converged
+    assert warm.iterations <= cold.iterations, (warm.iterations, cold.iterations)
+    assert set(warm.sigmas) == set(cold.sigmas), (warm.selection, cold.selection)
+    for name in warm.sigmas:
+        diff = getattr(warm.camera, name, None)
+        if diff is None:
+            continue
+        assert abs(getattr(warm.camera, name) - getattr(cold.camera, name)) < 0.01 * cold.sigmas[name], name
+    assert abs(warm.sigma0 - cold.sigma0) < 1e-3 * cold.sigma0
+    assert np.allclose(warm.check_errors, cold.check_errors, atol=1e-3, equal_nan=True)

@@ -207,3 +207,24 @@ def test_cli_diagnose_shows_a_runs_stored_diagnosis(tmp_path):
     (run / "diagnosis.json").write_text("{broken")
     bad = CliRunner().invoke(app, ["diagnose", str(run)])
     assert bad.exit_code != 0 and "diagnosis.json" in bad.output and "not valid JSON" in " ".join(bad.output.split())
+
+
+def test_a_large_block_is_diagnosed_on_its_central_sub_block_and_still_names_the_effect():
+    from aerocal.diagnose.engine import central_images, diagnose
+
+    seed = 21
+    sim = simulate_flight(SPEC, seed=seed, effects={"thermal_focal": (0.5,)})
+    n = sim.images.num_rows
+    cfg = DiagnoseConfig(reference_temperature=SPEC.sensors.reference_temperature_c, max_images=n - 12)
+    d = diagnose(sim.images, sim.observations, SPEC.camera_true, adjust_config(SPEC), sim.gcps,
+                 sim.gcp_observations, cfg)
+    print(d.summary(), d.notes[:1])
+    assert d.notes and d.notes[0].startswith(f"diagnosed on the {n - 12} images nearest the block centre of {n}")
+    assert d.effects and d.effects[0].name == "thermal_focal", f"seed {seed}: {d.summary()}"
+    assert abs(d.effects[0].magnitude[0] - 0.5) < 4 * d.effects[0].sigma[0], f"seed {seed}: {d.effects[0]}"
+    ids = central_images(sim.images, n - 12)
+    x = sim.images.column("gnss_x").to_numpy()
+    y = sim.images.column("gnss_y").to_numpy()
+    r = np.hypot(x - np.median(x), y - np.median(y))
+    inside = np.isin(sim.images.column("image_id").to_numpy(), ids)
+    assert len(ids) == n - 12 and r[inside].max() <= r[~inside].min()

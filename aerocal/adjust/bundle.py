@@ -30,7 +30,7 @@ from aerocal.adjust.selection import select_parameters
 from aerocal.adjust.solver import Problem, Solution, State, solve
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
-from aerocal.geometry import quat_wxyz_from_matrix
+from aerocal.geometry import matrix_from_quat_wxyz, quat_wxyz_from_matrix
 
 
 @dataclass
@@ -319,6 +319,7 @@ def adjust(
     n_rows = observations.num_rows
     kept = np.arange(n_rows)
     rejection: list[str] = []
+    first = None
     if config.robust_loss != "none" and config.reject_chi2 is not None:
         # a robust pass finds the blunders, they are removed, and the block is adjusted by least squares
         # (data snooping): sigma0, covariances and the check-point prediction then describe clean data
@@ -346,6 +347,8 @@ def adjust(
     else:
         t0 = 0.0
     block, start = initial_state(block0, camera)
+    if first is not None:
+        start = _warm_start(block, start, first)
 
     def run(cfg: AdjustConfig) -> AdjustmentResult:
         sol = solve(Problem(block, cfg, t0), start)
@@ -364,6 +367,36 @@ def adjust(
         weight[kept] = result.obs_weight
         result.residuals, result.obs_weight = res, weight
     return result
+
+
+def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
+    """``start`` with the poses and tie points of the robust pass ``first`` where it has them.
+
+    The least-squares adjustment after the blunders are removed then starts next to its solution (the
+    818-image city block: 3 iterations instead of 10, 7 s each). The IO keeps its starting value: a
+    parameter the adaptive selection drops must stay at the nominal or certificate value, not at the
+    robust pass's estimate.
+    """
+    st = start.copy()
+    poses, points = first.poses, first.points
+    where = {int(k): n for n, k in enumerate(block.image_ids.tolist())}
+    pid = poses.column("image_id").to_numpy()
+    rows = np.array([where.get(int(k), -1) for k in pid])
+    ok = rows >= 0
+    if ok.any():
+        q = np.column_stack([poses.column(c).to_numpy() for c in ("qw", "qx", "qy", "qz")])[ok]
+        st.R[rows[ok]] = matrix_from_quat_wxyz(q / np.linalg.norm(q, axis=1, keepdims=True)).reshape(-1, 3, 3)
+        C = np.column_stack([poses.column(c).to_numpy() for c in ("X", "Y", "Z")])[ok]
+        st.C[rows[ok]] = C - block.origin
+    if block.n_tie:
+        tid = points.column("track_id").to_numpy()
+        X = np.column_stack([points.column(c).to_numpy() for c in ("X", "Y", "Z")])
+        order = np.argsort(block.track_ids)
+        ids = block.track_ids[order]
+        pos = np.clip(np.searchsorted(ids, tid), 0, len(ids) - 1)
+        found = (ids[pos] == tid) & np.isfinite(X).all(axis=1)
+        st.X[order[pos[found]]] = X[found] - block.origin
+    return st
 
 
 def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tuple[np.ndarray, str]:
