@@ -258,8 +258,8 @@ def markdown(r: dict) -> str:
         f"b {e.wallis_b}, window {e.wallis_window} px",
         f"- SIFT (OpenCV): at most {f.max_features} keypoints per image, contrast threshold "
         f"{f.contrast_threshold}, precise upscale {f.precise_upscale}",
-        f"- Matching: FLANN ({m.flann_checks} checks), ratio {m.ratio}, mutual {m.mutual}; {m.geometry} matrix, "
-        f"MAGSAC++ threshold "
+        f"- Matching: {'exact nearest neighbours' if m.matcher == 'exact' else f'FLANN ({m.flann_checks} checks)'}, "
+        f"ratio {m.ratio}, mutual {m.mutual}; {m.geometry} matrix, MAGSAC++ threshold "
         f"{m.ransac_threshold} px; pairs with fewer than {m.min_matches} inliers dropped",
         f"- Run time: {r['seconds']:.0f} s for all rows",
         "",
@@ -302,7 +302,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", type=int, default=2, help="Dask worker processes (default 2)")
     ap.add_argument("--max-features", type=int, default=3000, help="SIFT keypoints per image (default 3000)")
-    ap.add_argument("--flann-checks", type=int, default=32, help="FLANN leaves checked per query (default 32)")
+    ap.add_argument("--flann-checks", type=int, default=32,
+                    help="FLANN leaves checked per query (default 32; used with MatchConfig.matcher='flann')")
     ap.add_argument("--min-overlap", type=float, default=0.5, help="footprint overlap of a pair (default 0.5)")
     ap.add_argument("--pairs-per-image", type=int, default=3, help="best pairs kept per image (default 3)")
     ap.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")
