@@ -340,8 +340,8 @@ def central_images(images: pa.Table, n: int) -> np.ndarray:
 
     A square of a block flown in parallel strips holds a stretch of every strip, so the sub-block spans
     the flight's whole time and sensor-temperature range (what thermal and time hypotheses need) and
-    keeps the strips' overlaps; what it loses is power (fewer images) and the block's edges (where
-    GNSS-lever-arm and boresight effects are no stronger than in the middle).
+    keeps the strips' overlaps; what it loses is power: fewer images, and only the check points they see
+    measure the gain.
     """
     ids = images.column("image_id").to_numpy()
     if len(ids) <= n:
