@@ -119,50 +119,22 @@ def _drop_points(block: Block, keep: np.ndarray) -> Block:
     )
 
 
-#: a tie point triangulated from the recorded poses at a depth outside these multiples of the block's median
-#: depth, in any image that sees it, starts on the ground plane instead (:func:`initial_state`)
-PLAUSIBLE_DEPTH = (0.5, 2.0)
-
-
 def initial_state(block: Block, camera: Camera) -> tuple[Block, State]:
-    """Poses from the recorded GNSS/IMU, tie points triangulated, control GCPs at their surveyed position.
-
-    Tie points that cannot be triangulated, or lie behind a camera that sees them, are left out. An
-    autopilot's attitude (errors of a few degrees) on short baselines triangulates some points at absurd
-    depths, centimetres from a camera or far below the ground (seneca: 6 % of the points nearer than a
-    fifth of the median depth), whose huge derivatives break the reduced normal equations. A point whose
-    depth in any image lies outside :data:`PLAUSIBLE_DEPTH` times the block's median depth starts instead
-    at the mean intersection of its rays with the horizontal plane at the median height of the other points.
-    """
+    """Poses from the recorded GNSS/IMU, tie points triangulated, control GCPs at their surveyed position."""
     io = camera.params()
     slopes = np.zeros(3)
     i, j = block.obs_image, block.obs_point
     tie = block.obs_is_tie
     rays = pixels_to_rays(io, slopes, np.zeros(int(tie.sum())), block.R_rec[i[tie]], block.obs_uv[tie])
-    centres = block.gnss[i[tie]]
-    X, ok = triangulate_linear(j[tie], block.n_tie, centres, rays)
+    X, ok = triangulate_linear(j[tie], block.n_tie, block.gnss[i[tie]], rays)
     # points must lie in front of every camera that sees them
     if ok.any():
-        depth = np.einsum("mk,mk->m", block.R_rec[i[tie]][:, 2], np.nan_to_num(X[j[tie]]) - centres)
+        depth = np.einsum(
+            "mk,mk->m", block.R_rec[i[tie]][:, 2], np.nan_to_num(X[j[tie]]) - block.gnss[i[tie]]
+        )
         front = np.ones(block.n_tie, bool)
         np.logical_and.at(front, j[tie], depth > 0)
         ok &= front
-    if ok.any():
-        lo, hi = np.median(depth[ok[j[tie]]]) * np.asarray(PLAUSIBLE_DEPTH)
-        plausible = np.ones(block.n_tie, bool)
-        np.logical_and.at(plausible, j[tie], (depth > lo) & (depth < hi))
-        redo = ok & ~plausible
-        if redo.any() and (ok & plausible).any():
-            h = np.median(X[ok & plausible, 2])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t = (h - centres[:, 2]) / rays[:, 2]
-            hit = redo[j[tie]] & np.isfinite(t) & (t > 0)
-            on_plane = np.zeros((block.n_tie, 3))
-            np.add.at(on_plane, j[tie][hit], centres[hit] + rays[hit] * t[hit, None])
-            n_hit = np.bincount(j[tie][hit], minlength=block.n_tie)
-            moved = redo & (n_hit > 0)
-            X[moved] = on_plane[moved] / n_hit[moved, None]
-            ok &= plausible | moved
     keep = np.concatenate([ok, np.ones(len(block.control_ids), bool)])
     if not ok.any():
         raise AdjustmentError("observations: no tie track could be triangulated from the recorded poses")
