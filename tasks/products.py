@@ -239,8 +239,8 @@ def diagnose_step(
 
     With the block adjustment's result (``adjusted``), the observations its blunder screening rejected
     (weight 0 in its ``obs_weight``) are left out and the diagnosis adjusts by least squares at once,
-    instead of screening the same block again (on the 818-image city flight that robust pass and its
-    least-squares re-adjustment took as long as the block adjustment itself).
+    instead of screening the same block again (a robust pass and a least-squares re-adjustment of the
+    whole block: on the 818-image city flight the block adjustment that does this took 180 s).
     """
     from aerocal.adjust import AdjustConfig
     from aerocal.diagnose.engine import DiagnoseConfig

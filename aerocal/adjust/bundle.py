@@ -345,7 +345,7 @@ def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
     """``start`` with the poses and tie points of the robust pass ``first`` where it has them.
 
     The least-squares adjustment after the blunders are removed then starts next to its solution (the
-    818-image city block: 3 iterations instead of 10, 7 s each). The IO keeps its starting value: a
+    818-image city block: 5 iterations instead of 10, ~7 s each). The IO keeps its starting value: a
     parameter the adaptive selection drops must stay at the nominal or certificate value, not at the
     robust pass's estimate.
     """
