@@ -257,7 +257,7 @@ def match_images(
     Candidate pairs come from the GNSS/IMU footprints on a plane at the GCPs' mean height, else at the
     mean GNSS height minus ``flight["height_agl_m"]``; without GNSS/IMU for every image, all pairs.
     """
-    from aerocal.enhance import EnhanceConfig, stretch_params
+    from aerocal.enhance import EnhanceConfig, grey, stretch_params
     from aerocal.ingest import read_raw
     from aerocal.matching import (
         FeatureConfig,
@@ -274,7 +274,7 @@ def match_images(
     config = config or MatchStepConfig()
     paths = images.column("path").to_pylist()
     ecfg = config.enhance or EnhanceConfig()
-    params = stretch_params(paths, percent=ecfg.percent, loader=read_raw)
+    params = stretch_params(paths, percent=ecfg.percent, loader=lambda p: grey(read_raw(p)))
     loader = functools.partial(_enhanced, params=params, config=ecfg)
     if has_priors(images):
         pairs = candidate_pairs_from_footprints(
@@ -307,7 +307,8 @@ def match_step(
     config: MatchStepConfig | None = None,
     dask_address: str | None = None,
 ) -> StepResult:
-    """Enhance (dataset-wide stretch + Wallis) and match the frames: keypoints, matches, observations.
+    """Enhance (dataset-wide stretch, then Wallis for thermal counts) and match the frames: keypoints, matches,
+    observations.
 
     SIFT runs on image tiles on a Dask cluster: a fresh ``LocalCluster`` or the scheduler at
     ``dask_address``. Candidate pairs come from the GNSS/IMU footprints at the GCPs' mean height (or the
