@@ -151,3 +151,35 @@ def test_no_datum_is_refused_with_the_fix():
         adjust(
             sim.images, sim.observations, sim.camera_nominal, AdjustConfig(gnss_sigma_m=None, use_gcps=False)
         )
+
+
+@pytest.mark.parametrize("free", [(), ("f", "cx", "cy", "k1")])
+def test_structured_schur_complement_equals_the_sparse_products(free):
+    """The reduced camera system formed from the observations' blocks (pairs of observations of a
+    point) equals the one of general sparse products: matrix, right-hand side and point step."""
+    import scipy.sparse as sp
+
+    from aerocal.adjust.bundle import initial_state
+    from aerocal.adjust.problem import build_block
+    from aerocal.adjust.solver import Problem, schur_complement
+
+    seed = 31
+    sim = simulate_flight("conte-calibration", seed=seed, max_images=20)
+    cfg = AdjustConfig(free=free, gnss_sigma_m=(0.1, 0.1, 0.15), robust_loss="huber")
+    blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)
+    blk, st = initial_state(blk, sim.camera_nominal)
+    prob = Problem(blk, cfg, 0.0)
+    _, _, _, r, Jc, Jp, Hpp = prob.residuals(st, jac=True)
+    assert prob.blocks is not None and prob.blocks.n_global == len(free)
+    for lam in (0.0, 1e-3):
+        S0, rhs0, Hi0, Hcp0, gp0 = schur_complement(Jc, Jp, Hpp, r, lam)
+        S1, rhs1, Hi1, Hcp1, gp1 = schur_complement(Jc, Jp, Hpp, r, lam, prob.blocks)
+        scale = np.abs(S0).max()
+        assert np.abs(S1 - S0).max() < 1e-9 * scale, f"seed {seed}"
+        assert np.allclose(S1, S1.T, rtol=0, atol=1e-9 * scale)
+        assert np.allclose(rhs1, rhs0, rtol=1e-9, atol=1e-9 * np.abs(rhs0).max()), f"seed {seed}"
+        dc = np.random.default_rng(seed).normal(size=S0.shape[0])
+        back0 = np.asarray(Hcp0.T @ dc).ravel()
+        assert np.allclose(Hcp1.T @ dc, back0, rtol=1e-9, atol=1e-9 * np.abs(back0).max()), f"seed {seed}"
+        assert sp.issparse(Hcp0)
+

@@ -27,7 +27,7 @@ from aerocal.adjust.covariance import (
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block, build_block
 from aerocal.adjust.projection import IDX, THERMAL_PARAMS
 from aerocal.adjust.selection import select_parameters
-from aerocal.adjust.solver import Problem, Solution, State, solve
+from aerocal.adjust.solver import MIN_DEPTH_FRACTION, Problem, Solution, State, solve
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
 from aerocal.geometry import matrix_from_quat_wxyz, quat_wxyz_from_matrix
@@ -127,13 +127,14 @@ def initial_state(block: Block, camera: Camera) -> tuple[Block, State]:
     tie = block.obs_is_tie
     rays = pixels_to_rays(io, slopes, np.zeros(int(tie.sum())), block.R_rec[i[tie]], block.obs_uv[tie])
     X, ok = triangulate_linear(j[tie], block.n_tie, block.gnss[i[tie]], rays)
-    # points must lie in front of every camera that sees them
+    # points must lie in front of every camera that sees them, and not implausibly close to one
     if ok.any():
         depth = np.einsum(
             "mk,mk->m", block.R_rec[i[tie]][:, 2], np.nan_to_num(X[j[tie]]) - block.gnss[i[tie]]
         )
+        typical = np.median(depth[depth > 0]) if (depth > 0).any() else 0.0
         front = np.ones(block.n_tie, bool)
-        np.logical_and.at(front, j[tie], depth > 0)
+        np.logical_and.at(front, j[tie], depth > MIN_DEPTH_FRACTION * typical)
         ok &= front
     keep = np.concatenate([ok, np.ones(len(block.control_ids), bool)])
     if not ok.any():

@@ -28,6 +28,16 @@ from scipy.linalg import lapack
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block
 from aerocal.adjust.projection import IDX, THERMAL_PARAMS, project, rotation_log, rotation_update
 
+#: A tie point intersected closer to a camera that sees it than this fraction of the block's median depth
+#: is dropped before the adjustment (:func:`aerocal.adjust.bundle.initial_state`), and a step that would
+#: bring one there leaves it where it was (:meth:`Problem.hold_close_points`). In an aerial block such a
+#: point is a wrong intersection from a poor start, not terrain, and its Jacobian grows as 1 / depth^2:
+#: on seneca (autopilot attitude good to a few degrees) points centimetres in front of a camera made the
+#: reduced normal matrix overflow (diagonal > 1e20) and the factorisation fail. Oblique low blocks
+#: (daakir-calibration, 25 degrees of attitude spread) have all their depths within a factor of 2-3 of
+#: the median.
+MIN_DEPTH_FRACTION = 0.1
+
 
 @dataclass
 class State:
@@ -83,6 +93,23 @@ class Solution:
     history: list[float] = field(default_factory=list)
 
 
+@dataclass
+class ObsBlocks:
+    """The image-observation rows of the last Jacobian, block by block (rows scaled like the Jacobian).
+
+    Observation ``m`` (image ``image[m]``, point ``point[m]``) has a 2 x 6 block ``Ji[m]`` in its image's
+    (w, C) columns, a 2 x 3 block ``Jx[m]`` in its point's columns and nothing else but the ``n_global``
+    IO and slope columns: what :func:`schur_complement` needs to form the image-image part of the
+    reduced system without general sparse products.
+    """
+
+    image: np.ndarray  # (M,) image index
+    point: np.ndarray  # (M,) point index
+    Ji: np.ndarray  # (M, 2, 6)
+    Jx: np.ndarray  # (M, 2, 3)
+    n_global: int
+
+
 def _robust(s: np.ndarray, loss: str, c: float) -> tuple[np.ndarray, np.ndarray]:
     """rho(s) and rho'(s) of squared normalised residual norms ``s``."""
     if loss == "huber":
@@ -111,6 +138,8 @@ class Problem:
             n_points=block.n_points,
         )
         self.dtemp_img = np.nan_to_num(block.temperature - t0) if config.thermal else np.zeros(block.n_images)
+        self.blocks: ObsBlocks | None = None  # of the last Jacobian (see :class:`ObsBlocks`)
+        self.depth_floor: float | None = None  # metres, set from the first state a step starts from
         self.gnss_sigma = None if config.gnss_sigma_m is None else np.asarray(config.gnss_sigma_m, float)
         self.att_sigma = (
             None
@@ -168,6 +197,7 @@ class Problem:
         Ji = np.concatenate([pr.d_rot, -pr.d_point], axis=2) * sw
         Jx = pr.d_point * sw
         ng = lay.n_global
+        self.blocks = ObsBlocks(image=i, point=j, Ji=Ji, Jx=Jx, n_global=ng)
         rr, cc, vv = [], [], []
         if ng:
             rr.append(np.repeat(rows_obs[:, :, None], ng, axis=2).ravel())
@@ -218,6 +248,22 @@ class Problem:
         return cost, res_px, w, np.concatenate(r_all), Jc, Jp, Hpp
 
     # ------------------------------------------------------------------ updates
+    def hold_close_points(self, old: State, new: State) -> int:
+        """Put back (in ``new``) the tie points a step brought closer to a camera that sees them than
+        :data:`MIN_DEPTH_FRACTION` of the median depth of ``old``'s first call; returns how many.
+
+        Their Jacobian grows as 1 / depth^2: one such point makes the reduced normal matrix overflow."""
+        b = self.b
+        tie = b.obs_is_tie
+        i, j = b.obs_image[tie], b.obs_point[tie]
+        if self.depth_floor is None:
+            z = np.einsum("mk,mk->m", old.R[i][:, 2], old.X[j] - old.C[i])
+            self.depth_floor = MIN_DEPTH_FRACTION * float(np.median(z[z > 0])) if (z > 0).any() else 0.0
+        z = np.einsum("mk,mk->m", new.R[i][:, 2], new.X[j] - new.C[i])
+        close = np.unique(j[~(z > self.depth_floor)])
+        new.X[close] = old.X[close]
+        return len(close)
+
     def apply(self, st: State, dc: np.ndarray, dp: np.ndarray) -> State:
         lay = self.layout
         new = st.copy()
@@ -235,24 +281,38 @@ class Problem:
         return new
 
 
-def schur_complement(Jc, Jp, Hpp, r, lam: float):
-    """Reduced camera system (dense) and the pieces to back-substitute the points."""
-    Hcc = (Jc.T @ Jc).toarray()
-    Hcp = (Jc.T @ Jp).tocsr()
-    gc = Jc.T @ r
-    gp = Jp.T @ r
+def _damped_point_inverse(Hpp: np.ndarray, lam: float) -> np.ndarray:
+    """Inverses of the 3 x 3 point blocks, their diagonals scaled by ``1 + lam``."""
     Hpp_d = Hpp.copy()
     if lam:
-        Hcc[np.diag_indices_from(Hcc)] *= 1.0 + lam
         d = np.einsum("pii->pi", Hpp_d)
         d *= 1.0 + lam
     try:
-        Hpp_inv = np.linalg.inv(Hpp_d)
+        return np.linalg.inv(Hpp_d)
     except np.linalg.LinAlgError:
         # a point seen along (nearly) one ray has a singular block: load its diagonal so that it simply
         # does not move, instead of failing the whole adjustment
         load = 1e-9 * np.maximum(np.einsum("pii->p", Hpp_d) / 3.0, 1e-12)
-        Hpp_inv = np.linalg.inv(Hpp_d + load[:, None, None] * np.eye(3))
+        return np.linalg.inv(Hpp_d + load[:, None, None] * np.eye(3))
+
+
+def schur_complement(Jc, Jp, Hpp, r, lam: float, blocks: ObsBlocks | None = None):
+    """Reduced camera system (dense) and the pieces to back-substitute the points.
+
+    Returns ``(S, rhs, Hpp_inv, Hcp, gp)``: ``S dc = rhs`` gives the camera-side step, then
+    ``dp = -Hpp_inv (gp + Hcp^T dc)`` point by point. With ``blocks`` (the structure of the observation
+    rows, :class:`ObsBlocks`) the image-image part of ``Hcp Hpp^-1 Hcp^T`` is summed over the pairs of
+    observations of each point with numpy, and ``Hcp`` is an operator; without, general sparse products.
+    """
+    Hcc = (Jc.T @ Jc).toarray()
+    gc = Jc.T @ r
+    gp = Jp.T @ r
+    if lam:
+        Hcc[np.diag_indices_from(Hcc)] *= 1.0 + lam
+    Hpp_inv = _damped_point_inverse(Hpp, lam)
+    if blocks is not None:
+        return _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, blocks)
+    Hcp = (Jc.T @ Jp).tocsr()
     P = len(Hpp)
     Hpp_inv_sp = sp.bsr_matrix((Hpp_inv, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
     HcpHi = (Hcp @ Hpp_inv_sp).tocsr()
@@ -261,10 +321,110 @@ def schur_complement(Jc, Jp, Hpp, r, lam: float):
     return S, rhs, Hpp_inv, Hcp, gp
 
 
+#: Observation pairs (two observations of one point) formed per chunk: 4e5 pairs are 4e5 6 x 6 float64
+#: blocks, 115 MB.
+SCHUR_PAIR_CHUNK = 400_000
+
+
+def _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, b: ObsBlocks):
+    """:func:`schur_complement` from the observations' blocks.
+
+    The image-image part of ``Hcp Hpp^-1 Hcp^T`` is ``sum_p sum_(m, m' of p) W_m Hpp_p^-1 W_m'^T`` with
+    ``W_m = Ji_m^T Jx_m`` (6 x 3): the 6 x 6 blocks of every ordered pair of observations of a point
+    (points with the same number of observations together), summed per image pair. Written for this
+    project and measured against the general sparse products it replaces (scipy ``csr_matmat``): see
+    ``benchmarks/RESULTS.md``; ``tests/test_adjust_core.py`` checks the agreement (1e-9 relative).
+    """
+    ng, N = b.n_global, (Hcc.shape[0] - b.n_global) // 6
+    P = len(Hpp_inv)
+    W = np.matmul(np.swapaxes(b.Ji, 1, 2), b.Jx)  # (M, 6, 3)
+    T = np.matmul(W, Hpp_inv[b.point])  # (M, 6, 3): W_m Hpp^-1
+    S = Hcc
+    S_ii = (S if not ng else np.ascontiguousarray(S[ng:, ng:])).reshape(N, 6, N, 6)  # a view when ng = 0
+    rhs = -np.asarray(gc, dtype=float).copy()
+    gpp = np.asarray(gp, dtype=float).reshape(-1, 3)
+    # rhs, image part: sum over observations of W_m Hpp^-1 gp
+    tg = np.einsum("mij,mj->mi", T, gpp[b.point])
+    rhs[ng:] += _sum_by(b.image, tg, N).ravel()
+    # the points grouped by their number of observations L: each group's L x L pairs at once
+    order = np.argsort(b.point, kind="stable")
+    count = np.bincount(b.point, minlength=P)
+    start = np.concatenate([[0], np.cumsum(count)[:-1]])
+    for L in np.unique(count[count > 0]):
+        pts = np.flatnonzero(count == L)
+        step = max(1, SCHUR_PAIR_CHUNK // int(L * L))
+        for c0 in range(0, len(pts), step):
+            obs = order[start[pts[c0 : c0 + step]][:, None] + np.arange(L)]  # (n, L) observations
+            blk = np.einsum("plir,pmjr->plmij", T[obs], W[obs], optimize=True)  # (n, L, L, 6, 6)
+            img = b.image[obs].astype(np.int64)
+            uk, inv = np.unique((img[:, :, None] * N + img[:, None, :]).ravel(), return_inverse=True)
+            acc = np.bincount((inv[:, None] * 36 + np.arange(36)).ravel(), weights=blk.ravel(),
+                              minlength=36 * len(uk))
+            S_ii[uk // N, :, uk % N, :] -= acc.reshape(-1, 6, 6)
+    if ng:
+        S[ng:, ng:] = S_ii.reshape(6 * N, 6 * N)
+    if ng:
+        # global columns: their rows of Hcp are few, general sparse products are cheap
+        Hcp_g = (Jc[:, :ng].T @ Jp).toarray().reshape(ng, P, 3)  # (ng, P, 3)
+        Tg = np.einsum("gpi,pij->gpj", Hcp_g, Hpp_inv)  # (ng, P, 3): Hcp_g Hpp^-1
+        S[:ng, :ng] -= np.einsum("gpj,hpj->gh", Tg, Hcp_g)
+        # global-image: sum over observations of Tg[:, p] W_m^T
+        gi = np.einsum("gmj,mkj->mgk", Tg[:, b.point], W)  # (M, ng, 6)
+        block_gi = _sum_by(b.image, gi.reshape(len(gi), -1), N).reshape(N, ng, 6)
+        block_gi = block_gi.transpose(1, 0, 2).reshape(ng, 6 * N)
+        S[:ng, ng:] -= block_gi
+        S[ng:, :ng] -= block_gi.T
+        rhs[:ng] += np.einsum("gpj,pj->g", Tg, gpp)
+    else:
+        Hcp_g = np.zeros((0, P, 3))
+
+    def hcp_t(dc: np.ndarray) -> np.ndarray:
+        """``Hcp^T dc`` (3P,): per point, the sum over its observations of ``W_m^T dc_image``."""
+        dc = np.asarray(dc, dtype=float).ravel()
+        v = np.einsum("mij,mi->mj", W, dc[ng:].reshape(N, 6)[b.image])
+        out = _sum_by(b.point, v, P)
+        if ng:
+            out += np.einsum("gpj,g->pj", Hcp_g, dc[:ng])
+        return out.ravel()
+
+    Hcp = _TransposeOnly(hcp_t, (Hcc.shape[0], 3 * P))
+    return S, rhs, Hpp_inv, Hcp, gp
+
+
+def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``out[k]``: the sum of ``values[index == k]`` for (M, c) values: (n, c), one ``bincount`` per column."""
+    return np.stack([np.bincount(index, weights=values[:, c], minlength=n) for c in range(values.shape[1])], 1)
+
+
+class _TransposeOnly:
+    """``Hcp`` of the structured Schur complement: only ``Hcp.T @ dc`` is ever needed (back-substitution)."""
+
+    def __init__(self, rmatvec, shape: tuple[int, int]) -> None:
+        self._rmatvec, self.shape = rmatvec, shape
+
+    @property
+    def T(self):
+        return _Applied(self._rmatvec)
+
+
+class _Applied:
+    def __init__(self, fn) -> None:
+        self._fn = fn
+
+    def __matmul__(self, v: np.ndarray) -> np.ndarray:
+        return self._fn(v)
+
+
 # The reduced camera system is Jacobi-scaled, then factorised with SuperLU (single-threaded): on this
 # 2-core machine under load a multi-threaded LAPACK Cholesky of a 272 x 272 matrix took 80 ms against
 # 6 ms for splu; both gave the same solution to 1e-12 (conte-calibration, k3 free).
 def _solve_dense(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    if not (np.isfinite(S).all() and np.isfinite(rhs).all()):
+        bad = np.flatnonzero(~np.isfinite(np.diag(S)) | ~np.isfinite(rhs))
+        raise AdjustmentError(
+            f"the reduced normal matrix has non-finite entries (camera-side unknowns {bad[:6].tolist()}...): "
+            "a projection overflowed; the start poses or a tie point are far from any consistent geometry"
+        )
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
     Ss = S / d[:, None] / d[None, :]
     try:
@@ -365,10 +525,11 @@ def solve(problem: Problem, start: State) -> Solution:
     it = 0
     for _ in range(cfg.max_iterations):
         it += 1
-        S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam)
+        S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
         dc = _solve_dense(S, rhs)
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
         cand = problem.apply(st, dc, dp)
+        problem.hold_close_points(st, cand)
         new_cost = problem.residuals(cand, jac=False)[0]
         if np.isfinite(new_cost) and new_cost <= cost:
             rel = (cost - new_cost) / max(cost, 1e-300)
@@ -388,7 +549,7 @@ def solve(problem: Problem, start: State) -> Solution:
             if lam > 1e8:
                 converged = True  # no further decrease possible: at the minimum to machine precision
                 break
-    S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0)
+    S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0, problem.blocks)
     cov = SparseInverse(S)
     cost, res_px, w = problem.residuals(st, jac=False)
     n_res = len(r)
