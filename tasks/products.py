@@ -254,6 +254,7 @@ def diagnose_step(
     }
     if adjusted is not None and "obs_weight" in adjusted.outputs:
         inputs["obs_weight"] = adjusted["obs_weight"]
+        inputs["adjustment"] = adjusted["adjustment"]
     acfg = adjust_config or AdjustConfig()
     cfg = config
 
@@ -262,6 +263,7 @@ def diagnose_step(
 
         import pyarrow as pa
 
+        from aerocal.adjust import scale_tie_sigma
         from aerocal.diagnose.engine import diagnose
 
         cert = Certificate.from_dict(inp.json("certificate"))
@@ -279,6 +281,10 @@ def diagnose_step(
             screening = (f"the block adjustment's screening: {obs.num_rows - len(keep)} of {obs.num_rows} "
                          "observations left out (blunders, and observations left alone in their tracks)")
             obs = obs.take(pa.array(keep, pa.int64()))
+            # and its estimate of the tie observations' sigma (1 for an adjustment that made none)
+            tie_scale = float(inp.json("adjustment").get("tie_sigma_scale", 1.0)) if inp.has("adjustment") else 1.0
+            obs = scale_tie_sigma(obs, tie_scale)
+            screening += f"; tie-point sigma x {tie_scale:.3f} as estimated by the block adjustment"
             run_cfg = dataclasses.replace(run_cfg, robust_loss="none")
         result = diagnose(
             inp.table("images"),

@@ -183,3 +183,37 @@ def test_structured_schur_complement_equals_the_sparse_products(free):
         assert np.allclose(Hcp1.T @ dc, back0, rtol=1e-9, atol=1e-9 * np.abs(back0).max()), f"seed {seed}"
         assert sp.issparse(Hcp0)
 
+
+def test_tie_sigma_estimated_from_the_block_keeps_check_points_honest():
+    """Matched tie points are more precise than the matcher's a-priori 0.5 px (SIFT on rendered frames:
+    0.19 px). Left at 0.5 px, sigma0 falls to ~0.3 and shrinks every predicted sigma, the GCP measurements'
+    included, so check points miss their prediction; estimated from the robust pass, rho stays in band."""
+    import dataclasses
+
+    from aerocal.adjust import scale_tie_sigma
+    from aerocal.simulate.presets import PRESETS
+
+    spec = PRESETS["conte-calibration"]
+    spec = dataclasses.replace(spec, sensors=dataclasses.replace(spec.sensors, tie_sigma_px=0.15, gcp_sigma_px=1.0))
+    pooled = {True: ([], []), False: ([], [])}
+    scales = []
+    for seed in range(6):
+        sim = simulate_flight(spec, seed=seed)
+        obs = scale_tie_sigma(sim.observations, 0.5 / 0.15)  # what the matcher writes: 0.5 px
+        for estimate in (True, False):
+            cfg = AdjustConfig(free=(), robust_loss="huber", estimate_tie_sigma=estimate)
+            res = adjust(sim.images, obs, sim.spec.camera_true, cfg, sim.gcps, sim.gcp_observations)
+            good = np.isfinite(res.check_errors).all(axis=1)
+            pooled[estimate][0].append(res.check_errors[good])
+            pooled[estimate][1].append(res.check_sigma[good] ** 2)
+            if estimate:
+                scales.append(res.tie_sigma_scale)
+                assert 0.7 < res.sigma0 < 1.5, f"seed {seed}: sigma0 {res.sigma0:.3f} with the estimated tie sigma"
+    rho = {k: np.sqrt(np.mean(np.vstack(e) ** 2, axis=0) / np.mean(np.vstack(v), axis=0))
+           for k, (e, v) in pooled.items()}
+    lo, hi = rho_band(len(np.vstack(pooled[True][0])))
+    print(f"tie sigma scale {np.round(scales, 3)}; rho estimated {np.round(rho[True], 3)}, "
+          f"a priori {np.round(rho[False], 3)}, band [{lo:.3f}, {hi:.3f}]")
+    assert np.all(np.abs(np.array(scales) - 0.3) < 0.06), f"seeds 0..5: tie sigma scales {scales}, truth 0.3"
+    assert np.all((rho[True] > lo) & (rho[True] < hi)), f"seeds 0..5: rho {rho[True]} outside [{lo:.3f}, {hi:.3f}]"
+    assert rho[False][2] > hi, f"seeds 0..5: without the estimate rho Up {rho[False][2]:.3f} should exceed {hi:.3f}"

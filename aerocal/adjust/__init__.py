@@ -5,7 +5,7 @@ Entry points: :func:`adjust` (tables in, :class:`AdjustmentResult` out) and :fun
 :func:`fit_thermal_model` fits a linear thermal IO model to calibrations at several temperatures.
 """
 
-from aerocal.adjust.bundle import AdjustmentResult, adjust
+from aerocal.adjust.bundle import AdjustmentResult, adjust, scale_tie_sigma
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError
 from aerocal.adjust.strategy import STRATEGIES, StrategyResult, adjust_fixed_io, run_strategy, select_images
 from aerocal.adjust.thermal import ThermalFit, fit_thermal_model, thermal_certificate
@@ -21,6 +21,7 @@ __all__ = [
     "adjust_fixed_io",
     "fit_thermal_model",
     "run_strategy",
+    "scale_tie_sigma",
     "select_images",
     "thermal_certificate",
 ]

@@ -50,6 +50,8 @@ class AdjustmentResult:
     * check points: ``check_errors`` triangulated minus surveyed (K, 3) metres (E, N, Up);
       ``check_sigma`` predicted std per axis (marginal covariance scaled by sigma0^2, plus survey
       variance); ``rho`` = RMSE / sqrt(mean predicted variance) per axis.
+    * ``tie_sigma_scale``: the factor the tie observations' sigma was multiplied by after the blunder
+      screening (``AdjustConfig.estimate_tie_sigma``; 1 without).
     """
 
     camera: Camera
@@ -82,6 +84,7 @@ class AdjustmentResult:
     selection: list[str] = field(default_factory=list)
     crs: str | None = None
     obs_weight: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tie_sigma_scale: float = 1.0
 
     def summary(self) -> dict:
         """Figures a user checks, JSON-serialisable."""
@@ -98,6 +101,7 @@ class AdjustmentResult:
             "check_rmse_m": self.check_rmse.tolist(),
             "rho": self.rho.tolist(),
             "selection": self.selection,
+            "tie_sigma_scale": self.tie_sigma_scale,
         }
 
 
@@ -291,6 +295,7 @@ def adjust(
     config = config or AdjustConfig()
     n_rows = observations.num_rows
     kept = np.arange(n_rows)
+    tie_scale = 1.0
     rejection: list[str] = []
     first = None
     if config.robust_loss != "none" and config.reject_chi2 is not None:
@@ -299,9 +304,17 @@ def adjust(
         robust_cfg = dataclasses.replace(config, adaptive=False, max_iterations=config.robust_iterations)
         first = adjust(images, observations, camera, dataclasses.replace(robust_cfg, reject_chi2=None), gcps,
                        gcp_observations, thermal_correction, initial_poses)
-        kept, why = _snoop(observations, first, config.reject_chi2)
+        kept, why, variance_factor = _snoop(observations, first, config.reject_chi2)
         rejection.append(why)
         observations = observations.take(pa.array(kept, pa.int64()))
+        if config.estimate_tie_sigma:
+            tie_scale = float(np.sqrt(variance_factor))
+            before = float(np.median(observations.column("sigma").to_numpy(zero_copy_only=False)))
+            observations = scale_tie_sigma(observations, tie_scale)
+            rejection.append(
+                f"tie-point sigma estimated from the robust pass: {before:.3g} px a priori x {tie_scale:.3f} = "
+                f"{before * tie_scale:.3g} px (GNSS, attitude and GCP sigmas keep their a-priori values)"
+            )
         config = dataclasses.replace(config, robust_loss="none")
     block0 = build_block(
         images,
@@ -339,7 +352,15 @@ def adjust(
         weight = np.zeros(n_rows)  # a rejected observation has weight 0
         weight[kept] = result.obs_weight
         result.residuals, result.obs_weight = res, weight
+    result.tie_sigma_scale = tie_scale
     return result
+
+
+def scale_tie_sigma(observations: pa.Table, factor: float) -> pa.Table:
+    """``observations`` with its ``sigma`` column (pixels) multiplied by ``factor``."""
+    i = observations.schema.get_field_index("sigma")
+    sigma = observations.column("sigma").to_numpy(zero_copy_only=False) * factor
+    return observations.set_column(i, observations.schema.field(i), pa.array(sigma.astype(np.float32)))
 
 
 def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
@@ -372,8 +393,9 @@ def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
     return st
 
 
-def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tuple[np.ndarray, str]:
-    """Rows of ``observations`` kept after a robust adjustment ``first``, and a sentence saying what went.
+def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tuple[np.ndarray, str, float]:
+    """Rows of ``observations`` kept after a robust adjustment ``first``, a sentence saying what went, and
+    the robust variance factor of the tie observations.
 
     An observation is rejected when its squared residual, normalised by its sigma and by the robust
     variance factor, exceeds ``chi2``; tracks left with fewer than two observations go too. The robust
@@ -385,7 +407,7 @@ def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tupl
     s = np.sum(first.residuals**2, axis=1) / sigma**2
     finite = np.isfinite(s)
     if not finite.any():
-        return np.arange(observations.num_rows), "no residuals to screen for blunders"
+        return np.arange(observations.num_rows), "no residuals to screen for blunders", 1.0
     redundancy = float(np.clip(first.dof / (2.0 * np.count_nonzero(finite)), 0.1, 1.0))
     scale = max(float(np.median(s[finite])) / (2.0 * np.log(2.0)) / redundancy, 1e-12)
     bad = finite & (s > chi2 * scale)
@@ -400,7 +422,7 @@ def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tupl
         f"variance factor {scale:.3f} (sigma0 {np.sqrt(scale):.3f}); {int(lone.sum())} more left alone in "
         "their tracks; the block was then adjusted by least squares"
     )
-    return kept, why
+    return kept, why, scale
 
 
-__all__ = ["PARAM_NAMES", "AdjustConfig", "AdjustmentResult", "adjust"]
+__all__ = ["PARAM_NAMES", "AdjustConfig", "AdjustmentResult", "adjust", "scale_tie_sigma"]

@@ -362,8 +362,9 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
     """Adjust the block with ``adjust_config`` and diagnose it.
 
     With a robust loss (and ``adjust_config.reject_chi2``) the blunders are found by a robust adjustment
-    and removed first (:func:`aerocal.adjust.bundle.adjust`), then the clean block is diagnosed by least
-    squares: a systematic effect is looked for in the data, not in the mismatches. A block of more than
+    and removed first (:func:`aerocal.adjust.bundle.adjust`, which also estimates the tie observations'
+    sigma), then the clean block is diagnosed by least squares: a systematic effect is looked for in the
+    data, not in the mismatches. A block of more than
     ``config.max_images`` images is diagnosed on its central sub-block (:func:`central_images`; the
     818-image city flight took over 7 minutes whole, as every accepted effect is refitted several times),
     and a note says so.
@@ -382,12 +383,12 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
 
         images, observations, gcp_observations = only(images), only(observations), only(gcp_observations)
     if adjust_config.robust_loss != "none" and adjust_config.reject_chi2 is not None:
-        from aerocal.adjust import adjust
+        from aerocal.adjust import adjust, scale_tie_sigma
 
         screened = adjust(images, observations, camera, dataclasses.replace(adjust_config, adaptive=False),
                           gcps, gcp_observations)
         keep = np.flatnonzero(screened.obs_weight != 0)
-        observations = observations.take(pa.array(keep, pa.int64()))
+        observations = scale_tie_sigma(observations.take(pa.array(keep, pa.int64())), screened.tie_sigma_scale)
         adjust_config = dataclasses.replace(adjust_config, robust_loss="none")
     base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations)
     result = diagnose_baseline(base, config)
