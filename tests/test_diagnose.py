@@ -228,3 +228,17 @@ def test_a_large_block_is_diagnosed_on_its_central_sub_block_and_still_names_the
     r = np.hypot(x - np.median(x), y - np.median(y))
     inside = np.isin(sim.images.column("image_id").to_numpy(), ids)
     assert len(ids) == n - 12 and r[inside].max() <= r[~inside].min()
+
+
+def test_a_switch_effect_far_from_its_physical_size_is_not_named():
+    """Refraction is on (1) or off (0); an estimate of 216 +- 36 is a radial signal of another cause (on a
+    rendered effect-free city block: a focal length 2 px off the certificate's), not refraction."""
+    from aerocal.diagnose.engine import Evidence, implausible_switch
+
+    def ev(name, theta, sigma):
+        return Evidence(name, 1, 1, 40.0, 1e-10, 1e-9, [theta], [sigma], 20.0, True, "on/off")
+
+    assert implausible_switch(ev("refraction", 216.0, 36.0))
+    assert implausible_switch(ev("refraction", -20.0, 3.0))
+    assert not implausible_switch(ev("refraction", 1.3, 0.2))  # hidden refraction, recovered
+    assert not implausible_switch(ev("radial_k3", 216.0, 36.0))  # not a switch: any size is possible
