@@ -116,3 +116,18 @@ def test_pair_of_kept_parameters_is_left_and_the_next_pair_decides():
     assert name == "k2" and "|corr(k1, k2)| = 0.970 > 0.95" in why and "t(k2) = 1.50" in why
     name, why = choose_drop(names[:2], corr[:2, :2], t[:2], AdjustConfig())
     assert name is None and why.startswith("kept f t=50.0, cx t=40.0")
+
+
+def test_radial_terms_are_dropped_from_the_highest_order_down():
+    cfg = AdjustConfig()
+    names = ["f", "cx", "cy", "k1", "k2", "k3"]
+    corr = np.eye(6)
+    corr[4, 5] = corr[5, 4] = 0.985  # k2 and k3 nearly collinear in a narrow field
+    t = np.array([30.0, 40.0, 40.0, 75.0, 0.95, 1.06])  # k2 the less significant of the pair
+    name, why = choose_drop(names, corr, t, cfg)
+    assert name == "k3" and "corr(k2, k3)" in why
+    # no correlation: k2 is not dropped for insignificance while k3 is free, whatever their t values
+    name, why = choose_drop(names, np.eye(6), np.array([30.0, 40.0, 40.0, 75.0, 0.5, 1.5]), cfg)
+    assert name == "k3" and "t = 1.50" in why
+    name, _ = choose_drop(names[:5], np.eye(5), np.array([30.0, 40.0, 40.0, 75.0, 0.5]), cfg)
+    assert name == "k2"
