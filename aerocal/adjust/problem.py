@@ -47,7 +47,8 @@ class AdjustConfig:
       block is adjusted again by least squares, so sigma0 and the covariances describe clean data;
       ``reject_chi2=None`` keeps the robust solution itself.
     * ``estimate_tie_sigma``: with that screening, the tie observations' sigma is multiplied by the square
-      root of the robust variance factor before the least-squares adjustment (default True): a variance
+      root of their variance factor in the robust pass (the mean normalised squared residual of the kept
+      observations over their mean redundancy) before the least-squares adjustment (default True): a variance
       component for the tie points, whose a-priori sigma (``MatchConfig.sigma_px``, 0.5 px) is a guess,
       while GNSS, attitude and GCP sigmas keep their a-priori values. Without it, SIFT tie points three
       times more precise than assumed (rendered conte-city: 0.19 px against the true geometry) give a
