@@ -46,11 +46,12 @@ class AdjustConfig:
       normalised residual exceeds ``reject_chi2`` times the robust variance factor are removed and the
       block is adjusted again by least squares, so sigma0 and the covariances describe clean data;
       ``reject_chi2=None`` keeps the robust solution itself.
-    * ``estimate_tie_sigma``: with that screening, the tie observations' sigma is multiplied by the square
-      root of their variance factor in the robust pass (the mean normalised squared residual of the kept
-      observations over their mean redundancy) before the least-squares adjustment (default True): a variance
-      component for the tie points, whose a-priori sigma (``MatchConfig.sigma_px``, 0.5 px) is a guess,
-      while GNSS, attitude and GCP sigmas keep their a-priori values. Without it, SIFT tie points three
+    * ``estimate_tie_sigma``: with that screening, the tie observations' sigma is estimated from the block
+      (default True): scaled by the square root of their variance factor (mean normalised squared
+      residual over the mean redundancy), first from the robust pass, then from the least-squares
+      adjustment until it changes by less than 5 % (at most 3 rounds, each starting from the last). A
+      variance component for the tie points, whose a-priori sigma (``MatchConfig.sigma_px``, 0.5 px) is
+      a guess; GNSS, attitude and GCP sigmas keep their a-priori values. Without it, SIFT tie points three
       times more precise than assumed (rendered conte-city: 0.19 px against the true geometry) give a
       sigma0 of 0.39 that shrinks every predicted sigma, the GCP measurements' (1 px) included: check
       points then miss their prediction in height by rho 2.4-3.1.
