@@ -387,10 +387,9 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
     With a robust loss (and ``adjust_config.reject_chi2``) the blunders are found by a robust adjustment
     and removed first (:func:`aerocal.adjust.bundle.adjust`, which also estimates the tie observations'
     sigma), then the clean block is diagnosed by least squares: a systematic effect is looked for in the
-    data, not in the mismatches. A block of more than
-    ``config.max_images`` images is diagnosed on its central sub-block (:func:`central_images`; the
-    818-image city flight took over 7 minutes whole, as every accepted effect is refitted several times),
-    and a note says so.
+    data, not in the mismatches. A block of more than ``config.max_images`` images is diagnosed on its
+    central sub-block (:func:`central_images`; the 818-image city flight took over 7 minutes whole, as
+    every accepted effect is refitted several times), and a note says so.
     """
     config = config or DiagnoseConfig()
     sub_note = None
