@@ -9,9 +9,9 @@ After each adjustment one parameter at most is dropped, then the block is adjust
 
 Radial terms go from the highest order down (:data:`RADIAL_ORDER`): k3 r^6 is a correction to k2 r^4,
 not a substitute. In a narrow field the two are nearly collinear, and dropping the less significant of
-the pair removed k2 and kept k3, which then went too: on a rendered conte-city calibration sub-block
-(true k2 0.12, 0.16 px at the corners) the certificate lost its r^4 term and the full block's
-diagnosis found it again as "radial_k3".
+the pair removed k2 and kept k3 (a rendered conte-city calibration sub-block, true k2 0.12: 0.16 px at
+the corners). There k2 alone is not determinable either (t 0.54, correlation 0.954 with k1) and goes
+next, so the certificate lacks it and the full block's diagnosis names the radial signal.
 
 It stops when every remaining parameter is significant and no pair is near-singular. Every decision is
 recorded as one sentence naming the parameters and the numbers.
