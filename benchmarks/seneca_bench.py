@@ -57,10 +57,12 @@ SENSOR_WIDTH_MM = 6.17
 GNSS_SIGMA_M = (2.5, 5.0)
 IMU_SIGMA_DEG = (5.0, 5.0, 10.0)
 QUICK_STRIPS = (0, 2, 4)
-#: SIFT keypoints per image (the default is 8000). Exact matching costs grows with the product of the two
+#: SIFT keypoints per image (the default is 8000). Exact matching costs grow with the product of the two
 #: images' keypoints: on seneca pairs (linear stretch, one core) 0.59 s per pair at 8000 and 0.09 s at 4000
-#: for 52 % of the verified matches; the 2276 candidate footprint pairs take 11 minutes on two workers at
-#: 8000 and under 2 at 4000, and 4000 keypoints still give hundreds of matches per neighbouring pair.
+#: for 52 % of the verified matches, so the 2276 candidate footprint pairs need about 11 minutes of two
+#: workers at 8000 and under 2 at 4000 (estimated from those per-pair times; the whole match step, SIFT
+#: included, took 428 s at 4000 with the test suite sharing the cores). 4000 keypoints still give
+#: hundreds of matches per neighbouring pair.
 MAX_FEATURES = 4000
 #: an image with fewer tie points than this in the block adjustment is named in the results
 WEAK_TIE_POINTS = 50
