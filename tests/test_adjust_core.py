@@ -181,6 +181,9 @@ def test_structured_schur_complement_equals_the_sparse_products(free):
         dc = np.random.default_rng(seed).normal(size=S0.shape[0])
         back0 = np.asarray(Hcp0.T @ dc).ravel()
         assert np.allclose(Hcp1.T @ dc, back0, rtol=1e-9, atol=1e-9 * np.abs(back0).max()), f"seed {seed}"
+        dp = np.random.default_rng(seed + 1).normal(size=Hcp0.shape[1])
+        fwd0 = np.asarray(Hcp0 @ dp).ravel()
+        assert np.allclose(Hcp1 @ dp, fwd0, rtol=1e-9, atol=1e-9 * np.abs(fwd0).max()), f"seed {seed}"
         assert sp.issparse(Hcp0)
 
 

@@ -380,7 +380,11 @@ def _tie_variance_factor(result: AdjustmentResult, observations: pa.Table) -> fl
     s = s[np.isfinite(s)]
     if not len(s):
         return 1.0
-    redundancy = float(np.clip(result.dof / (2.0 * len(s)), 0.1, 1.0))
+    return _mean_variance_factor(s, float(np.clip(result.dof / (2.0 * len(s)), 0.1, 1.0)))
+
+
+def _mean_variance_factor(s: np.ndarray, redundancy: float) -> float:
+    """Mean of the normalised squared residuals ``s`` (2 components each) over the mean redundancy."""
     return max(float(np.mean(s)) / 2.0 / redundancy, 1e-12)
 
 
@@ -448,14 +452,14 @@ def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tupl
     # residuals, not the median: redundancy differs between observations (two-ray tracks have less), so the
     # median under-reads it (by 10-20 % in variance on conte-calibration, sigma0 1.11 after re-weighting)
     clean = kept[np.isfinite(s[kept])]
-    variance = float(np.mean(s[clean])) / 2.0 / redundancy if len(clean) else scale
+    variance = _mean_variance_factor(s[clean], redundancy) if len(clean) else scale
     why = (
         f"rejected {int(bad.sum())} of {len(s)} tie observations as blunders after a robust "
         f"({first.config.robust_loss}) pass: normalised squared residual above {chi2:g} x the robust "
         f"variance factor {scale:.3f} (sigma0 {np.sqrt(scale):.3f}); {int(lone.sum())} more left alone in "
         "their tracks; the block was then adjusted by least squares"
     )
-    return kept, why, max(variance, 1e-12)
+    return kept, why, variance
 
 
 __all__ = ["PARAM_NAMES", "AdjustConfig", "AdjustmentResult", "adjust", "scale_tie_sigma"]

@@ -363,7 +363,6 @@ def _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, b: ObsBlocks):
             S_ii[uk // N, :, uk % N, :] -= acc.reshape(-1, 6, 6)
     if ng:
         S[ng:, ng:] = S_ii.reshape(6 * N, 6 * N)
-    if ng:
         # global columns: their rows of Hcp are few, general sparse products are cheap
         Hcp_g = (Jc[:, :ng].T @ Jp).toarray().reshape(ng, P, 3)  # (ng, P, 3)
         Tg = np.einsum("gpi,pij->gpj", Hcp_g, Hpp_inv)  # (ng, P, 3): Hcp_g Hpp^-1
@@ -387,32 +386,22 @@ def _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, b: ObsBlocks):
             out += np.einsum("gpj,g->pj", Hcp_g, dc[:ng])
         return out.ravel()
 
-    Hcp = _TransposeOnly(hcp_t, (Hcc.shape[0], 3 * P))
+    def hcp(dp: np.ndarray) -> np.ndarray:
+        """``Hcp dp`` (n_camera,): per image, the sum over its observations of ``W_m dp_point``."""
+        dp = np.asarray(dp, dtype=float).reshape(P, 3)
+        out = np.zeros(Hcc.shape[0])
+        out[ng:] = _sum_by(b.image, np.einsum("mij,mj->mi", W, dp[b.point]), N).ravel()
+        if ng:
+            out[:ng] = np.einsum("gpj,pj->g", Hcp_g, dp)
+        return out
+
+    Hcp = spla.LinearOperator((Hcc.shape[0], 3 * P), matvec=hcp, rmatvec=hcp_t, dtype=float)
     return S, rhs, Hpp_inv, Hcp, gp
 
 
 def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """``out[k]``: the sum of ``values[index == k]`` for (M, c) values: (n, c), one ``bincount`` per column."""
     return np.stack([np.bincount(index, weights=values[:, c], minlength=n) for c in range(values.shape[1])], 1)
-
-
-class _TransposeOnly:
-    """``Hcp`` of the structured Schur complement: only ``Hcp.T @ dc`` is ever needed (back-substitution)."""
-
-    def __init__(self, rmatvec, shape: tuple[int, int]) -> None:
-        self._rmatvec, self.shape = rmatvec, shape
-
-    @property
-    def T(self):
-        return _Applied(self._rmatvec)
-
-
-class _Applied:
-    def __init__(self, fn) -> None:
-        self._fn = fn
-
-    def __matmul__(self, v: np.ndarray) -> np.ndarray:
-        return self._fn(v)
 
 
 # The reduced camera system is Jacobi-scaled, then factorised with SuperLU (single-threaded): on this
