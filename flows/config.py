@@ -6,7 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
-from aerocal.adjust import AdjustConfig
+from aerocal.adjust import AdjustConfig, ThinningConfig
 from tasks.block import BlockStepConfig
 from tasks.calibration import CalibrationStepConfig
 from tasks.flight import IngestStepConfig, MatchStepConfig, OrientStepConfig
@@ -30,6 +30,10 @@ class ProcessConfig:
       matching ("huber", default: a few wrong matches survive geometric verification and, unweighted,
       can make a tie point's normal matrix singular); observations given by the flight keep the
       adjustment configurations' own loss.
+    * ``matched_tie_thinning``: :class:`aerocal.adjust.thinning.ThinningConfig` of the adjustments (and the
+      diagnosis) when the observations come from image matching (default: its defaults, 4 tracks per cell
+      of 8 x 6 per image; ``None``: every track adjusted). The tracks left out are intersected afterwards
+      from the adjusted poses, so the DSM still gets every tie point (:attr:`AdjustConfig.tie_thinning`).
     * ``diagnose``: :class:`aerocal.diagnose.engine.DiagnoseConfig` (``None``: its defaults, the reference
       temperature from the certificate's thermal model).
     """
@@ -45,6 +49,7 @@ class ProcessConfig:
     max_certificate_age_days: float | None = None
     use_flight_sigmas: bool = True
     matched_robust_loss: str = "huber"
+    matched_tie_thinning: ThinningConfig | None = field(default_factory=ThinningConfig)
 
     def to_json(self) -> dict:
         """The configuration as plain JSON (what a run records)."""

@@ -9,6 +9,7 @@ from aerocal.adjust.bundle import AdjustmentResult, adjust, scale_tie_sigma
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError
 from aerocal.adjust.strategy import STRATEGIES, StrategyResult, adjust_fixed_io, run_strategy, select_images
 from aerocal.adjust.thermal import ThermalFit, fit_thermal_model, thermal_certificate
+from aerocal.adjust.thinning import ThinningConfig, thin_tracks
 
 __all__ = [
     "STRATEGIES",
@@ -17,6 +18,7 @@ __all__ = [
     "AdjustmentResult",
     "StrategyResult",
     "ThermalFit",
+    "ThinningConfig",
     "adjust",
     "adjust_fixed_io",
     "fit_thermal_model",
@@ -24,4 +26,5 @@ __all__ = [
     "scale_tie_sigma",
     "select_images",
     "thermal_certificate",
+    "thin_tracks",
 ]

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from aerocal import tables
 from aerocal.adjust.covariance import (
@@ -25,11 +26,12 @@ from aerocal.adjust.covariance import (
     triangulate_check_points,
 )
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block, build_block
-from aerocal.adjust.projection import IDX, THERMAL_PARAMS
+from aerocal.adjust.projection import IDX, THERMAL_PARAMS, project
 from aerocal.adjust.selection import select_parameters
 from aerocal.adjust.solver import MIN_DEPTH_FRACTION, Problem, Solution, State, solve
-from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
-from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
+from aerocal.adjust.thinning import ThinningConfig, thin_tracks
+from aerocal.adjust.triangulate import pixels_to_rays, refine_points, triangulate_linear
+from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel, correct_measurements
 from aerocal.geometry import matrix_from_quat_wxyz, quat_wxyz_from_matrix
 
 
@@ -293,6 +295,13 @@ def adjust(
     block re-adjusted; ``result.selection`` says why each was dropped.
     """
     config = config or AdjustConfig()
+    if config.tie_thinning is not None and config.tie_thinning.per_cell:
+        used = thin_tracks(observations, camera.width, camera.height, config.tie_thinning)
+        inner = adjust(images, observations.take(pa.array(used, pa.int64())), camera,
+                       dataclasses.replace(config, tie_thinning=None), gcps, gcp_observations,
+                       thermal_correction, initial_poses)
+        return _intersect_left_out(inner, images, observations, used, camera, thermal_correction,
+                                   config.tie_thinning)
     n_rows = observations.num_rows
     kept = np.arange(n_rows)
     tie_scale = 1.0
@@ -393,6 +402,100 @@ def scale_tie_sigma(observations: pa.Table, factor: float) -> pa.Table:
     i = observations.schema.get_field_index("sigma")
     sigma = observations.column("sigma").to_numpy(zero_copy_only=False) * factor
     return observations.set_column(i, observations.schema.field(i), pa.array(sigma.astype(np.float32)))
+
+
+def _intersect_left_out(
+    inner: AdjustmentResult,
+    images: pa.Table,
+    observations: pa.Table,
+    used: np.ndarray,
+    camera: Camera,
+    thermal_correction: LinearThermalModel | None,
+    thinning: ThinningConfig,
+) -> AdjustmentResult:
+    """``inner`` (the adjustment of the rows ``used`` of ``observations``) completed with the tracks that
+    thinning left out: each is intersected from the adjusted poses and IO held fixed (linear, then
+    Gauss-Newton on the reprojection error, :mod:`aerocal.adjust.triangulate`).
+
+    Their residuals fill the result's ``residuals``; their ``obs_weight`` is NaN (not in the block). An
+    observation whose normalised squared residual, with the block's estimate of the tie sigma, exceeds
+    ``reject_chi2`` gets weight 0 (a blunder) and its track is not added to ``points``. ``selection`` says
+    how many tracks were adjusted and how many intersected.
+    """
+    n_rows = observations.num_rows
+    res = np.full((n_rows, 2), np.nan)
+    res[used] = inner.residuals
+    weight = np.full(n_rows, np.nan)
+    weight[used] = inner.obs_weight
+    rest = np.setdiff1d(np.arange(n_rows), used)
+    n_tracks = len(np.unique(observations.column("track_id").to_numpy()))
+    n_used = inner.points.num_rows
+    added = flagged = 0
+    if len(rest):
+        from aerocal.orient import poses_arrays
+
+        obs = observations.take(pa.array(rest, pa.int64()))
+        p_ids, R, C = poses_arrays(inner.poses)
+        origin = C.mean(axis=0)  # local frame: projected coordinates are ~1e6 m
+        C = C - origin
+        where = {int(k): n for n, k in enumerate(p_ids)}
+        img = np.array([where.get(int(k), -1) for k in obs.column("image_id").to_numpy()])
+        track_ids, j = np.unique(obs.column("track_id").to_numpy().astype(np.int64), return_inverse=True)
+        uv = np.column_stack([obs.column(c).to_numpy(zero_copy_only=False) for c in ("x", "y")]).astype(float)
+        sigma = obs.column("sigma").to_numpy(zero_copy_only=False).astype(float) * inner.tie_sigma_scale
+        ids = images.column("image_id").to_numpy()
+        temp = dict(zip(ids.tolist(), images.column("temperature_c").to_numpy(zero_copy_only=False).tolist(),
+                        strict=True))
+        T = np.array([temp[int(k)] for k in obs.column("image_id").to_numpy()], dtype=float)
+        if thermal_correction is not None:
+            uv = correct_measurements(camera, uv, T, thermal_correction)
+        th = inner.thermal if isinstance(inner.thermal, LinearThermalModel) else None
+        slopes = np.array([th.df_dt, th.dcx_dt, th.dcy_dt]) if th is not None else np.zeros(3)
+        dtemp = np.nan_to_num(T - inner.t0) if th is not None else np.zeros(len(T))
+        io = inner.camera.params()
+        posed = img >= 0
+        ok_track = np.ones(len(track_ids), bool)
+        np.logical_and.at(ok_track, j, posed)
+        i_safe = np.where(posed, img, 0)
+        rays = pixels_to_rays(io, slopes, dtemp, R[i_safe], uv)
+        X, ok = triangulate_linear(j, len(track_ids), C[i_safe], rays)
+        ok &= ok_track
+        Xs = np.nan_to_num(X[j])
+        depth = np.einsum("mk,mk->m", R[i_safe][:, 2], Xs - C[i_safe])
+        typical = np.median(depth[depth > 0]) if (depth > 0).any() else 0.0
+        np.logical_and.at(ok, j, depth > MIN_DEPTH_FRACTION * typical)
+        X, _ = refine_points(io, slopes, dtemp, R[i_safe], C[i_safe], j, uv, sigma, np.where(ok[:, None], X, 0.0))
+        r = project(io, slopes, dtemp, R[i_safe], C[i_safe], X[j], jacobians=False).uv - uv
+        good_obs = ok[j] & np.isfinite(r).all(axis=1)
+        res[rest[good_obs]] = r[good_obs]
+        chi2 = inner.config.reject_chi2
+        if chi2 is not None:
+            s = np.sum(r**2, axis=1) / sigma**2
+            bad = good_obs & (s > chi2)
+            weight[rest[bad]] = 0.0
+            flagged = int(bad.sum())
+            np.logical_and.at(ok, j, ~bad)
+        keep = ok & np.isfinite(X).all(axis=1)
+        err = np.linalg.norm(np.where(good_obs[:, None], r, 0.0), axis=1)
+        n_obs = np.bincount(j, minlength=len(track_ids))
+        mean_err = np.bincount(j, weights=err, minlength=len(track_ids)) / np.maximum(n_obs, 1)
+        X = X + origin
+        extra = tables.from_columns("points", {
+            "track_id": track_ids[keep], "X": X[keep, 0], "Y": X[keep, 1], "Z": X[keep, 2],
+            "n_obs": n_obs[keep].astype(np.int32), "error": mean_err[keep],
+        }, crs=inner.crs)
+        added = int(keep.sum())
+        points = pa.concat_tables([inner.points, extra.cast(inner.points.schema)])
+        inner.points = points.take(pc.sort_indices(points, [("track_id", "ascending")]))
+    inner.residuals, inner.obs_weight = res, weight
+    inner.selection = [
+        f"tie points thinned: {n_used} of {n_tracks} tracks adjusted ({len(used)} of {n_rows} observations: "
+        f"the {thinning.per_cell} tracks with the most rays in each cell of {thinning.grid[0]} x "
+        f"{thinning.grid[1]} per image); {added} more intersected afterwards from the adjusted poses and IO"
+        + (f", {flagged} of their observations rejected as blunders (normalised squared residual above "
+           f"{inner.config.reject_chi2:g})" if inner.config.reject_chi2 is not None else "")
+    ] + inner.selection
+    return inner
 
 
 def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
