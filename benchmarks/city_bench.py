@@ -19,6 +19,7 @@ Run: ``python -m benchmarks.city_bench`` (``--frames N``: only the N frames near
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -54,6 +55,17 @@ def rendered_flight(preset: str = "conte-city", seed: int = 0) -> Path:
             print(f"rendered {done}/{total} frames ({time.perf_counter() - t0:.0f} s)", flush=True)
 
     return write_flight(sim, out, mode="images", progress=progress)
+
+
+@contextlib.contextmanager
+def scratch_folder(prefix: str):
+    """A temporary folder beside the cached frames (so hard links to them work), removed on exit."""
+    DATA.mkdir(parents=True, exist_ok=True)
+    work = Path(tempfile.mkdtemp(prefix=prefix, dir=DATA))
+    try:
+        yield work
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
 
 
 def subset_folder(folder: Path, n: int, work: Path) -> Path:
@@ -200,10 +212,8 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--parts mosaic needs e2e (it mosaics from the end-to-end run's poses and DSM)")
     from flows.environment import quiet_prefect
 
-    DATA.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix="work-", dir=DATA))  # beside the cached frames: hard links work
-    quiet_prefect(work / "prefect")
-    try:
+    with scratch_folder("work-") as work:
+        quiet_prefect(work / "prefect")
         full = args.source or rendered_flight()
         folder = subset_folder(full, args.frames, work) if args.frames else full
         n = len(list((folder / "images").iterdir()))
@@ -268,8 +278,6 @@ def main(argv: list[str] | None = None) -> None:
                       "| workers | time |", "|---|---|"] + [f"| {w} | {s:.1f} s |" for w, s in mos.items()]
             lines += ["", f"- speed-up 2 vs 1 workers: {mos[1] / mos[2]:.2f}x", ""]
         record("City scale: conte-city rendered, end to end", lines)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ Both pipelines run in this process, one after the other, on the same frames, GCP
   footprint pairs, verification, tracks), ``orient_from_priors``, then the adjustments of
   ``process_flight``: self-calibration on the calibration sub-block (the whole block up to 44 images)
   and the full-block adjustment with that IO fixed, GNSS/IMU priors and control GCPs weighted, Huber
-  loss with blunder screening. Check-point errors come from the block adjustment.
+  loss with blunder screening, tie tracks thinned as the flow does for matched flights (the others
+  intersected afterwards). Check-point errors come from the block adjustment.
 
 The one departure from COLMAP's defaults is the spatial matcher's ``max_distance``: its default, 100 m,
 keeps only the next frame of a strip on this flight (frames ~98 m apart at 850 m, strips ~280 m apart);
@@ -38,15 +39,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.city_bench import DATA, rendered_flight, subset_folder
+from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
 from benchmarks.common import record
 
 AXES = ("E", "N", "Up")
@@ -331,8 +330,10 @@ def run_aerocal(folder: Path) -> PipelineRun:
         orient_from_priors(images)
     cal_cfg = with_flight_sigmas(config.calibration.adjust, flight)
     blk_cfg = with_flight_sigmas(config.block.adjust, flight)
-    cal_cfg = dataclasses.replace(cal_cfg, robust_loss=config.matched_robust_loss)
-    blk_cfg = dataclasses.replace(blk_cfg, robust_loss=config.matched_robust_loss)
+    cal_cfg = dataclasses.replace(cal_cfg, robust_loss=config.matched_robust_loss,
+                                  tie_thinning=config.matched_tie_thinning)
+    blk_cfg = dataclasses.replace(blk_cfg, robust_loss=config.matched_robust_loss,
+                                  tie_thinning=config.matched_tie_thinning)
     with clock("self-calibration (sub-block)"):
         if images.num_rows <= config.calibration.whole_flight_max_images:
             ids = images.column("image_id").to_pylist()
@@ -413,10 +414,8 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     from flows.environment import quiet_prefect
 
-    DATA.mkdir(parents=True, exist_ok=True)
-    work = Path(tempfile.mkdtemp(prefix="work-colmap-", dir=DATA))  # beside the cached frames: hard links
-    quiet_prefect(work / "prefect")
-    try:
+    with scratch_folder("work-colmap-") as work:
+        quiet_prefect(work / "prefect")
         full = args.source or rendered_flight()
         folder = subset_folder(full, args.frames, work) if args.frames else full
         n = len(list((folder / "images").iterdir()))
@@ -439,8 +438,6 @@ def main(argv: list[str] | None = None) -> None:
                  "them, its default); the flight's records (image list, GNSS, GCPs) read untimed",
                  f"- benchmark wall time {wall:.0f} s", ""]
         record("COLMAP comparison: pycolmap's pipeline vs aerocal on rendered conte-city frames", lines)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":
