@@ -14,8 +14,8 @@ Both pipelines run in this process, one after the other, on the same frames, GCP
   footprint pairs, verification, tracks), ``orient_from_priors``, then the adjustments of
   ``process_flight``: self-calibration on the calibration sub-block (the whole block up to 44 images)
   and the full-block adjustment with that IO fixed, GNSS/IMU priors and control GCPs weighted, Huber
-  loss with blunder screening, tie tracks thinned as the flow does for matched flights (the others
-  intersected afterwards). Check-point errors come from the block adjustment.
+  loss with blunder screening, the block's tie tracks thinned as the flow does for matched flights (the
+  others intersected afterwards). Check-point errors come from the block adjustment.
 
 The one departure from COLMAP's defaults is the spatial matcher's ``max_distance``: its default, 100 m,
 keeps only the next frame of a strip on this flight (frames ~98 m apart at 850 m, strips ~280 m apart);
@@ -330,8 +330,7 @@ def run_aerocal(folder: Path) -> PipelineRun:
         orient_from_priors(images)
     cal_cfg = with_flight_sigmas(config.calibration.adjust, flight)
     blk_cfg = with_flight_sigmas(config.block.adjust, flight)
-    cal_cfg = dataclasses.replace(cal_cfg, robust_loss=config.matched_robust_loss,
-                                  tie_thinning=config.matched_tie_thinning)
+    cal_cfg = dataclasses.replace(cal_cfg, robust_loss=config.matched_robust_loss)
     blk_cfg = dataclasses.replace(blk_cfg, robust_loss=config.matched_robust_loss,
                                   tie_thinning=config.matched_tie_thinning)
     with clock("self-calibration (sub-block)"):

@@ -135,7 +135,6 @@ def _process(
             cal_cfg = dataclasses.replace(cal_cfg, robust_loss=config.matched_robust_loss)
             blk_cfg = dataclasses.replace(blk_cfg, robust_loss=config.matched_robust_loss)
         if not observations_mode(flight_dir) and config.matched_tie_thinning is not None:
-            cal_cfg = dataclasses.replace(cal_cfg, tie_thinning=config.matched_tie_thinning)
             blk_cfg = dataclasses.replace(blk_cfg, tie_thinning=config.matched_tie_thinning)
         session.commit()
     _record_configuration(ctx, config, certificate, flight_dir, out_dir, dask_address, cal_cfg, blk_cfg)
