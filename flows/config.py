@@ -37,7 +37,7 @@ class ProcessConfig:
       The self-calibration and the diagnosis adjust every track: on the real seneca flight the thinned
       calibration sub-block lost the focal length's temperature slope (t 0.7 instead of 7.0) and its
       certificate moved 43 px in f; a certificate serves many flights, so its precision is worth the
-      seconds (52 s against 10 s there).
+      seconds (33 s against 10 s there, same machine, idle).
     * ``diagnose``: :class:`aerocal.diagnose.engine.DiagnoseConfig` (``None``: its defaults, the reference
       temperature from the certificate's thermal model).
     """
