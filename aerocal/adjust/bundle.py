@@ -125,6 +125,22 @@ def _drop_points(block: Block, keep: np.ndarray) -> Block:
     )
 
 
+def _intersect_in_front(
+    point_idx: np.ndarray, n_points: int, R: np.ndarray, C: np.ndarray, rays: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rays intersected per point (:func:`triangulate_linear`; per-observation ``R``, ``C``, ``rays``) and
+    the mask of points that lie in front of every camera seeing them, not closer to one than
+    ``MIN_DEPTH_FRACTION`` of the median depth."""
+    X, ok = triangulate_linear(point_idx, n_points, C, rays)
+    if ok.any():
+        depth = np.einsum("mk,mk->m", R[:, 2], np.nan_to_num(X[point_idx]) - C)
+        typical = np.median(depth[depth > 0]) if (depth > 0).any() else 0.0
+        front = np.ones(n_points, bool)
+        np.logical_and.at(front, point_idx, depth > MIN_DEPTH_FRACTION * typical)
+        ok &= front
+    return X, ok
+
+
 def initial_state(block: Block, camera: Camera) -> tuple[Block, State]:
     """Poses from the recorded GNSS/IMU, tie points triangulated, control GCPs at their surveyed position."""
     io = camera.params()
@@ -132,16 +148,7 @@ def initial_state(block: Block, camera: Camera) -> tuple[Block, State]:
     i, j = block.obs_image, block.obs_point
     tie = block.obs_is_tie
     rays = pixels_to_rays(io, slopes, np.zeros(int(tie.sum())), block.R_rec[i[tie]], block.obs_uv[tie])
-    X, ok = triangulate_linear(j[tie], block.n_tie, block.gnss[i[tie]], rays)
-    # points must lie in front of every camera that sees them, and not implausibly close to one
-    if ok.any():
-        depth = np.einsum(
-            "mk,mk->m", block.R_rec[i[tie]][:, 2], np.nan_to_num(X[j[tie]]) - block.gnss[i[tie]]
-        )
-        typical = np.median(depth[depth > 0]) if (depth > 0).any() else 0.0
-        front = np.ones(block.n_tie, bool)
-        np.logical_and.at(front, j[tie], depth > MIN_DEPTH_FRACTION * typical)
-        ok &= front
+    X, ok = _intersect_in_front(j[tie], block.n_tie, block.R_rec[i[tie]], block.gnss[i[tie]], rays)
     keep = np.concatenate([ok, np.ones(len(block.control_ids), bool)])
     if not ok.any():
         raise AdjustmentError("observations: no tie track could be triangulated from the recorded poses")
@@ -458,12 +465,8 @@ def _intersect_left_out(
         np.logical_and.at(ok_track, j, posed)
         i_safe = np.where(posed, img, 0)
         rays = pixels_to_rays(io, slopes, dtemp, R[i_safe], uv)
-        X, ok = triangulate_linear(j, len(track_ids), C[i_safe], rays)
+        X, ok = _intersect_in_front(j, len(track_ids), R[i_safe], C[i_safe], rays)
         ok &= ok_track
-        Xs = np.nan_to_num(X[j])
-        depth = np.einsum("mk,mk->m", R[i_safe][:, 2], Xs - C[i_safe])
-        typical = np.median(depth[depth > 0]) if (depth > 0).any() else 0.0
-        np.logical_and.at(ok, j, depth > MIN_DEPTH_FRACTION * typical)
         X, _ = refine_points(io, slopes, dtemp, R[i_safe], C[i_safe], j, uv, sigma, np.where(ok[:, None], X, 0.0))
         r = project(io, slopes, dtemp, R[i_safe], C[i_safe], X[j], jacobians=False).uv - uv
         good_obs = ok[j] & np.isfinite(r).all(axis=1)

@@ -59,8 +59,8 @@ class AdjustConfig:
     * ``tie_thinning``: adjust a thinned set of the tie tracks (:class:`~aerocal.adjust.thinning.ThinningConfig`:
       the tracks with the most rays, a few per cell of a grid over every image), then intersect the
       others with the adjusted poses and IO held fixed, so the points table and the residuals still cover
-      every track. Default ``None`` (every track adjusted); the flow thins matched flights
-      (``ProcessConfig.matched_tie_thinning``). On the 100 central frames of the rendered conte-city
+      every track. Default ``None`` (every track adjusted); the flow thins the block adjustment of
+      matched flights (``ProcessConfig.matched_tie_thinning``). On the 100 central frames of the rendered conte-city
       flight, 4 tracks per cell of 8 x 6 keep 27 % of the observations: the self-calibration of the
       44-image sub-block takes 4.5 s instead of 11.5 s and the fixed-IO block 3.7 s instead of 6.2 s (the
       intersection of the other tracks included); check-point RMSE 0.385 / 0.473 / 2.169 m (E / N / Up)
