@@ -44,41 +44,73 @@ class Effect:
     depends_on: tuple[str, ...]  # metadata the effect varies with
     description: str
     switch: bool = False  # True: the value is on/off (1.0 / 0.0)
+    # the largest magnitude a real instrument can have, per value, in ``units`` once scaled to the camera
+    # (``scale``: "focal" = times the focal length in pixels; "corner_r6" = divided by r^6 at the image
+    # corner, normalised coordinates, i.e. the r^6 term moves the corner by that fraction of its radius): an
+    # estimate beyond it is a symptom of another cause, not this effect
+    plausible: float = math.inf
+    scale: str = ""
 
     @property
     def size(self) -> int:
         return len(self.labels)
 
 
+#: Plausible sizes (``Effect.plausible``), the largest a real survey instrument shows:
+#: * thermal focal / principal-point drift 0.2 % of f per degC: ten times a non-athermalised germanium
+#:   singlet's 5 um/degC on 39 mm (NOTES: 0.013 %/degC), twenty times a compact's;
+#: * rolling-shutter readout 0.1 s (CMOS frames read in 10-80 ms); boresight 3 deg (a mounting tilt);
+#: * lever arm 2 m (antenna to camera on drones and survey aircraft); GNSS time offset 2 s;
+#: * GNSS bias 100 m (a height read against the ellipsoid instead of the geoid is at most ~100 m off);
+#: * affinity/skew 0.5 % of f; a k3 term that moves the image corners by 5 % of their radius (k3 in
+#:   normalised coordinates is large for a narrow lens: 8 moves a 640x480 corner at f 1668 px by 0.6 px).
 CATALOGUE: dict[str, Effect] = {
     e.name: e
     for e in (
         Effect("thermal_focal", "px/degC", ("df_dT",), "interior", ("temperature",),
-               "focal length changes linearly with sensor temperature"),
+               "focal length changes linearly with sensor temperature",
+               plausible=2e-3, scale="focal"),
         Effect("thermal_principal_point", "px/degC", ("dcx_dT", "dcy_dT"), "interior", ("temperature",),
-               "principal point moves linearly with sensor temperature"),
+               "principal point moves linearly with sensor temperature",
+               plausible=2e-3, scale="focal"),
         Effect("rolling_shutter", "s", ("readout",), "interior", ("image row", "velocity"),
-               "rows are read out one after the other while the camera moves"),
+               "rows are read out one after the other while the camera moves", plausible=0.1),
         Effect("boresight", "deg", ("about_x", "about_y", "about_z"), "exterior", ("attitude",),
-               "misalignment between the IMU and the camera axes"),
+               "misalignment between the IMU and the camera axes", plausible=3.0),
         Effect("lever_arm", "m", ("x", "y", "z"), "exterior", ("attitude", "flight direction"),
-               "unmodelled offset between the GNSS antenna and the projection centre (camera frame)"),
+               "unmodelled offset between the GNSS antenna and the projection centre (camera frame)",
+               plausible=2.0),
         Effect("gnss_bias", "m", ("east", "north", "up"), "exterior", (),
-               "constant offset of the recorded positions (datum or height reference)"),
+               "constant offset of the recorded positions (datum or height reference)", plausible=100.0),
         Effect("gnss_time_offset", "s", ("dt",), "exterior", ("velocity", "flight direction"),
-               "clock offset between camera and GNSS: positions shifted along the track"),
+               "clock offset between camera and GNSS: positions shifted along the track", plausible=2.0),
         Effect("affinity_skew", "px", ("b1", "b2"), "interior", ("image position",),
-               "affinity (different x and y scale) and skew of the pixel grid"),
+               "affinity (different x and y scale) and skew of the pixel grid", plausible=5e-3, scale="focal"),
         Effect("radial_k3", "1", ("k3",), "interior", ("radius",),
-               "unmodelled third radial distortion term (r^6)"),
+               "unmodelled third radial distortion term (r^6)", plausible=0.05,
+               scale="corner_r6"),
         Effect("refraction", "on/off", ("on",), "atmosphere", ("radius", "flying height"),
-               "standard-atmosphere refraction: radial displacement outwards", switch=True),
+               "standard-atmosphere refraction: radial displacement outwards", switch=True, plausible=1.0),
     )
 }
 
 
 class EffectError(ValueError):
     """An effect given by the user is unknown or malformed; the message lists the valid choices."""
+
+
+def plausible_size(name: str, f_px: float, corner_radius_px: float | None = None) -> float:
+    """The largest plausible magnitude of each value of effect ``name`` for a camera of focal length ``f_px``
+    pixels whose image corners lie ``corner_radius_px`` from the principal point (needed for ``radial_k3``),
+    in the effect's units (``math.inf`` when the catalogue sets no bound)."""
+    e = CATALOGUE[name]
+    if e.scale == "focal":
+        return e.plausible * f_px
+    if e.scale == "corner_r6":
+        if not corner_radius_px:
+            return math.inf
+        return e.plausible / (corner_radius_px / f_px) ** 6
+    return e.plausible
 
 
 def parse_effect(text: str) -> tuple[str, tuple[float, ...]]:

@@ -147,6 +147,58 @@ def _predict(
     return dict(zip(names, np.sqrt(np.maximum(np.diag(cov)[:ng], 0.0)).tolist(), strict=True)), gids
 
 
+def terrain_plane(images: pa.Table, gcps: pa.Table | None, cfg: SubsetConfig) -> float | None:
+    """Height (world metres) of the synthetic tie plane: ``cfg.terrain_height_m``, else the mean Z of the
+    GCPs, else the mean GNSS height minus ``cfg.height_agl_m``; ``None`` when none of them is known."""
+    if cfg.terrain_height_m is not None:
+        return float(cfg.terrain_height_m)
+    if gcps is not None and gcps.num_rows:
+        return float(np.mean(gcps.column("Z").to_numpy()))
+    if cfg.height_agl_m is not None:
+        z = images.column("gnss_z").to_numpy(zero_copy_only=False).astype(float)
+        if np.isfinite(z).any():
+            return float(np.nanmean(z)) - float(cfg.height_agl_m)
+    return None
+
+
+def predict_io_sigmas(
+    images: pa.Table, camera: Camera, gcps: pa.Table | None = None, config: SubsetConfig | None = None,
+    image_ids: list[int] | None = None,
+) -> dict[str, float] | None:
+    """Predicted standard deviations (pixels; slopes pixels per degC) of the self-calibration's global
+    parameters on a block of ``image_ids`` (default every image), from its geometry alone: the recorded
+    poses, a synthetic tie grid on the terrain plane seen with ``camera``, the GNSS and GCP weights of
+    ``config.adjust`` (see the module docstring). ``None`` when the terrain height is unknown."""
+    cfg = config or SubsetConfig()
+    z_plane = terrain_plane(images, gcps, cfg)
+    if z_plane is None:
+        return None
+    ids = [int(i) for i in (image_ids if image_ids is not None else images.column("image_id").to_pylist())]
+    sig, _ = _predict(images, camera, ids, gcps, cfg, z_plane)
+    return sig
+
+
+def central_images(images: pa.Table, n: int) -> np.ndarray:
+    """Image ids of the ``n`` images whose recorded positions lie nearest the block's median position
+    (the first ``n`` ids when positions are missing).
+
+    A square of a block flown in parallel strips holds a stretch of every strip, so the sub-block spans
+    the flight's whole time and sensor-temperature range (what thermal and time hypotheses need) and
+    keeps the strips' overlaps; a corridor keeps its middle stretch.
+    """
+    ids = images.column("image_id").to_numpy()
+    if len(ids) <= n:
+        return ids
+    x = images.column("gnss_x").to_numpy(zero_copy_only=False).astype(float)
+    y = images.column("gnss_y").to_numpy(zero_copy_only=False).astype(float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < n:
+        return np.sort(ids)[:n]
+    d = np.hypot(x - np.median(x[ok]), y - np.median(y[ok]))
+    d[~ok] = np.inf
+    return np.sort(ids[np.argsort(d, kind="stable")[:n]])
+
+
 def _empty_obs() -> pa.Table:
     from aerocal import tables
 
@@ -168,13 +220,8 @@ def propose_subset(
     transv = [s for s in dirs if s not in parallel]
     offset = {s: float(np.median(C[strip == s, :2] - centre, axis=0) @ across) for s in parallel}
     parallel.sort(key=lambda s: offset[s])
-    if cfg.terrain_height_m is not None:
-        z_plane = cfg.terrain_height_m
-    elif gcps is not None and gcps.num_rows:
-        z_plane = float(np.mean(gcps.column("Z").to_numpy()))
-    elif cfg.height_agl_m is not None:
-        z_plane = float(np.mean(C[:, 2])) - cfg.height_agl_m
-    else:
+    z_plane = terrain_plane(images, gcps, cfg)
+    if z_plane is None:
         raise ValueError(
             "propose_subset needs the terrain height: give gcps, SubsetConfig.terrain_height_m "
             "or SubsetConfig.height_agl_m"

@@ -37,12 +37,41 @@ from aerocal.camera import Camera, LinearThermalModel
 from aerocal.diagnose import hypotheses as hyp
 from aerocal.diagnose.model import Baseline, Conditional, check_rmse, fit_baseline, linearise, reduce, refit
 from aerocal.effects import CATALOGUE
+from aerocal.subset import central_images
 
 #: A switch effect (refraction) has a known size: on = 1. An estimate further than this many sigmas from
 #: 1 is a signal of the effect's shape but not the effect, and is not named. Measured on a rendered,
 #: effect-free conte-city block of 150 frames: "refraction" came out at 216 +- 36, the signature of a
 #: focal length 2 px (1.3 certificate sigmas) off the truth at a constant flying height.
 SWITCH_TOLERANCE_SIGMA = 4.0
+
+
+#: An effect is testable on a block only when every parameter's sigma is at most this fraction of its
+#: plausible size (:func:`aerocal.diagnose.hypotheses.plausible`): per-strip IO with sigmas of 40-560 px on a
+#: real block without GCPs (plausible: 12 px) says nothing about the camera.
+DETERMINED_FRACTION = 1.0 / 3.0
+
+
+def physical_verdict(e: Evidence, camera: Camera, ctx: hyp.Context) -> str | None:
+    """``None`` when hypothesis ``e`` can be named on physical grounds; else why not: "not determined" (its
+    sigma is large against its plausible size) or "beyond physical size" (its estimate exceeds any real
+    instrument's, e.g. a lever arm of tens of metres: a symptom of another cause)."""
+    if not e.estimate or CATALOGUE.get(e.name, None) is not None and CATALOGUE[e.name].switch:
+        return None
+    size = hyp.plausible(e.name, camera, ctx)
+    theta, sigma = np.abs(np.asarray(e.estimate, dtype=float)), np.asarray(e.sigma, dtype=float)
+    if not np.all(np.isfinite(sigma)):
+        return ("not testable: its signature is zero on this block, or the block's other unknowns absorb it "
+                "(e.g. a GNSS bias is the datum itself without GCPs)")
+    if np.any(sigma > DETERMINED_FRACTION * size):
+        k = int(np.argmax(sigma / size))
+        return (f"not determined on this block: sigma {sigma[k]:.3g} {e.units} against a plausible size of "
+                f"{size[k]:.3g} {e.units}")
+    if np.any(theta > size):
+        k = int(np.argmax(theta / size))
+        return (f"{theta[k]:.3g} {e.units} is beyond any physical size ({size[k]:.3g} {e.units}): a symptom of "
+                "another cause, not this effect")
+    return None
 
 
 def implausible_switch(e: Evidence) -> bool:
@@ -133,10 +162,12 @@ class Diagnosis:
     extended_model: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     overdispersion: float = 1.0  # statistics were divided by this (>= 1), measured on the block itself
+    recorded_eo: dict = field(default_factory=dict)  # see :func:`recorded_eo_checks`
 
     def to_dict(self) -> dict:
         return {
             "effects": [e.to_dict() for e in self.effects],
+            "recorded_eo": self.recorded_eo,
             "gain": self.gain.to_dict() if self.gain else None,
             "hypotheses": [h.to_dict() for h in self.hypotheses],
             "sigma0": {"before": self.sigma0_before, "after": self.sigma0_after},
@@ -184,6 +215,11 @@ def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str
                                 hyp.UNITS[name]))
             continue
         info, grad = conditional(idx)
+        if _singular(info):
+            # the block's other unknowns absorb the signature (a GNSS bias without GCPs is the datum itself)
+            out.append(Evidence(name, round_no, dof, 0.0, 1.0, 1.0, [0.0] * dof, [float("inf")] * dof, 0.0, False,
+                                hyp.UNITS[name]))
+            continue
         inv = inverse_spd(info)
         theta = -inv @ grad
         stat = float(grad @ inv @ grad) / s02 / overdispersion
@@ -194,6 +230,22 @@ def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str
         out.append(Evidence(name, round_no, dof, stat, p, p_adj, theta.tolist(), sigma.tolist(), float(bic),
                             p_adj < family_alpha, hyp.UNITS[name]))
     return out
+
+
+#: a hypothesis whose conditional information matrix has eigenvalues below this fraction of its diagonal is
+#: not determined by the block (measured on seneca without GCPs: a GNSS bias came out at -503 +- 0 m)
+SINGULAR_RELATIVE = 1e-9
+
+
+def _singular(info: np.ndarray) -> bool:
+    """True when ``info`` (the conditional information of a hypothesis) is singular to working precision."""
+    info = np.asarray(info, dtype=float)
+    d = np.diag(info)
+    if not np.all(np.isfinite(info)) or np.any(d <= 0):
+        return True
+    s = 1.0 / np.sqrt(d)
+    w = np.linalg.eigvalsh(info * s[:, None] * s[None, :])
+    return bool(w.min() < SINGULAR_RELATIVE * max(w.max(), 1e-300))
 
 
 def overdispersion(base: Baseline, draws: int, seed: int = 0) -> tuple[float, np.ndarray]:
@@ -283,6 +335,7 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
     evidence: list[Evidence] = []
     effects: list[NamedEffect] = []
     accepted: list[str] = []
+    untestable: list[str] = []
     current = baseline
     for round_no in range(1, config.max_effects + 1):
         remaining = [n for n in names if n not in accepted]
@@ -298,6 +351,24 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
             notes.append(f"{e.name}: a signal of its shape, {e.estimate[0]:.3g} +- {e.sigma[0]:.2g} times its "
                          "physical size (1 = on): not named, another cause shares its signature (for refraction "
                          "at a constant flying height: a focal length or radial distortion off the certificate's)")
+        for e in ev:
+            why = physical_verdict(e, current.camera, ctx)
+            if why is None:
+                continue
+            if e in candidates:
+                candidates.remove(e)
+                if not any(n.startswith(f"{e.name}: ") for n in notes):
+                    notes.append(f"{e.name}: {why}; not named (statistic {e.statistic:.1f})")
+            elif round_no == 1 and why.startswith("not determined"):
+                untestable.append(f"{e.name} ({why[len('not determined on this block: '):]})")
+        if round_no == 1:
+            zero = [e.name for e in ev if e.k == 0 or not np.all(np.isfinite(e.sigma))]
+            if zero:
+                notes.append(f"{', '.join(zero)} not testable: the block holds no observation its signature acts on "
+                             "(boresight needs the recorded attitude as an observation), or its other unknowns "
+                             "absorb it (a GNSS bias is the datum itself without GCPs)")
+            if untestable:
+                notes.append("not determined on this block, so not testable here: " + "; ".join(untestable))
         if not candidates:
             break
         best = max(candidates, key=lambda e: e.bic_gain)
@@ -335,8 +406,50 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
     if gain is None:
         notes.append("no check points: the gain on held-out data was not measured")
     extended = _extended_model(effects, ctx, current.camera)
+    eo = recorded_eo_checks([e for e in evidence if e.round == 1], phi, baseline.camera, ctx, effects)
     return Diagnosis(effects, evidence, gain, baseline.solution.sigma0, current.solution.sigma0, ctx.t_ref,
-                     extended, notes, phi)
+                     extended, notes, phi, eo)
+
+
+#: the checks of the recorded exterior orientation every flight with GNSS/IMU gets (NOTES: small drones'
+#: recorded EO carries height-reference errors, GNSS time lags of tenths of a second, mounting tilts)
+RECORDED_EO = ("gnss_bias", "gnss_time_offset", "lever_arm", "boresight")
+
+
+def recorded_eo_checks(round1: list[Evidence], phi: float, camera: Camera, ctx: hyp.Context,
+                       named: list[NamedEffect]) -> dict:
+    """The recorded-EO checks, each with its estimate and sigma whether or not it was named: height datum
+    and GNSS offset (``gnss_bias``), GNSS time lag (``gnss_time_offset``), lever arm, boresight (attitude
+    convention or mounting). Sigmas are scaled by the measured overdispersion ``phi``; ``status`` is
+    "named" (in the extended model), "consistent with zero", "a signal below the naming threshold", "not
+    determined", "beyond physical size" or "not testable", with the reason."""
+    out = {}
+    by_name = {e.name: e for e in round1}
+    named_names = {e.name for e in named}
+    for name in RECORDED_EO:
+        e = by_name.get(name)
+        if e is None:
+            out[name] = {"status": "not testable", "reason": "not tested on this block (no GNSS or attitude "
+                                                             "observations)"}
+            continue
+        why = physical_verdict(e, camera, ctx)
+        if not np.all(np.isfinite(e.sigma)):
+            out[name] = {"status": "not testable", "reason": why}
+            continue
+        sigma = [float(s_ * np.sqrt(phi)) for s_ in e.sigma]
+        entry = {"estimate": [float(v) for v in e.estimate], "sigma": sigma, "units": e.units,
+                 "statistic": float(e.statistic / phi)}
+        if name in named_names:
+            entry["status"] = "named"
+        elif why is not None:
+            entry["status"] = "not testable" if why.startswith("not testable") else (
+                "not determined" if why.startswith("not determined") else "beyond physical size")
+            entry["reason"] = why
+        else:
+            z = np.abs(np.asarray(e.estimate)) / np.maximum(np.asarray(sigma), 1e-300)
+            entry["status"] = "consistent with zero" if np.all(z < 2.0) else "a signal below the naming threshold"
+        out[name] = entry
+    return out
 
 
 #: hypotheses that need every image's sensor temperature, and those that act on GNSS observations
@@ -355,28 +468,6 @@ def _extended_model(effects: list[NamedEffect], ctx: hyp.Context, camera: Camera
         if e.name not in ("thermal_focal", "thermal_principal_point"):
             model[e.name] = e.magnitude
     return model
-
-
-def central_images(images: pa.Table, n: int) -> np.ndarray:
-    """Image ids of the ``n`` images whose recorded positions lie nearest the block's median position
-    (the first ``n`` ids when positions are missing).
-
-    A square of a block flown in parallel strips holds a stretch of every strip, so the sub-block spans
-    the flight's whole time and sensor-temperature range (what thermal and time hypotheses need) and
-    keeps the strips' overlaps; what it loses is power: fewer images, and only the check points they see
-    measure the gain.
-    """
-    ids = images.column("image_id").to_numpy()
-    if len(ids) <= n:
-        return ids
-    x = images.column("gnss_x").to_numpy(zero_copy_only=False).astype(float)
-    y = images.column("gnss_y").to_numpy(zero_copy_only=False).astype(float)
-    ok = np.isfinite(x) & np.isfinite(y)
-    if ok.sum() < n:
-        return np.sort(ids)[:n]
-    d = np.hypot(x - np.median(x[ok]), y - np.median(y[ok]))
-    d[~ok] = np.inf
-    return np.sort(ids[np.argsort(d, kind="stable")[:n]])
 
 
 def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_config: AdjustConfig,

@@ -27,7 +27,7 @@ from aerocal.adjust.problem import Block
 from aerocal.adjust.projection import project
 from aerocal.camera import PARAM_NAMES
 from aerocal.diagnose.model import Baseline, Linear, triangulate_checks
-from aerocal.effects import CATALOGUE, bertram_refraction_k
+from aerocal.effects import CATALOGUE, bertram_refraction_k, plausible_size
 from aerocal.geometry import small_rotation
 
 PER_STRIP = "per_strip_io"
@@ -76,6 +76,21 @@ def velocities(C: np.ndarray, t: np.ndarray, strip: np.ndarray, max_gap_s: float
         elif len(nb) == 1:
             V[i] = (C[nb[0]] - C[i]) / (t[nb[0]] - t[i])
     return V
+
+
+#: plausible per-strip IO offsets (f, cx, cy): 1 % of the focal length, a lens refocused or a sensor shifted
+#: between strips by more than that is a different camera
+PER_STRIP_PLAUSIBLE = 0.01
+
+
+def plausible(name: str, camera, ctx: Context) -> np.ndarray:
+    """The largest plausible magnitude of each parameter of hypothesis ``name`` (its units) for ``camera``
+    (:func:`aerocal.effects.plausible_size`)."""
+    f_px = float(camera.f)
+    if name == PER_STRIP:
+        return np.full(size(name, ctx), PER_STRIP_PLAUSIBLE * f_px)
+    corner = float(np.max(np.hypot(*(camera.corners() - [camera.cx, camera.cy]).T)))
+    return np.full(size(name, ctx), plausible_size(name, f_px, corner))
 
 
 def size(name: str, ctx: Context) -> int:
