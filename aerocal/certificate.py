@@ -65,6 +65,7 @@ from aerocal.camera import (
     ThermalModel,
     thermal_model_from_dict,
 )
+from aerocal.decision import ACCEPTED, REJECTED, STATUSES, Review
 
 #: The schema identifier written into, and required from, every certificate document.
 SCHEMA = "aerocal.certificate/1"
@@ -146,12 +147,19 @@ class CameraIdentity:
 
 @dataclass(frozen=True)
 class ParameterSignificance:
-    """Significance test of one parameter: t = value / sigma, significant at the 95 % level, and why a
-    parameter was dropped from the model (``None`` when it was kept)."""
+    """Significance test of one parameter: t = value / sigma, significant at the 95 % level, why a
+    parameter was dropped from the model (``None`` when it was kept), and where it was measured, its gain on
+    data the fit did not use (:mod:`aerocal.heldout`: relative reduction of the held-out mean squared
+    residual, with its standard error) and its t calibrated against the null measured on the block (formal t over
+    the square root of the overdispersion of pure-noise hypotheses: formal statistics are optimistic on real
+    matches)."""
 
     t: float
     significant: bool
     dropped: str | None = None
+    held_out_gain: float | None = None  # relative gain on held-out strips (aerocal.heldout), None: not measured
+    held_out_sigma: float | None = None  # its standard error
+    calibrated_t: float | None = None  # t over the square root of the block's measured overdispersion
 
 
 @dataclass(frozen=True)
@@ -371,6 +379,13 @@ class Certificate:
     issued: dt.datetime = field(default_factory=_now_utc)
     version: int | None = None
     supersedes: str | None = None
+    review: Review | None = None
+
+    @property
+    def status(self) -> str:
+        """"accepted" or "rejected" (:class:`aerocal.decision.Review`); a certificate without a review (made
+        elsewhere and imported) counts as accepted once its values pass the import checks."""
+        return self.review.status if self.review is not None else ACCEPTED
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sigmas", _freeze_map(self.sigmas))
@@ -409,14 +424,14 @@ class Certificate:
             "correlation": {"names": list(self.correlation.names),
                             "matrix": [list(r) for r in self.correlation.matrix]},
             "significance": {
-                n: ({"t": s.t, "significant": s.significant, "dropped": s.dropped}
-                    if isinstance(s, ParameterSignificance) else s)
+                n: (_significance_dict(s) if isinstance(s, ParameterSignificance) else s)
                 for n, s in self.significance.items()
             },
             "thermal": None if self.thermal is None else self.thermal.to_dict(),
             "conditions": self.conditions.to_dict(),
             "quality": self.quality.to_dict(),
             "provenance": self.provenance.to_dict(),
+            **({"review": self.review.to_dict()} if self.review is not None else {}),
         }
 
     @classmethod
@@ -511,6 +526,11 @@ class Certificate:
                 status = "fixed"
             if sig is not None:
                 status += f", t = {sig.t:.3g}, " + ("significant" if sig.significant else "not significant")
+                if sig.calibrated_t is not None:
+                    status += f" (calibrated t {sig.calibrated_t:.3g})"
+                if sig.held_out_gain is not None:
+                    spread = 100 * (sig.held_out_sigma or 0.0)
+                    status += f", held-out gain {100 * sig.held_out_gain:+.2f} +- {spread:.2f} %"
                 if sig.dropped:
                     status += f", dropped: {sig.dropped}"
             lines.append(f"    {name:<3} {text:>28}   {status}")
@@ -536,6 +556,11 @@ class Certificate:
         sigma0 = "?" if q.sigma0 is None else f"{q.sigma0:.3f}"
         rms = "?" if q.reprojection_rms_px is None else f"{q.reprojection_rms_px:.3f} px"
         lines.append(f"  quality: sigma0 {sigma0}, reprojection RMS {rms}, dof {_or_q(q.dof)}")
+        if self.review is not None:
+            lines.append(f"  review: {self.review.status.upper()}")
+            lines.extend(f"    problem: {x}" for x in self.review.problems)
+            lines.extend(f"    note: {x}" for x in self.review.notes)
+            lines.extend(f"    check: {x}" for x in self.review.checks)
         p = self.provenance
         lines.append(f"  provenance: flow run {p.flow_run or '-'}, code {p.code_version}, "
                      f"{len(p.inputs)} inputs hashed")
@@ -686,7 +711,42 @@ def _parse_model(v: Any) -> Camera:
         unit = "pixels" if PARAM_UNITS[n] == "px" else "a dimensionless coefficient"
         params[n] = _number(p[n], f"model.params.{n}", positive=(n == "f"),
                             fix=f"write {n} as a JSON number ({unit})")
+    _sane_model(width, height, pix, params)
     return Camera(width=width, height=height, pixel_size_mm=pix, **params)
+
+
+#: Bounds no real frame camera leaves (a document outside them is corrupt or hostile, not a camera): image
+#: side in pixels, focal length in image sides, principal point within one image side of the image,
+#: distortion coefficients, affinity and skew in focal lengths, pixel pitch in millimetres.
+MAX_IMAGE_SIDE_PX = 200_000
+MAX_FOCAL_IN_SIDES = 1000.0
+MAX_DISTORTION_COEFFICIENT = 100.0
+MAX_PIXEL_SIZE_MM = 1.0
+
+
+def _sane_model(width: int, height: int, pix: float | None, params: dict[str, float]) -> None:
+    side = max(width, height)
+    for name, size in (("width", width), ("height", height)):
+        if size > MAX_IMAGE_SIDE_PX:
+            raise _fail(f"model.{name}", f"at most {MAX_IMAGE_SIDE_PX} pixels", size, "write the image size in pixels")
+    if params["f"] > MAX_FOCAL_IN_SIDES * side:
+        raise _fail("model.params.f", f"at most {MAX_FOCAL_IN_SIDES:g} x the larger image side "
+                    f"({MAX_FOCAL_IN_SIDES * side:g} px)", params["f"], "write the focal length in pixels")
+    for name, size in (("cx", width), ("cy", height)):
+        if not -size <= params[name] <= 2 * size:
+            raise _fail(f"model.params.{name}", f"within one image side of the image ({-size} to {2 * size} px)",
+                        params[name], "write the principal point in pixels from the top-left corner")
+    for name in ("k1", "k2", "k3", "p1", "p2"):
+        if abs(params[name]) > MAX_DISTORTION_COEFFICIENT:
+            raise _fail(f"model.params.{name}", f"a coefficient of magnitude at most {MAX_DISTORTION_COEFFICIENT:g}",
+                        params[name], "write the Brown coefficient for normalised coordinates")
+    for name in ("b1", "b2"):
+        if abs(params[name]) > params["f"]:
+            raise _fail(f"model.params.{name}", "smaller in magnitude than f", params[name],
+                        "write the affinity/skew in pixels")
+    if pix is not None and pix > MAX_PIXEL_SIZE_MM:
+        raise _fail("model.pixel_size_mm", f"at most {MAX_PIXEL_SIZE_MM:g} mm", pix,
+                    "write the pixel pitch in millimetres (e.g. 0.017)")
 
 
 def _parse_correlation(v: Any) -> Correlation:
@@ -724,12 +784,19 @@ def _parse_correlation(v: Any) -> Correlation:
 
 def _parse_significance(v: Any) -> FrozenMap:
     def one(x: Any, path: str) -> ParameterSignificance:
-        s = _object(x, path, ("t", "significant", "dropped"))
+        s = _object(x, path, ("t", "significant", "dropped"),
+                    optional=("held_out_gain", "held_out_sigma", "calibrated_t"))
         return ParameterSignificance(
             t=_number(s["t"], f"{path}.t", fix="write the t statistic (value / sigma)"),
             significant=_boolean(s["significant"], f"{path}.significant"),
             dropped=_string(s["dropped"], f"{path}.dropped", nullable=True,
                             fix="write why the parameter was dropped, or null when it was kept"),
+            held_out_gain=_number(s.get("held_out_gain"), f"{path}.held_out_gain", nullable=True,
+                                  fix="write the relative held-out gain, or null when not measured"),
+            held_out_sigma=_number(s.get("held_out_sigma"), f"{path}.held_out_sigma", nullable=True, nonneg=True,
+                                   fix="write the held-out gain's standard error, or null"),
+            calibrated_t=_number(s.get("calibrated_t"), f"{path}.calibrated_t", nullable=True,
+                                 fix="write t over the square root of the block's overdispersion, or null"),
         )
 
     return _name_map(v, "significance", PARAM_NAMES + THERMAL_SLOPE_NAMES, one)
@@ -846,7 +913,7 @@ def _parse_document(doc: Any) -> dict[str, Any]:
                     "re-export the certificate or upgrade aerocal")
     d = _object(doc, "", ("schema", "id", "camera", "version", "supersedes", "issued", "model", "sigmas",
                           "estimated", "correlation", "significance", "thermal", "conditions", "quality",
-                          "provenance"))
+                          "provenance"), optional=("review",))
     cid = _string(d["id"], "id")
     if not _HEX32.match(cid):
         raise _fail("id", "32 lowercase hex digits (uuid4().hex)", cid, "write uuid.uuid4().hex")
@@ -922,7 +989,35 @@ def _parse_document(doc: Any) -> dict[str, Any]:
         "correlation": correlation, "significance": significance, "thermal": thermal,
         "conditions": _parse_conditions(d["conditions"]), "quality": quality, "provenance": provenance,
         "id": cid, "issued": _parse_issued(d["issued"]), "version": version, "supersedes": supersedes,
+        "review": _parse_review(d.get("review")),
     }
+
+
+def _parse_review(v: Any) -> Review | None:
+    if v is None:
+        return None
+    r = _object(v, "review", ("status", "problems", "checks", "notes"))
+    status = _string(r["status"], "review.status")
+    if status not in STATUSES:
+        raise _fail("review.status", " or ".join(f'"{x}"' for x in STATUSES), status,
+                    "write the verdict of the calibration's review")
+    lists = {k: tuple(_string(x, f"review.{k}[{i}]") for i, x in enumerate(_array(r[k], f"review.{k}")))
+             for k in ("problems", "checks", "notes")}
+    if status == ACCEPTED and lists["problems"]:
+        raise CertificateError("review.problems: an accepted certificate lists problems; a problem rejects it "
+                               '(write "rejected") or remove the problems')
+    if status == REJECTED and not lists["problems"]:
+        raise CertificateError("review.problems: a rejected certificate must say why; list the problems")
+    return Review(status, **lists)
+
+
+def _significance_dict(s: ParameterSignificance) -> dict:
+    out = {"t": s.t, "significant": s.significant, "dropped": s.dropped}
+    if s.held_out_gain is not None or s.held_out_sigma is not None:
+        out.update(held_out_gain=s.held_out_gain, held_out_sigma=s.held_out_sigma)
+    if s.calibrated_t is not None:
+        out["calibrated_t"] = s.calibrated_t
+    return out
 
 
 # =============================================================================== helpers for rendering

@@ -81,6 +81,10 @@ def _print_run(summary: dict[str, Any]) -> None:
         console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
     if summary.get("diagnosis"):
         console.print(f"diagnosis: {summary['diagnosis']}")
+    if summary.get("recorded_eo"):
+        from tasks.products import recorded_eo_text
+
+        console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
     for name, path in summary.get("files", {}).items():
         console.print(f"{name:>13}: {path}")
 
@@ -223,10 +227,14 @@ def calibrate(
             summary = calibrate_camera(
                 flight_dir, out, cfg, database_url, str(artifact_root) if artifact_root else None, dask
             )
-        cert = Certificate.from_json(Path(summary["files"]["certificate"]).read_text())
+        cert = Certificate.from_json(Path(summary["files"]["calibration_certificate"]).read_text())
     console.print(cert.render_text(correlation_threshold=0.9))
     console.print(f"stored: {summary['certificate_id']} ({summary['certificate_reason']})")
-    console.print(f"certificate file: {summary['files']['certificate']}")
+    console.print(f"certificate file: {summary['files']['calibration_certificate']}")
+    if cert.status != "accepted":
+        console.print("[bold red]the calibration was REJECTED[/]: it is on record but will never be used; "
+                      "see the review above")
+        raise typer.Exit(1)
 
 
 # -------------------------------------------------------------------------------------------- campaign

@@ -190,7 +190,7 @@ def certificates_list(
         return
     superseded = {row.supersedes for row in rows if row.supersedes}
     table = Table(title=f"{len(rows)} certificate(s)")
-    for column in ("id", "camera", "v", "calibrated", "issued", "degC", "thermal", "sigma0", "rms px"):
+    for column in ("id", "camera", "v", "status", "calibrated", "issued", "degC", "thermal", "sigma0", "rms px"):
         table.add_column(column, no_wrap=column != "camera", overflow="fold")
     for row in rows:
         version = f"{row.version}" + ("" if row.id in superseded else " (latest)")
@@ -198,6 +198,7 @@ def certificates_list(
             row.id,
             row.camera.label,
             version,
+            row.status if row.status == "accepted" else f"[red]{row.status}[/]",
             str(row.calibration_date),
             row.issued.strftime("%Y-%m-%d %H:%M"),
             _range_text(row.temperature_range),
@@ -241,6 +242,8 @@ def certificates_show(
     for key, value in (
         ("camera", cert.camera.label),
         ("version", f"{cert.version}" + (f" (supersedes {cert.supersedes})" if cert.supersedes else "")),
+        ("review", cert.status + "".join(f"\n  problem: {p}" for p in (doc.get("review") or {}).get("problems", []))
+         + "".join(f"\n  note: {n}" for n in (doc.get("review") or {}).get("notes", []))),
         ("issued", cert.issued.isoformat()),
         ("calibrated", str(cert.calibration_date)),
         ("temperatures degC", _range_text(cert.temperature_range)),

@@ -43,6 +43,8 @@ EXPORTS = {
     "dsm": "dsm.tif",
     "orthomosaic": "orthomosaic.tif",
     "certificate": "certificate.json",
+    "calibration_certificate": "calibration_certificate.json",
+    "calibration": "calibration.json",
     "diagnosis": "diagnosis.json",
     "assessment": "assessment.json",
     "adjustment": "adjustment.json",
@@ -157,17 +159,20 @@ def _process(
         blk_cfg = dataclasses.replace(blk_cfg, gnss_sigma_m=None, attitude_sigma_deg=None)
         _record_configuration(ctx, config, certificate, flight_dir, out_dir, dask_address, cal_cfg, blk_cfg)
 
-    chosen = None
+    chosen: tuple[str | None, str | None, str] = (None, None, "self-calibration asked for")
     if certificate == "auto" and not calibrate_only:
         chosen = select_task(ctx, ing, None, config.max_certificate_age_days)
     elif certificate not in CERTIFICATE_MODES:
         chosen = select_task(ctx, ing, certificate, config.max_certificate_age_days)
     calibration = None
-    if chosen is None:
+    if chosen[0] is None:
+        why_not = chosen[2]
         cal = calibrate_task(ctx, ing, observations, config.calibration, cal_cfg)
         steps["calibrate"] = _step_info(cal)
         calibration = cal
-        chosen = issue_task(ctx, cal)
+        chosen = issue_task(ctx, cal, ing)
+        if certificate == "auto":
+            chosen = (chosen[0], chosen[1], f"{chosen[2]} ({why_not})")
     cert_id, cert_sha, reason = chosen
     summary: dict[str, Any] = {
         "run_id": ctx.run_id,
@@ -181,6 +186,7 @@ def _process(
     outputs: dict[str, str] = {"certificate": cert_sha}
     if calibration is not None:
         outputs["calibration"] = calibration["calibration"]
+        outputs["calibration_certificate"] = calibration["certificate"]
     if not calibrate_only:
         adj = adjust_task(ctx, ing, observations, cert_sha, config.block, blk_cfg)
         steps["adjust"] = _step_info(adj)
@@ -205,6 +211,7 @@ def _process(
             diag = json.loads(ctx.store.read_bytes(ctx.store.get(session, outputs["diagnosis"])))
             assess = json.loads(ctx.store.read_bytes(ctx.store.get(session, outputs["assessment"])))
         summary["diagnosis"] = diag.get("summary")
+        summary["recorded_eo"] = diag.get("recorded_eo")
         summary["accuracy"] = assess.get("check_points")
     return summary
 

@@ -90,6 +90,11 @@ class IndexedFields:
     model_kind: str
     sigma0: float | None
     reprojection_rms_px: float | None
+    status: str = "accepted"
+
+
+#: review verdicts a stored certificate can carry (``aerocal.decision.STATUSES``)
+CERTIFICATE_STATUSES = ("accepted", "rejected")
 
 
 # --------------------------------------------------------------------------------------- documents
@@ -203,6 +208,12 @@ def index_fields(document: Mapping[str, Any]) -> IndexedFields:
         valid = _range(thermal.get("valid_range"), f"{where}: thermal.valid_range")
         temperature_range = valid if valid is not None else condition_range
     quality = _section(document, "quality", where)
+    review = _section(document, "review", where)
+    status = review.get("status", "accepted") if review else "accepted"
+    if status not in CERTIFICATE_STATUSES:
+        raise CertificateDocumentError(
+            f"{where}: review.status is {status!r}; write one of {', '.join(CERTIFICATE_STATUSES)}"
+        )
     return IndexedFields(
         id=cert_id,
         camera=camera,
@@ -215,6 +226,7 @@ def index_fields(document: Mapping[str, Any]) -> IndexedFields:
         reprojection_rms_px=_number(
             quality.get("reprojection_rms_px"), f"{where}: quality.reprojection_rms_px"
         ),
+        status=status,
     )
 
 
@@ -326,6 +338,7 @@ def issue_certificate(session: Session, document: Mapping[str, Any], max_attempt
                 sigma0=fields.sigma0,
                 reprojection_rms_px=fields.reprojection_rms_px,
                 _document=stored_document,
+                status=fields.status,
             )
             record.camera = camera
             session.add(record)
@@ -449,6 +462,9 @@ def _problems(
 ) -> list[str]:
     """Why ``cert`` does not apply to the flight (empty when it does)."""
     problems = []
+    if cert.status != "accepted":
+        why = "; ".join((cert.document.get("review") or {}).get("problems") or []) or "no reason recorded"
+        problems.append(f"was rejected by its review ({why})")
     if cert.calibration_date > flight_date:
         problems.append(f"was calibrated after the flight of {flight_date}")
     else:
@@ -535,6 +551,12 @@ def select_certificate(
             raise NoCertificateError(
                 f"camera {identity}: pinned certificate {chosen.id} belongs to camera {chosen.camera.label}; "
                 "pin a certificate of this camera"
+            )
+        if chosen.status != "accepted":
+            raise NoCertificateError(
+                f"camera {identity}: pinned certificate {chosen.id} "
+                + _problems(chosen, day, None, None, rules)[0]
+                + "; a rejected certificate is never used: pin an accepted one or calibrate on this flight"
             )
         problems = _problems(chosen, day, flight_range, max_age_days, rules)
         reason = f"pinned by id: v{chosen.version} {chosen.id} calibrated {chosen.calibration_date}"

@@ -146,6 +146,8 @@ class Certificate(Base):
         model_kind: camera model kind (``"brown"``).
         sigma0: a-posteriori standard deviation of unit weight of the calibration adjustment.
         reprojection_rms_px: RMS reprojection error of the calibration, pixels.
+        status: ``"accepted"`` or ``"rejected"`` (the document's ``review.status``; a certificate without
+            a review is accepted); a rejected certificate is on record but never selected for a flight.
     """
 
     __tablename__ = "certificates"
@@ -170,6 +172,7 @@ class Certificate(Base):
     reprojection_rms_px: Mapped[float | None] = mapped_column(Float)
     stored: Mapped[datetime] = mapped_column(default=utcnow)
     _document: Mapped[dict[str, Any]] = mapped_column("document", JSON)
+    status: Mapped[str] = mapped_column(String(16), default="accepted", server_default="accepted")
 
     camera: Mapped[Camera] = relationship(back_populates="certificates", lazy="joined")
 

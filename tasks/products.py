@@ -389,6 +389,8 @@ def report_step(
         cert = Certificate.from_dict(inp.json("certificate"))
         images = inp.table("images")
         cp = assess.get("check_points", {})
+        review = cert.review.notes[0] if cert.review is not None and cert.review.notes and not cert.estimated \
+            else (cert.review.summary() if cert.review is not None else "not reviewed (made elsewhere)")
         summary = {
             "flight": flight["name"],
             "mode": flight["mode"],
@@ -397,6 +399,7 @@ def report_step(
             "date": flight["date"],
             "temperature_c": flight.get("temperature_range"),
             "certificate": f"{cert.id} (version {cert.version})",
+            "certificate_review": review,
             "thermal_model": cert.thermal.kind if cert.thermal is not None else None,
             "sigma0": adj["sigma0"],
             "reprojection_rms_px": adj["reprojection_rms_px"],
@@ -404,6 +407,7 @@ def report_step(
             "rho": cp.get("rho"),
             "verdict": cp.get("verdict"),
             "diagnosis": diag.get("summary"),
+            "recorded_eo_checks": recorded_eo_text(diag.get("recorded_eo") or {}),
             "gsd_m": mos.get("gsd_m"),
             "mosaic_frames": mos.get("frames"),
         }
@@ -470,6 +474,19 @@ def report_step(
         }
 
     return run_step(ctx, "report", inputs, config, compute)
+
+
+def recorded_eo_text(checks: dict) -> str:
+    """One line per recorded-EO check of a diagnosis (``Diagnosis.recorded_eo``): estimate +- sigma, status."""
+    parts = []
+    for name, c in checks.items():
+        if "estimate" in c:
+            est = ", ".join(f"{v:.3g}" for v in c["estimate"])
+            sig = ", ".join("?" if v is None else f"{v:.2g}" for v in c["sigma"])
+            parts.append(f"{name} {est} +- {sig} {c['units']} ({c['status']})")
+        else:
+            parts.append(f"{name}: {c['status']}")
+    return "; ".join(parts) or "no GNSS/IMU observations: not checked"
 
 
 def export_file(ctx: StepContext, sha: str, target: Path) -> Path:

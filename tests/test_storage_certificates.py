@@ -267,3 +267,26 @@ def test_pinned_certificate_is_used_and_must_belong_to_the_camera(make_certifica
         assert reason.startswith("pinned by id") and "covers 18-24 degC; flight spans 5-9 degC" in reason
         with pytest.raises(NoCertificateError, match=f"belongs to camera NEC TS9260 s/n {theirs}"):
             select_certificate(session, f"NEC|TS9260|{mine}", "2017-05-02", None, pin=foreign.id)
+
+
+def test_a_rejected_certificate_is_on_record_but_never_selected(make_certificate, storage_db, unique):
+    """A calibration that failed its review is stored with its reasons; auto-selection passes over it to
+    the older accepted one, and pinning it is refused with the reason."""
+    serial = f"rej-{unique}"
+    why = "f 1560.0 px is +103.9 % off the nominal 765.0 px (the band is +-15 %)"
+    with storage_db.session() as session:
+        good = issue_certificate(session, make_certificate(serial, "2016-03-14", (20.0, 22.0)))
+        doc = make_certificate(serial, "2016-06-01", (20.0, 22.0))
+        doc["review"] = {"status": "rejected", "problems": [why], "checks": [], "notes": []}
+        bad = issue_certificate(session, doc)
+        assert (bad.status, bad.version, good.status) == ("rejected", 2, "accepted")
+        camera = CameraIdentity("NEC", "TS9260", serial)
+        chosen, reason = select_certificate(session, camera, "2017-05-02", (20.0, 21.0))
+        assert chosen.id == good.id, reason
+        with pytest.raises(NoCertificateError, match="was rejected by its review") as err:
+            select_certificate(session, camera, "2017-05-02", None, pin=bad.id)
+        assert why in str(err.value)
+        doc = make_certificate(serial, "2016-07-01", (20.0, 22.0))
+        doc["review"] = {"status": "maybe", "problems": [], "checks": [], "notes": []}
+        with pytest.raises(CertificateDocumentError, match="review.status"):
+            issue_certificate(session, doc)

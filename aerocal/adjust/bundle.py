@@ -54,6 +54,7 @@ class AdjustmentResult:
       variance); ``rho`` = RMSE / sqrt(mean predicted variance) per axis.
     * ``tie_sigma_scale``: the factor the tie observations' sigma was multiplied by after the blunder
       screening (``AdjustConfig.estimate_tie_sigma``; 1 without).
+    * ``dropped``: parameters the adaptive selection dropped -> (why, their t value when dropped).
     """
 
     camera: Camera
@@ -87,6 +88,7 @@ class AdjustmentResult:
     crs: str | None = None
     obs_weight: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tie_sigma_scale: float = 1.0
+    dropped: dict[str, tuple[str, float]] = field(default_factory=dict)
 
     def summary(self) -> dict:
         """Figures a user checks, JSON-serialisable."""

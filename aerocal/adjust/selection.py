@@ -79,17 +79,23 @@ def choose_drop(
 
 
 def select_parameters(run: Callable[[AdjustConfig], object], config: AdjustConfig):
-    """Adjust with ``run(config)`` repeatedly, dropping parameters; returns the last result and the reasons.
+    """Adjust with ``run(config)`` repeatedly, dropping parameters; returns the last result, the reasons
+    and the last configuration. The result's ``dropped`` maps each dropped parameter to (why, its t value
+    when it was dropped).
 
     ``run`` returns an object with ``names`` (free parameter names), ``correlation`` and ``t_values``.
     """
     reasons: list[str] = []
+    dropped: dict[str, tuple[str, float]] = {}
     cfg = config
     for _ in range(len(config.free) + len(config.thermal) + 1):
         result = run(cfg)
-        name, why = choose_drop(list(result.names), result.correlation, np.asarray(result.t_values), cfg)
+        names = list(result.names)
+        name, why = choose_drop(names, result.correlation, np.asarray(result.t_values), cfg)
         reasons.append(why)
         if name is None:
-            return result, reasons, cfg
+            break
+        dropped[name] = (why.partition(": ")[2], float(np.asarray(result.t_values)[names.index(name)]))
         cfg = _drop(cfg, name)
+    result.dropped = dropped
     return result, reasons, cfg

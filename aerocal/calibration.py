@@ -1,0 +1,380 @@
+"""Self-calibration of a flight, governed by the decision rule (:mod:`aerocal.decision`), and its certificate.
+
+:func:`self_calibrate` does, in order:
+
+1. **The calibration block.** The images given by the user; else the whole flight when it has at most
+   ``whole_flight_max_images``; else the sub-block of :func:`aerocal.subset.propose_subset` (parallel strips
+   near the centre, a transversal strip when flown). A flight whose geometry yields no candidate (a corridor
+   of one or two strips) is calibrated on its central ``corridor_max_images`` images, and the reason says so.
+2. **What the block can determine.** The precision of f, cx, cy (and slopes) is predicted from the block's
+   geometry and its GNSS/GCP weights before any fit (:func:`aerocal.subset.predict_io_sigmas`); a parameter
+   the block cannot determine stays at the nominal value (:func:`aerocal.decision.undetermined_io`), and
+   so does its temperature slope.
+3. **The adjustment** with adaptive parameter selection (:func:`aerocal.adjust.adjust`).
+4. **Held-out test of the thermal slopes** it kept (:func:`aerocal.heldout.compare_models`, k-fold over
+   strips): a slope whose held-out gain is not positive beyond ``DecisionConfig.held_out_sigmas`` standard
+   errors is dropped and the block adjusted again without it. The formal t of a slope on matched tie
+   points can be 7 where the held-out gain is nil (the real seneca flight).
+5. **Review** (:func:`aerocal.decision.review_calibration`): plausibility against the nominal camera,
+   convergence, sigma0, check points. A rejected calibration still yields a certificate, marked rejected
+   with every reason, so that the store keeps the record; it is never used for a flight.
+
+Everything is returned as fields (:class:`Calibration`), never as prose to be parsed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from aerocal.adjust import AdjustConfig, AdjustmentResult, adjust, scale_tie_sigma, select_images
+from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
+from aerocal.certificate import (
+    CameraIdentity,
+    Certificate,
+    Conditions,
+    Correlation,
+    ParameterSignificance,
+    Provenance,
+    Quality,
+    ThermalCalibration,
+)
+from aerocal.decision import DecisionConfig, Review, review_calibration, undetermined_io
+from aerocal.heldout import HeldOutComparison, HeldOutConfig, compare_models
+from aerocal.subset import SubsetConfig, central_images, predict_io_sigmas, propose_subset
+
+#: adjustment names of thermal slopes -> certificate names (pixels per degC)
+SLOPE_NAMES = {"df/dT": "df_dt", "dcx/dT": "dcx_dt", "dcy/dT": "dcy_dt"}
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """Self-calibration settings.
+
+    * ``adjust``: the self-calibrating adjustment (default: f, cx, cy, k1..k3, p1, p2 free, a focal-length
+      temperature slope, adaptive selection dropping insignificant or |r| > 0.95 parameters).
+    * ``subset``: :class:`aerocal.subset.SubsetConfig` for :func:`~aerocal.subset.propose_subset`
+      (``None``: its defaults, with the flight's height above ground and this adjustment's weights).
+    * ``whole_flight_max_images`` (44, Conte 2018's sub-block size): a flight of at most this many images
+      is calibrated whole, with no sub-block search.
+    * ``corridor_max_images`` (100): a flight whose strips yield no sub-block candidate (a corridor) is
+      calibrated on at most this many images nearest its centre.
+    * ``subset_images``: image ids of the sub-block, chosen by hand (``None``: propose one);
+      ``subset_names``: the same by image name.
+    * ``decision``: :class:`aerocal.decision.DecisionConfig`, the thresholds of the decision rule.
+    * ``held_out``: :class:`aerocal.heldout.HeldOutConfig`, the k-fold test of thermal slopes.
+    * ``null_draws`` (40): random per-image focal hypotheses whose statistics measure how optimistic the
+      formal sigmas are on this block (:func:`aerocal.diagnose.engine.overdispersion`); the certificate's
+      calibrated t values and the review's sigma of f are scaled by it (0: formal statistics only).
+    """
+
+    adjust: AdjustConfig = field(default_factory=lambda: AdjustConfig(thermal=("f",), adaptive=True))
+    subset: SubsetConfig | None = None
+    whole_flight_max_images: int = 44
+    corridor_max_images: int = 100
+    subset_images: tuple[int, ...] | None = None
+    subset_names: tuple[str, ...] | None = None
+    decision: DecisionConfig = field(default_factory=DecisionConfig)
+    held_out: HeldOutConfig = field(default_factory=HeldOutConfig)
+    null_draws: int = 40
+
+
+@dataclass
+class Calibration:
+    """A finished self-calibration.
+
+    * ``result``: the adjustment of the calibration block (IO at ``result.t0``).
+    * ``image_ids``: the block's images; ``subset``: how they were chosen (``reasons``, and for a proposed
+      sub-block its strips, GCPs and predicted sigmas); ``transversal``: whether a transversal strip is in.
+    * ``predicted``: predicted sigmas of the free parameters from the geometry (``None``: terrain unknown).
+    * ``held_at_nominal``: parameters not freed, each with the reason.
+    * ``held_out``: the k-fold comparison of each thermal slope tested, by adjustment name (``df/dT``).
+    * ``review``: the verdict.
+    * ``overdispersion``: how many times larger than chi-square the statistics of pure-noise hypotheses are
+      on the block (1: the formal sigmas hold); calibrated sigmas are the formal ones times its square root.
+    """
+
+    result: AdjustmentResult
+    image_ids: list[int]
+    subset: dict[str, Any]
+    transversal: bool | None
+    predicted: dict[str, float] | None
+    held_at_nominal: dict[str, str]
+    held_out: dict[str, HeldOutComparison]
+    review: Review
+    overdispersion: float = 1.0
+
+    def summary(self) -> dict:
+        """JSON-ready figures a user checks."""
+        return {
+            "subset": self.subset,
+            "adjustment": self.result.summary(),
+            "predicted_sigmas": self.predicted,
+            "held_at_nominal": self.held_at_nominal,
+            "held_out": {k: v.to_dict() for k, v in self.held_out.items()},
+            "review": self.review.to_dict(),
+            "overdispersion": self.overdispersion,
+        }
+
+
+def _choose_block(images: pa.Table, camera: Camera, gcps: pa.Table | None, config: CalibrationConfig,
+                  scfg: SubsetConfig) -> tuple[list[int], dict[str, Any], bool | None]:
+    if config.subset_names is not None:
+        by_name = dict(zip(images.column("name").to_pylist(), images.column("image_id").to_pylist(), strict=True))
+        unknown = [n for n in config.subset_names if n not in by_name]
+        if unknown:
+            raise ValueError(f"calibration sub-block: images {unknown[:5]} are not in the flight; give names of "
+                             "the flight's images")
+        return [int(by_name[n]) for n in config.subset_names], {"reasons": ["sub-block given by the user "
+                                                                           "(image names)"]}, None
+    if config.subset_images is not None:
+        ids = [int(i) for i in config.subset_images]
+        known = set(images.column("image_id").to_pylist())
+        missing = sorted(set(ids) - known)
+        if missing:
+            raise ValueError(f"calibration sub-block: image ids {missing[:5]} are not in the flight; give ids of "
+                             "the images table")
+        return ids, {"reasons": ["sub-block given by the user"]}, None
+    n = images.num_rows
+    if n <= config.whole_flight_max_images:
+        return images.column("image_id").to_pylist(), {"reasons": [
+            f"the flight has {n} images, no more than whole_flight_max_images = {config.whole_flight_max_images}: "
+            "it is calibrated whole"]}, None
+    try:
+        prop = propose_subset(images, camera, gcps, scfg)
+    except ValueError as exc:
+        ids = [int(i) for i in central_images(images, config.corridor_max_images)]
+        return ids, {"reasons": [
+            f"no calibration sub-block of parallel strips ({exc}): calibrated on the {len(ids)} images nearest "
+            f"the flight's centre (corridor_max_images = {config.corridor_max_images})"]}, None
+    return prop.image_ids, {"image_ids": prop.image_ids, "strips": prop.strips, "transversal": prop.transversal,
+                            "gcp_ids": prop.gcp_ids, "predicted_sigmas": prop.predicted_sigmas,
+                            "score": prop.score, "reasons": prop.reasons}, prop.transversal
+
+
+def _held_at_nominal(undetermined: dict[str, str], cfg: AdjustConfig) -> AdjustConfig:
+    drop = set(undetermined)
+    return dataclasses.replace(
+        cfg, free=tuple(n for n in cfg.free if n not in drop), thermal=tuple(n for n in cfg.thermal if n not in drop),
+        always_keep=tuple(n for n in cfg.always_keep if n not in drop))
+
+
+def self_calibrate(
+    images: pa.Table,
+    observations: pa.Table,
+    camera: Camera,
+    gcps: pa.Table | None = None,
+    gcp_observations: pa.Table | None = None,
+    height_agl_m: float | None = None,
+    config: CalibrationConfig | None = None,
+    adjust_config: AdjustConfig | None = None,
+) -> Calibration:
+    """Self-calibrate a flight under the decision rule (see the module docstring).
+
+    ``camera``: the nominal camera (starting values, and the prior every estimate is checked against);
+    ``height_agl_m``: the flying height above ground, for the geometry's prediction when there are no GCPs;
+    ``adjust_config`` overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas).
+    """
+    config = config or CalibrationConfig()
+    acfg = adjust_config or config.adjust
+    scfg = config.subset or SubsetConfig()
+    if scfg.height_agl_m is None and height_agl_m:
+        scfg = dataclasses.replace(scfg, height_agl_m=float(height_agl_m))
+    # the sub-block's IO precision is predicted with the weights the calibration will have
+    scfg = dataclasses.replace(scfg, adjust=dataclasses.replace(acfg, adaptive=False, robust_loss="none"))
+    ids, info, transversal = _choose_block(images, camera, gcps, config, scfg)
+    sub_images = select_images(images, ids)
+    sub_obs = select_images(observations, ids)
+    sub_gobs = select_images(gcp_observations, ids) if gcp_observations is not None else None
+    run_cfg = acfg
+    notes: list[str] = []
+    temps = sub_images.column("temperature_c").to_numpy(zero_copy_only=False).astype(float)
+    if acfg.thermal and not (np.isfinite(temps).all() and np.ptp(temps) > 0):
+        run_cfg = dataclasses.replace(acfg, thermal=())
+        missing = int(np.sum(~np.isfinite(temps)))
+        why = (f"{missing} of {len(temps)} calibration images have no sensor temperature" if missing
+               else f"every calibration image was taken at {temps[0]:g} degC")
+        notes.append(f"thermal slopes {list(acfg.thermal)} not estimated: {why}")
+        info["thermal"] = notes[-1]
+    predicted = info.get("predicted_sigmas") if config.subset_images is None and config.subset_names is None \
+        else None
+    if predicted is None:
+        predicted = predict_io_sigmas(images, camera, gcps, dataclasses.replace(
+            scfg, adjust=dataclasses.replace(run_cfg, adaptive=False, robust_loss="none")), ids)
+    held: dict[str, str] = {}
+    if predicted is None:
+        notes.append("the terrain height is unknown (no GCPs, no height above ground): the IO precision could not "
+                     "be predicted before the fit; the review checks the estimate afterwards")
+    else:
+        held = undetermined_io(predicted, camera, config.decision)
+        if held:
+            run_cfg = _held_at_nominal(held, run_cfg)
+            notes.extend(held.values())
+    def fit(cfg: AdjustConfig) -> AdjustmentResult:
+        result = adjust(sub_images, sub_obs, camera, cfg, gcps, sub_gobs)
+        if result.converged:
+            return result
+        # the adaptive selection's last adjustment can stop in a slow tail (seneca, 29 images: 50 iterations,
+        # then 16 from a better start with f 0.06 px away); a certificate needs the optimum, so adjust the
+        # selected model again with a longer budget, and let the review reject it if that fails too
+        longer = dataclasses.replace(cfg, free=result.config.free, thermal=result.config.thermal, adaptive=False,
+                                     max_iterations=3 * cfg.max_iterations)
+        again = adjust(sub_images, sub_obs, camera, longer, gcps, sub_gobs)
+        notes.append(f"the self-calibration stopped after {result.iterations} iterations without converging; "
+                     f"adjusted again with up to {longer.max_iterations}: "
+                     + ("converged" if again.converged else "did not converge either")
+                     + f" in {again.iterations} (f {result.camera.f:.2f} -> {again.camera.f:.2f} px)")
+        again.dropped, again.selection = result.dropped, result.selection + [notes[-1]]
+        return again
+
+    result = fit(run_cfg)
+    phi = _overdispersion(sub_images, sub_obs, camera, run_cfg, result, gcps, sub_gobs, config.null_draws)
+    if phi > 1.0:
+        notes.append(f"the formal statistics are {phi:.1f}x too large on this block (median of {config.null_draws} "
+                     "random per-image focal hypotheses): sigmas and t values are calibrated by its square root")
+        if run_cfg.adaptive:
+            # (b) of the rule: a parameter is kept when significant against the null measured on the block
+            run_cfg = dataclasses.replace(run_cfg, t_limit=run_cfg.t_limit * float(np.sqrt(phi)))
+            notes.append(f"parameters selected again with t > {run_cfg.t_limit:.2f} (1.96 x sqrt({phi:.1f}))")
+            result = fit(run_cfg)
+        # (a) again, with the fit's own sigmas calibrated: f, cx, cy the block does not determine go back to nominal
+        calibrated = {n: float(result.sigmas[n]) * float(np.sqrt(phi)) for n in ("f", "cx", "cy")
+                      if n in result.sigmas}
+        late = undetermined_io(calibrated, camera, config.decision, "calibrated sigma (formal x sqrt of the "
+                                                                    "overdispersion)")
+        if late:
+            held.update(late)
+            notes.extend(late.values())
+            run_cfg = _held_at_nominal(late, run_cfg)
+            result = fit(run_cfg)
+    held_out: dict[str, HeldOutComparison] = {}
+    if result.thermal_slopes:
+        final = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal,
+                                    adaptive=False)
+        simple = dataclasses.replace(final, thermal=())
+        cmp = compare_models(sub_images, sub_obs, camera, simple, final, gcps, sub_gobs, config.held_out)
+        for name in result.thermal_slopes:
+            held_out[name] = cmp
+        k = config.decision.held_out_sigmas
+        if not cmp.beyond(k):
+            slopes = ", ".join(f"{n} = {v:+.3g} +- {result.thermal_sigmas.get(n, float('nan')):.2g} px/degC"
+                               for n, v in result.thermal_slopes.items())
+            notes.append(f"{slopes} dropped: it does not predict held-out images better beyond {k:g} sigma "
+                         f"({cmp.describe()}); the certificate holds a constant IO")
+            dropped = dict(result.dropped)
+            for n in result.thermal_slopes:
+                dropped[n] = (f"no held-out gain beyond {k:g} sigma ({cmp.describe()})",
+                              float(result.t_values[result.names.index(n)]))
+            selection = result.selection
+            result = adjust(sub_images, sub_obs, camera, simple, gcps, sub_gobs)
+            result.dropped, result.selection = dropped, selection + [notes[-1]]
+        else:
+            notes.append(f"thermal slope(s) {', '.join(result.thermal_slopes)} kept: {cmp.describe()}")
+    review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
+    return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi)
+
+
+def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, run_cfg: AdjustConfig,
+                    result: AdjustmentResult, gcps, gcp_observations, draws: int) -> float:
+    """The overdispersion of the calibration block (:func:`aerocal.diagnose.engine.overdispersion`), measured
+    on the calibration's own model: its blunders left out, its tie sigma, least squares, no thermal slope."""
+    if draws <= 0:
+        return 1.0
+    from aerocal.diagnose.engine import overdispersion
+    from aerocal.diagnose.model import fit_baseline
+
+    w = np.asarray(result.obs_weight, dtype=float)
+    keep = np.flatnonzero(np.nan_to_num(w, nan=1.0) != 0) if len(w) == observations.num_rows else \
+        np.arange(observations.num_rows)
+    obs = scale_tie_sigma(observations.take(pa.array(keep, pa.int64())), result.tie_sigma_scale)
+    cfg = dataclasses.replace(run_cfg, free=result.config.free, thermal=(), adaptive=False, robust_loss="none",
+                              tie_thinning=None)
+    try:
+        base = fit_baseline(images, obs, camera, cfg, gcps, gcp_observations)
+        return float(overdispersion(base, draws)[0])
+    except (np.linalg.LinAlgError, ValueError):
+        return 1.0
+
+
+def certificate_from_calibration(
+    calibration: Calibration,
+    identity: CameraIdentity,
+    images: pa.Table,
+    gcp_observations: pa.Table | None,
+    date: str | None,
+    run_id: str | None,
+    inputs: dict[str, str],
+    gcps: pa.Table | None = None,
+) -> Certificate:
+    """The certificate of a self-calibration: IO and sigmas, correlations, significance (formal t, why each
+    dropped parameter was dropped, the held-out gain of each thermal slope tested), the thermal model over the
+    block's temperature range, the conditions (date, images, strips, GCPs, priors), quality figures and the
+    review. ``images`` and ``gcp_observations`` are the flight's; the calibration block is taken from them."""
+    cal = calibration.result
+    sub_images = select_images(images, calibration.image_ids)
+    sub_gobs = select_images(gcp_observations, calibration.image_ids) if gcp_observations is not None else None
+    io_names = [n for n in cal.names if n in PARAM_NAMES]
+    names = [SLOPE_NAMES.get(n, n) for n in cal.names]
+
+    root_phi = float(np.sqrt(max(calibration.overdispersion, 1.0)))
+
+    def tested(n: str) -> dict[str, float | None]:
+        h = calibration.held_out.get(n)
+        if h is None or not h.measured:
+            return {}
+        return {"held_out_gain": h.gain, "held_out_sigma": h.sigma}
+
+    significance: dict[str, ParameterSignificance] = {}
+    for n, t in zip(cal.names, np.asarray(cal.t_values, dtype=float), strict=True):
+        t = float(t) if np.isfinite(t) else 0.0
+        significance[SLOPE_NAMES.get(n, n)] = ParameterSignificance(
+            t, bool(cal.significant.get(n, False)), calibrated_t=t / root_phi, **tested(n))
+    for n, (why, t) in cal.dropped.items():
+        significance[SLOPE_NAMES.get(n, n)] = ParameterSignificance(float(t) if np.isfinite(t) else 0.0, False, why,
+                                                                     **tested(n))
+    for n, why in calibration.held_at_nominal.items():
+        significance[n] = ParameterSignificance(0.0, False, why)
+    temps = np.array([t for t in sub_images.column("temperature_c").to_pylist() if t is not None], dtype=float)
+    trange = (float(temps.min()), float(temps.max())) if temps.size else None
+    thermal = None
+    if isinstance(cal.thermal, LinearThermalModel) and trange is not None:
+        model = dataclasses.replace(cal.thermal, valid_range=trange)
+        thermal = ThermalCalibration(model, {SLOPE_NAMES.get(k, k): float(v) for k, v in cal.thermal_sigmas.items()})
+    if thermal is None:  # a slope dropped leaves no thermal model to attach it to: the review's notes say why
+        significance = {n: s for n, s in significance.items() if n not in SLOPE_NAMES.values()}
+    cfg = cal.config
+    priors = {}
+    if cfg.gnss_sigma_m is not None:
+        priors["gnss_position_m"] = float(max(cfg.gnss_sigma_m))
+    if cfg.attitude_sigma_deg is not None:
+        priors["imu_attitude_deg"] = float(max(cfg.attitude_sigma_deg))
+    gcp_ids = set(sub_gobs.column("gcp_id").to_pylist()) if sub_gobs is not None else set()
+    if gcps is not None:  # only control points enter the adjustment; check points are held out
+        roles = dict(zip(gcps.column("gcp_id").to_pylist(), gcps.column("role").to_pylist(), strict=True))
+        gcp_ids = {g for g in gcp_ids if roles.get(g) == "control"}
+    return Certificate(
+        identity=identity,
+        camera=cal.camera,
+        sigmas={n: float(cal.sigmas[n]) for n in io_names},
+        estimated=tuple(io_names),
+        correlation=Correlation(tuple(names), np.asarray(cal.correlation, dtype=float)),
+        significance=significance,
+        thermal=thermal,
+        conditions=Conditions(
+            date=date,
+            temperature_range=trange,
+            n_images=sub_images.num_rows,
+            strips=len(set(sub_images.column("strip").to_pylist())),
+            transversal_strip=calibration.transversal,
+            n_gcp=len(gcp_ids) if cfg.use_gcps else 0,
+            priors=priors,
+            images=tuple(sub_images.column("name").to_pylist()),
+        ),
+        quality=Quality(float(cal.sigma0), float(cal.reprojection_rms), int(cal.dof)),
+        provenance=Provenance(flow_run=run_id, inputs=inputs),
+        review=calibration.review,
+    )
