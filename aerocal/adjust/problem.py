@@ -74,8 +74,9 @@ class AdjustConfig:
     * ``scale_covariance``: multiply the covariance by the a-posteriori variance factor sigma0^2
       (default True).
     * ``adaptive``: drop insignificant or near-singular parameters and re-adjust (default False);
-      ``corr_limit`` (0.95) and ``t_limit`` (1.96, 95 % two-sided) are the thresholds and
-      ``always_keep`` (f, cx, cy) the parameters never dropped for insignificance.
+      ``corr_limit`` (0.95) and ``t_limit`` (1.96, 95 % two-sided) are the thresholds, a correlated pair
+      whose members are both significant is kept unless its |correlation| exceeds ``singular_corr``
+      (0.999), and ``always_keep`` (f, cx, cy) are the parameters never dropped for insignificance.
     """
 
     free: tuple[str, ...] = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
@@ -96,6 +97,7 @@ class AdjustConfig:
     scale_covariance: bool = True
     adaptive: bool = False
     corr_limit: float = 0.95
+    singular_corr: float = 0.999
     t_limit: float = 1.96
     always_keep: tuple[str, ...] = ("f", "cx", "cy")
 

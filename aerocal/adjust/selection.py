@@ -2,8 +2,11 @@
 
 After each adjustment one parameter at most is dropped, then the block is adjusted again:
 
-1. a near-singular pair (|correlation| > ``corr_limit``): the member with the smaller t value is
-   dropped (never one of ``always_keep`` unless both are); of two radial terms, the higher order;
+1. a near-singular pair (|correlation| > ``corr_limit``) with a member that is not significant
+   (t < ``t_limit``): that member is dropped (never one of ``always_keep`` unless both are); of two radial
+   terms, the higher order. A pair whose members are both significant stays unless it is singular
+   (|correlation| > ``singular_corr``): their t values, from the full covariance, already pay for the
+   correlation;
 2. otherwise the least significant parameter with t < ``t_limit`` (not one of ``always_keep``, and not a
    radial term while a higher-order one is still free).
 
@@ -58,6 +61,12 @@ def choose_drop(
             if c[a, b] <= config.corr_limit:
                 break
             options = [k for k in (a, b) if names[k] not in keep]
+            if c[a, b] <= config.singular_corr:
+                # a correlation alone never drops a parameter the block determines: t comes from the full
+                # covariance, so a significant t holds despite the correlation (conte-calibration and
+                # daakir-calibration lost a true k2 of 0.12 / 0.01 at |corr(k1, k2)| 0.96, their certificates
+                # then biased f by 2-8 sigma and the diagnosis named the missing radial term)
+                options = [k for k in options if t[k] < config.t_limit]
             if options:
                 k = min(options, key=lambda q: t[q])
                 if names[a] in RADIAL_ORDER and names[b] in RADIAL_ORDER and len(options) == 2:
@@ -73,8 +82,15 @@ def choose_drop(
             and not _higher_radial_free(names[k], names)]
     if cand:
         k = min(cand, key=lambda q: t[q])
-        return names[k], f"dropped {names[k]}: t = {t[k]:.2f} < {config.t_limit} (not significant at 95 %)"
+        level = "at 95 %" if config.t_limit <= 1.96 else "against the null measured on the block"
+        return names[k], f"dropped {names[k]}: t = {t[k]:.2f} < {config.t_limit:.3g} (not significant {level})"
     summary = ", ".join(f"{nm} t={tv:.1f}" for nm, tv in zip(names, t, strict=True))
+    c = np.abs(np.asarray(corr, dtype=float)) - np.eye(n) if n else np.zeros((0, 0))
+    pairs = [f"|corr({names[a]}, {names[b]})| = {c[a, b]:.3f}" for a in range(n) for b in range(a + 1, n)
+             if c[a, b] > config.corr_limit]
+    if pairs:
+        return None, (f"kept {summary}: all significant; {', '.join(pairs)} above {config.corr_limit} kept, "
+                      "both members significant")
     return None, f"kept {summary}: all significant, no |correlation| above {config.corr_limit}"
 
 

@@ -65,7 +65,7 @@ def physical_verdict(e: Evidence, camera: Camera, ctx: hyp.Context) -> str | Non
                 "(e.g. a GNSS bias is the datum itself without GCPs)")
     if np.any(sigma > DETERMINED_FRACTION * size):
         k = int(np.argmax(sigma / size))
-        return (f"not determined on this block: sigma {sigma[k]:.3g} {e.units} against a plausible size of "
+        return (f"not determined on this block: formal sigma {sigma[k]:.3g} {e.units} against a plausible size of "
                 f"{size[k]:.3g} {e.units}")
     if np.any(theta > size):
         k = int(np.argmax(theta / size))
@@ -420,7 +420,8 @@ def recorded_eo_checks(round1: list[Evidence], phi: float, camera: Camera, ctx: 
                        named: list[NamedEffect]) -> dict:
     """The recorded-EO checks, each with its estimate and sigma whether or not it was named: height datum
     and GNSS offset (``gnss_bias``), GNSS time lag (``gnss_time_offset``), lever arm, boresight (attitude
-    convention or mounting). Sigmas are scaled by the measured overdispersion ``phi``; ``status`` is
+    convention or mounting). ``sigma`` is the formal sigma (``sigma_formal``, what the geometry determines)
+    scaled by the square root of the measured overdispersion ``phi`` (what the noise allows); ``status`` is
     "named" (in the extended model), "consistent with zero", "a signal below the naming threshold", "not
     determined", "beyond physical size" or "not testable", with the reason."""
     out = {}
@@ -437,8 +438,8 @@ def recorded_eo_checks(round1: list[Evidence], phi: float, camera: Camera, ctx: 
             out[name] = {"status": "not testable", "reason": why}
             continue
         sigma = [float(s_ * np.sqrt(phi)) for s_ in e.sigma]
-        entry = {"estimate": [float(v) for v in e.estimate], "sigma": sigma, "units": e.units,
-                 "statistic": float(e.statistic / phi)}
+        entry = {"estimate": [float(v) for v in e.estimate], "sigma": sigma,
+                 "sigma_formal": [float(s_) for s_ in e.sigma], "units": e.units, "statistic": float(e.statistic / phi)}
         if name in named_names:
             entry["status"] = "named"
         elif why is not None:
