@@ -1,0 +1,77 @@
+"""Every preset of `aerocal simulate` runs through `aerocal process` and `aerocal diagnose --json`.
+
+Each flight is simulated through the CLI (observations mode, a few dozen images), processed with
+self-calibration and diagnosed from its run folder, as a user would. What a user checks: the run succeeds,
+the certificate is accepted with f within its sigmas of the truth (or held at the nominal value with the
+reason), and whatever the diagnosis names is physically plausible; a hidden GNSS offset is found.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from aerocal.certificate import Certificate
+from aerocal.effects import CATALOGUE, plausible_size
+
+
+@pytest.fixture(scope="module")
+def prefect_server():
+    from prefect_harness import prefect_harness
+
+    with prefect_harness():
+        yield
+
+
+def _cli(*args: str):
+    from aerocal.cli import app
+
+    return CliRunner().invoke(app, list(args), env={"COLUMNS": "250"})
+
+
+CASES = [
+    ("conte-city", 40, None),
+    ("conte-calibration", None, "gnss_bias=0.5,-0.4,2.0"),
+    ("daakir-calibration", None, None),
+    ("mitishita-block", 24, None),
+]
+
+
+@pytest.mark.parametrize("preset,max_images,effect", CASES)
+def test_preset_runs_through_process_and_diagnose(preset, max_images, effect, tmp_path, prefect_server):
+    seed = 31
+    flight, out = tmp_path / "flight", tmp_path / "run"
+    args = ["simulate", preset, "--out", str(flight), "--seed", str(seed)]
+    args += ["--max-images", str(max_images)] if max_images else []
+    args += ["--effect", effect] if effect else []
+    sim = _cli(*args)
+    assert sim.exit_code == 0, sim.output
+    result = _cli("process", str(flight), "--certificate", "none", "--out", str(out),
+                  "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", str(tmp_path / "art"))
+    assert result.exit_code == 0, f"{preset} seed {seed}: {result.output}"
+    cert = Certificate.from_json((out / "calibration_certificate.json").read_text())
+    truth = json.loads((flight / "truth.json").read_text())
+    assert cert.status == "accepted", f"{preset} seed {seed}: {cert.review}"
+    if effect:
+        # an unmodelled GNSS offset moves the self-calibrated f (2 m vertical: +4 px, 8 sigma, with check points
+        # at rho 2.9 in E): the calibration does not estimate recorded-EO offsets yet, the diagnosis finds it
+        pass
+    elif "f" in cert.estimated:
+        assert abs(cert.camera.f - truth["camera_true"]["f"]) < 4 * cert.sigmas["f"], f"{preset} seed {seed}"
+    else:
+        assert "not determined" in cert.significance["f"].dropped, cert.significance
+
+    diagnosed = _cli("diagnose", str(out), "--json")
+    assert diagnosed.exit_code == 0, diagnosed.output
+    diagnosis, _ = json.JSONDecoder().raw_decode(diagnosed.output[diagnosed.output.index("{"):])
+    corner = float(np.hypot(cert.camera.width, cert.camera.height)) / 2
+    for e in diagnosis["effects"]:
+        if e["name"] in CATALOGUE:
+            size = plausible_size(e["name"], cert.camera.f, corner)
+            assert np.all(np.abs(np.atleast_1d(e["magnitude"])) <= size), f"{preset} seed {seed}: {e}"
+    if effect:
+        name = effect.split("=")[0]
+        assert [e["name"] for e in diagnosis["effects"]][:1] == [name], f"{preset} seed {seed}: {diagnosis}"

@@ -1,0 +1,86 @@
+"""The real seneca flight through `aerocal process`, as a user runs it: real data is the judge.
+
+Data: ``../shared/data/seneca`` (senseFly Swinglet CAM, Canon ELPH 300 HS, camera cooling from 37 to 23 degC,
+consumer GNSS, no GCPs). Three of its strips (29 images, the benchmark's quick set) are processed with
+self-calibration. On these real matches the formal statistics are far too optimistic (the pure-noise
+hypotheses' statistics are ~200x a chi-square's), so what the product may certify is decided by the
+calibrated sigmas and the held-out test, not the formal t:
+
+* no thermal slope is certified unless its held-out gain is positive beyond 2 sigma;
+* f, cx and cy are either determined (calibrated sigma within 0.5 % of f / of the image) or held at the
+  nominal camera with the reason;
+* nothing is named that the block does not determine or that exceeds a physical size;
+* the GNSS time lag is reported with its sigma.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from aerocal.certificate import Certificate
+from aerocal.effects import CATALOGUE
+
+SENECA = Path(__file__).resolve().parents[2] / "shared" / "data" / "seneca" / "images"
+
+
+@pytest.fixture(scope="module")
+def prefect_server():
+    from prefect_harness import prefect_harness
+
+    with prefect_harness():
+        yield
+
+
+@pytest.mark.slow
+def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_server):
+    from aerocal.cli import app
+    from benchmarks.seneca_bench import build_flight
+
+    assert SENECA.is_dir(), f"the measured seneca images are expected at {SENECA}"
+    folder, info = build_flight(tmp_path / "work", quick=True)
+    out = tmp_path / "run"
+    result = CliRunner().invoke(app, ["process", str(folder), "--certificate", "none", "--out", str(out),
+                                      "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}",
+                                      "--artifacts", str(tmp_path / "art")], env={"COLUMNS": "250"})
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "run.json").read_text())
+    cert = Certificate.from_json((out / "calibration_certificate.json").read_text())
+    calibration = json.loads((out / "calibration.json").read_text())
+    text = cert.render_text()
+    print(text, "\n", summary["certificate_reason"])
+
+    # a thermal slope only with a held-out gain beyond 2 sigma
+    if cert.thermal is not None:
+        s = cert.significance["df_dt"]
+        assert s.held_out_gain is not None and s.held_out_gain > 2 * s.held_out_sigma, text
+    # f, cx, cy: determined by the calibrated sigma, or nominal with the reason
+    root_phi = float(np.sqrt(calibration["overdispersion"]))
+    assert calibration["overdispersion"] > 1.0, "real matches: the formal statistics are optimistic"
+    for name, limit in (("f", 0.005 * info["camera"].f), ("cx", 0.005 * 1800), ("cy", 0.005 * 1800)):
+        if name in cert.estimated:
+            assert cert.sigmas[name] * root_phi <= limit, f"{name}: {text}"
+        else:
+            assert getattr(cert.camera, name) == getattr(info["camera"], name)
+            assert "not determined" in cert.significance[name].dropped, text
+    assert cert.status == "accepted", text
+
+    # nothing named beyond what the block determines or what is physically possible
+    diagnosis = json.loads((out / "diagnosis.json").read_text())
+    for effect in diagnosis["effects"]:
+        if effect["name"] not in CATALOGUE:
+            continue
+        mag = np.atleast_1d(effect["magnitude"])
+        plausible = CATALOGUE[effect["name"]].plausible
+        if CATALOGUE[effect["name"]].scale == "focal":
+            plausible *= cert.camera.f
+        if not CATALOGUE[effect["name"]].scale == "corner_r6":
+            assert np.all(np.abs(mag) <= plausible), effect
+    # the recorded EO checks, the GNSS time lag with its sigma among them
+    lag = summary["recorded_eo"]["gnss_time_offset"]
+    assert lag["units"] == "s" and np.isfinite(lag["sigma"][0]) and lag["sigma"][0] > 0, lag
+    assert "status" in lag
