@@ -10,7 +10,11 @@
    geometry and its GNSS/GCP weights before any fit (:func:`aerocal.subset.predict_io_sigmas`); a parameter
    the block cannot determine stays at the nominal value (:func:`aerocal.decision.undetermined_io`), and
    so does its temperature slope.
-3. **The adjustment** with adaptive parameter selection (:func:`aerocal.adjust.adjust`).
+3. **The recorded GNSS offset** is tested against the control GCPs and subtracted where the diagnosis names
+   it (:func:`aerocal.eo_checks.correct_gnss_offset`): unmodelled, it is absorbed by f.
+   **The adjustment** with adaptive parameter selection (:func:`aerocal.adjust.adjust`); the formal statistics
+   are then calibrated by the block's overdispersion, the selection repeated against t > 1.96 sqrt(phi), and
+   f, cx, cy whose calibrated sigma fails the determinability test go back to nominal.
 4. **Held-out test of the thermal slopes** it kept (:func:`aerocal.heldout.compare_models`, k-fold over
    strips): a slope whose held-out gain is not positive beyond ``DecisionConfig.held_out_sigmas`` standard
    errors is dropped and the block adjusted again without it. The formal t of a slope on matched tie
@@ -44,6 +48,7 @@ from aerocal.certificate import (
     ThermalCalibration,
 )
 from aerocal.decision import DecisionConfig, Review, review_calibration, undetermined_io
+from aerocal.eo_checks import correct_gnss_offset
 from aerocal.heldout import HeldOutComparison, HeldOutConfig, compare_models
 from aerocal.subset import SubsetConfig, central_images, predict_io_sigmas, propose_subset
 
@@ -231,6 +236,10 @@ def self_calibrate(
         again.dropped, again.selection = result.dropped, result.selection + [notes[-1]]
         return again
 
+    eo = correct_gnss_offset(sub_images, sub_obs, camera, run_cfg, gcps, sub_gobs)
+    sub_images = eo.images
+    notes.extend(eo.notes)
+    info["gnss_offset"] = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m}
     result = fit(run_cfg)
     phi = _overdispersion(sub_images, sub_obs, camera, run_cfg, result, gcps, sub_gobs, config.null_draws)
     if phi > 1.0:
