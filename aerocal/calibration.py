@@ -48,6 +48,8 @@ from aerocal.certificate import (
     ThermalCalibration,
 )
 from aerocal.decision import DecisionConfig, Review, review_calibration, undetermined_io
+from aerocal.diagnose.engine import overdispersion
+from aerocal.diagnose.model import fit_baseline
 from aerocal.eo_checks import correct_gnss_offset
 from aerocal.heldout import HeldOutComparison, HeldOutConfig, compare_models
 from aerocal.subset import SubsetConfig, central_images, predict_io_sigmas, propose_subset
@@ -177,12 +179,15 @@ def self_calibrate(
     height_agl_m: float | None = None,
     config: CalibrationConfig | None = None,
     adjust_config: AdjustConfig | None = None,
+    input_errors: tuple[str, ...] = (),
 ) -> Calibration:
     """Self-calibrate a flight under the decision rule (see the module docstring).
 
     ``camera``: the nominal camera (starting values, and the prior every estimate is checked against);
     ``height_agl_m``: the flying height above ground, for the geometry's prediction when there are no GCPs;
-    ``adjust_config`` overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas).
+    ``adjust_config`` overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas);
+    ``input_errors``: errors the ingest reported for this flight. A calibration made from input with errors is
+    rejected (its certificate stays on record, never used): one bad cell must not poison later flights.
     """
     config = config or CalibrationConfig()
     acfg = adjust_config or config.adjust
@@ -219,6 +224,7 @@ def self_calibrate(
         if held:
             run_cfg = _held_at_nominal(held, run_cfg)
             notes.extend(held.values())
+
     def fit(cfg: AdjustConfig) -> AdjustmentResult:
         result = adjust(sub_images, sub_obs, camera, cfg, gcps, sub_gobs)
         if result.converged:
@@ -279,11 +285,15 @@ def self_calibrate(
                 dropped[n] = (f"no held-out gain beyond {k:g} sigma ({cmp.describe()})",
                               float(result.t_values[result.names.index(n)]))
             selection = result.selection
-            result = adjust(sub_images, sub_obs, camera, simple, gcps, sub_gobs)
+            result = fit(simple)
             result.dropped, result.selection = dropped, selection + [notes[-1]]
         else:
             notes.append(f"thermal slope(s) {', '.join(result.thermal_slopes)} kept: {cmp.describe()}")
     review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
+    if input_errors:
+        review = review.merged(problems=[
+            f"the flight's input has {len(input_errors)} error(s) (first: {input_errors[0]}); fix them and "
+            "calibrate again"])
     return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi)
 
 
@@ -293,9 +303,6 @@ def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, ru
     on the calibration's own model: its blunders left out, its tie sigma, least squares, no thermal slope."""
     if draws <= 0:
         return 1.0
-    from aerocal.diagnose.engine import overdispersion
-    from aerocal.diagnose.model import fit_baseline
-
     w = np.asarray(result.obs_weight, dtype=float)
     keep = np.flatnonzero(np.nan_to_num(w, nan=1.0) != 0) if len(w) == observations.num_rows else \
         np.arange(observations.num_rows)

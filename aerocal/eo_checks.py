@@ -25,6 +25,7 @@ import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, AdjustmentError
 from aerocal.camera import Camera
+from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 
 #: control GCPs the offset needs in the block (a translation of the datum is determined by three points)
 MIN_CONTROL = 3
@@ -64,8 +65,6 @@ def correct_gnss_offset(
     """Test the recorded positions for a constant offset against the control GCPs and subtract its significant
     components (see the module docstring). ``config`` is the self-calibration's adjustment (its free
     IO is free here too, so that the offset is not mistaken for an IO error, nor the other way round)."""
-    from aerocal.diagnose.engine import DiagnoseConfig, diagnose
-
     if config.gnss_sigma_m is None:
         return GnssCorrection(images, notes=["GNSS offset not tested: the adjustment does not use GNSS"])
     n_control = 0

@@ -191,6 +191,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         from aerocal.camera import Camera
         from aerocal.certificate import Certificate
+        from tasks.products import recorded_eo_text
         from tasks.resume import StepContext
 
         if measured_path.exists():
@@ -217,7 +218,8 @@ def main(argv: list[str] | None = None) -> None:
 
         run_dir = Path(summary["out_dir"])
         adj = json.loads((run_dir / "adjustment.json").read_text())
-        cert = Certificate.from_dict(json.loads((run_dir / "certificate.json").read_text()))
+        # the calibration's own certificate (with its review), not the nominal camera a rejected one leaves
+        cert = Certificate.from_dict(json.loads((run_dir / "calibration_certificate.json").read_text()))
         ctx = StepContext(db, artifacts, "benchmark")
         steps = summary["steps"]
         with ctx.database.session() as session:
@@ -305,9 +307,14 @@ def main(argv: list[str] | None = None) -> None:
         else:
             dropped = [s for s in ca.get("selection") or [] if s.startswith("dropped df/dT")]
             lines.append(f"- thermal slope: not in the certificate ({dropped[0] if dropped else 'not estimated'})")
+        review = cert.review.to_dict() if cert.review is not None else {}
         lines += [
             f"- selection (calibration): {'; '.join(ca.get('selection') or []) or 'none'}",
+            f"- review: {review.get('status')}; overdispersion {cal.get('overdispersion', 1.0):.1f}; "
+            f"{'; '.join(review.get('problems', []) + review.get('notes', []))}",
+            f"- certificate used by the block: {summary.get('certificate_reason')}",
             f"- diagnosis: {summary.get('diagnosis')}",
+            f"- recorded EO checks: {recorded_eo_text(summary.get('recorded_eo') or {})}",
             f"- figure: `{fig.relative_to(ROOT)}`; per image: `{table.relative_to(ROOT)}`",
         ]
         record("seneca (real), end to end" + (" (quick)" if args.quick else ""), lines)

@@ -70,7 +70,8 @@ def calibrate_step(
         gcps, gobs = inp.table("gcps"), inp.table("gcp_observations")
         cam_doc, flight = inp.json("camera"), inp.json("flight")
         camera = Camera.from_dict(cam_doc["camera"])
-        cal = self_calibrate(images, obs, camera, gcps, gobs, flight.get("height_agl_m"), config, acfg)
+        errors = tuple(p for p in flight.get("problems") or [] if str(p).endswith("[error]"))
+        cal = self_calibrate(images, obs, camera, gcps, gobs, flight.get("height_agl_m"), config, acfg, errors)
         cert = certificate_from_calibration(cal, identity_of(cam_doc), images, gobs, flight.get("date"), ctx.run_id,
                                             dict(inp.shas), gcps=gcps)
         return {

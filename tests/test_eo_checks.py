@@ -33,3 +33,4 @@ def test_without_control_the_offset_is_not_testable():
                               sim.gcp_observations)
     assert out.offset_m is None and out.images is sim.images
     assert "not testable: 0 control GCPs" in out.notes[0], out.notes
+

@@ -1,0 +1,39 @@
+"""Self-calibration under the decision rule (engine level; the product path is in test_no_confident_wrong_answer)."""
+
+import dataclasses
+
+from aerocal.adjust import AdjustConfig
+from aerocal.calibration import CalibrationConfig, self_calibrate
+from aerocal.simulate import PRESETS, simulate_flight
+from aerocal.simulate.sensors import TemperatureCurve
+
+SPEC = PRESETS["conte-calibration"]
+CONFIG = AdjustConfig(gnss_sigma_m=(0.10, 0.10, 0.15), thermal=("f",), adaptive=True)
+
+
+def test_a_calibration_from_input_with_errors_is_rejected():
+    """One bad input cell must not become the camera's certificate for every later flight."""
+    seed = 43
+    sim = simulate_flight(SPEC, seed=seed, max_images=20)
+    error = "eo.csv:7: alt 'abc' is not a number [error]"
+    cal = self_calibrate(sim.images, sim.observations, SPEC.camera_nominal, sim.gcps, sim.gcp_observations,
+                         config=CalibrationConfig(null_draws=0), adjust_config=CONFIG, input_errors=(error,))
+    assert cal.review.status == "rejected" and error in cal.review.problems[-1], cal.review
+
+
+def test_a_thermal_slope_is_certified_only_with_a_held_out_gain():
+    """A focal drift of 1.5 px/degC while the camera warms by 12 degC predicts held-out strips better and is
+    kept; on the same flight without a drift the slope is not certified."""
+    seed = 44
+    spec = SPEC.replace(sensors=dataclasses.replace(SPEC.sensors, temperature=TemperatureCurve(10.0, 30.0, 600.0)))
+    warm = simulate_flight(spec, seed=seed, effects={"thermal_focal": (1.5,)})
+    cal = self_calibrate(warm.images, warm.observations, spec.camera_nominal, warm.gcps, warm.gcp_observations,
+                         adjust_config=CONFIG)
+    h = cal.held_out.get("df/dT")
+    assert h is not None and h.beyond(2.0), f"seed {seed}: {h and h.describe()}"
+    assert "df/dT" in cal.result.thermal_slopes, f"seed {seed}: {cal.review.notes}"
+    assert abs(cal.result.thermal_slopes["df/dT"] - 1.5) < 4 * cal.result.thermal_sigmas["df/dT"]
+    still = simulate_flight(spec, seed=seed)
+    cal = self_calibrate(still.images, still.observations, spec.camera_nominal, still.gcps, still.gcp_observations,
+                         adjust_config=CONFIG)
+    assert not cal.result.thermal_slopes, f"seed {seed}: {cal.result.thermal_slopes} {cal.review.notes}"
