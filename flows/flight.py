@@ -212,6 +212,7 @@ def _process(
             assess = json.loads(ctx.store.read_bytes(ctx.store.get(session, outputs["assessment"])))
         summary["diagnosis"] = diag.get("summary")
         summary["recorded_eo"] = diag.get("recorded_eo")
+        summary["twin"] = (diag.get("twin") or {}).get("summary")
         summary["accuracy"] = assess.get("check_points")
     return summary
 

@@ -408,6 +408,7 @@ def report_step(
             "verdict": cp.get("verdict"),
             "diagnosis": diag.get("summary"),
             "recorded_eo_checks": recorded_eo_text(diag.get("recorded_eo") or {}),
+            "twin": (diag.get("twin") or {}).get("summary", "not made"),
             "gsd_m": mos.get("gsd_m"),
             "mosaic_frames": mos.get("frames"),
         }

@@ -42,7 +42,7 @@ def adjust_config(spec):
 def run(spec, seed, effects=None):
     """Simulate with hidden ``effects`` and diagnose with IO fixed from the camera's certificate."""
     sim = simulate_flight(spec, seed=seed, effects=effects or {})
-    cfg = DiagnoseConfig(reference_temperature=spec.sensors.reference_temperature_c)
+    cfg = DiagnoseConfig(reference_temperature=spec.sensors.reference_temperature_c, twins=0)  # twin: test_twin
     base = fit_baseline(sim.images, sim.observations, spec.camera_true, adjust_config(spec), sim.gcps,
                         sim.gcp_observations)
     return base, diagnose_baseline(base, cfg)

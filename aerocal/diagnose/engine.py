@@ -38,6 +38,7 @@ from aerocal.diagnose import hypotheses as hyp
 from aerocal.diagnose.model import Baseline, Conditional, check_rmse, fit_baseline, linearise, reduce, refit
 from aerocal.effects import CATALOGUE
 from aerocal.subset import central_images
+from aerocal.twin import compare as compare_twins
 
 #: A switch effect (refraction) has a known size: on = 1. An estimate further than this many sigmas from
 #: 1 is a signal of the effect's shape but not the effect, and is not named. Measured on a rendered,
@@ -98,6 +99,7 @@ class DiagnoseConfig:
     # blocks with more images are diagnosed on the max_images nearest the block centre (None = all); see
     # :func:`central_images`
     max_images: int | None = 200
+    twins: int = 5  # twins of the adjusted block whose statistics are set beside the real ones (0 = none)
 
 
 @dataclass
@@ -163,11 +165,13 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
     overdispersion: float = 1.0  # statistics were divided by this (>= 1), measured on the block itself
     recorded_eo: dict = field(default_factory=dict)  # see :func:`recorded_eo_checks`
+    twin: dict = field(default_factory=dict)  # :meth:`aerocal.twin.TwinComparison.to_dict` and its summary
 
     def to_dict(self) -> dict:
         return {
             "effects": [e.to_dict() for e in self.effects],
             "recorded_eo": self.recorded_eo,
+            "twin": self.twin,
             "gain": self.gain.to_dict() if self.gain else None,
             "hypotheses": [h.to_dict() for h in self.hypotheses],
             "sigma0": {"before": self.sigma0_before, "after": self.sigma0_after},
@@ -407,8 +411,13 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
         notes.append("no check points: the gain on held-out data was not measured")
     extended = _extended_model(effects, ctx, current.camera)
     eo = recorded_eo_checks([e for e in evidence if e.round == 1], phi, baseline.camera, ctx, effects)
+    twin = {}
+    if config.twins > 1:
+        # what the simulation gets wrong: the block as adjusted, made again with the simulation's noise model
+        comparison = compare_twins(baseline, config.twins, config.seed)
+        twin = {**comparison.to_dict(), "summary": comparison.summary()}
     return Diagnosis(effects, evidence, gain, baseline.solution.sigma0, current.solution.sigma0, ctx.t_ref,
-                     extended, notes, phi, eo)
+                     extended, notes, phi, eo, twin)
 
 
 #: the checks of the recorded exterior orientation every flight with GNSS/IMU gets (NOTES: small drones'
