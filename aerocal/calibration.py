@@ -289,6 +289,20 @@ def self_calibrate(
             result.dropped, result.selection = dropped, selection + [notes[-1]]
         else:
             notes.append(f"thermal slope(s) {', '.join(result.thermal_slopes)} kept: {cmp.describe()}")
+            limit = config.decision.max_thermal_slope * camera.f
+            fast = {n: v for n, v in result.thermal_slopes.items() if abs(v) > limit}
+            if fast:
+                # (2) of the rule: a held-out gain from a slope no lens has is another cause's signal (the real
+                # seneca flight: df/dT 3.4 px/degC, 3.8 % of f over its 14 degC, which its study refuted)
+                notes.append(f"{', '.join(f'{n} = {v:+.3g}' for n, v in fast.items())} px/degC dropped all the "
+                             f"same: beyond {config.decision.max_thermal_slope:g} x f = {limit:.3g} px/degC, no lens "
+                             "drifts that fast; the certificate holds a constant IO")
+                dropped = dict(result.dropped)
+                for n in result.thermal_slopes:
+                    dropped[n] = (notes[-1], float(result.t_values[result.names.index(n)]))
+                selection = result.selection
+                result = fit(simple)
+                result.dropped, result.selection = dropped, selection + [notes[-1]]
     review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
     if input_errors:
         review = review.merged(problems=[

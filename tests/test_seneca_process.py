@@ -10,7 +10,8 @@ calibrated sigmas and the held-out test, not the formal t:
 * f, cx and cy are either determined (calibrated sigma within 0.5 % of f / of the image) or held at the
   nominal camera with the reason;
 * nothing is named that the block does not determine or that exceeds a physical size;
-* the GNSS time lag is reported with its sigma.
+* the GNSS time lag is reported with its sigma;
+* the flight's twin sets the real block's statistics beside the simulation's and names what differs.
 """
 
 from __future__ import annotations
@@ -84,3 +85,8 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
     lag = summary["recorded_eo"]["gnss_time_offset"]
     assert lag["units"] == "s" and np.isfinite(lag["sigma"][0]) and lag["sigma"][0] > 0, lag
     assert "status" in lag
+    # the twin: real statistics against the simulation's, and what differs is named with its cause
+    twin = diagnosis["twin"]
+    print("twin:", twin["summary"])
+    assert set(twin["real"]) >= {"variance_tie", "per_image_scale", "gnss_lag1"} and twin["n_twins"] >= 2
+    assert all(k in twin["z"] for k in twin["differs"]), twin

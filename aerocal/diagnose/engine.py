@@ -99,7 +99,7 @@ class DiagnoseConfig:
     # blocks with more images are diagnosed on the max_images nearest the block centre (None = all); see
     # :func:`central_images`
     max_images: int | None = 200
-    twins: int = 5  # twins of the adjusted block whose statistics are set beside the real ones (0 = none)
+    twins: int = 3  # twins of the adjusted block whose statistics are set beside the real ones (0 = none)
 
 
 @dataclass
