@@ -419,6 +419,13 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
     if gain is None:
         notes.append("no check points: the gain on held-out data was not measured")
     extended = _extended_model(effects, ctx, current.camera)
+    s0 = float(baseline.solution.sigma0)
+    if s0 > MISFIT_SIGMA0:
+        # a baseline that does not fit its own weights makes every figure below describe the misfit, not the
+        # flight (the real seneca block: sigma0 32 against its block adjustment's 1.02)
+        notes.insert(0, f"the diagnosis baseline does not fit its weights (sigma0 {s0:.3g}, above {MISFIT_SIGMA0:g}): "
+                        "its statistics, the recorded-EO checks and the twin describe that misfit (mismatches or "
+                        "wrong sigmas), not the flight; do not rely on them")
     eo = recorded_eo_checks([e for e in evidence if e.round == 1], phi, baseline.camera, ctx, effects)
     twin = {}
     if config.twins > 1:
@@ -470,6 +477,9 @@ def recorded_eo_checks(round1: list[Evidence], phi: float, camera: Camera, ctx: 
         out[name] = entry
     return out
 
+
+#: a baseline sigma0 above this says the block does not fit its weights: the diagnosis says not to rely on it
+MISFIT_SIGMA0 = 3.0
 
 #: hypotheses that need every image's sensor temperature, and those that act on GNSS observations
 THERMAL_HYPOTHESES = ("thermal_focal", "thermal_principal_point")
