@@ -245,7 +245,8 @@ def self_calibrate(
     eo = correct_gnss_offset(sub_images, sub_obs, camera, run_cfg, gcps, sub_gobs)
     sub_images = eo.images
     notes.extend(eo.notes)
-    info["gnss_offset"] = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m}
+    info["gnss_offset"] = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
+                           "time_sigma_s": eo.time_sigma_s}
     result = fit(run_cfg)
     phi = _overdispersion(sub_images, sub_obs, camera, run_cfg, result, gcps, sub_gobs, config.null_draws)
     if phi > 1.0:

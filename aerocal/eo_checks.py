@@ -13,6 +13,12 @@ Each horizontal component beyond ``MIN_Z`` of its sigmas is subtracted from the 
 vertical one is reported, not corrected: with f free it is the focal length's twin at a constant flying
 height. It needs control GCPs (without them the offset is the datum itself and is not testable); every
 outcome is a sentence with its numbers.
+
+The GNSS time lag (camera clock against the receiver's) is tested in the same adjustment and needs no control:
+it moves each position along its own track, so strips flown in opposite directions determine it. A lag beyond
+``MIN_Z`` of its calibrated sigmas, and within its physical size, is removed from the recorded positions
+(``position - velocity x lag``, the velocity from the recorded track, :func:`track_velocities`). Unmodelled,
+the real seneca lag (-0.34 s at ~12 m/s, 4 m along the track) sits in the calibration's GNSS residuals.
 """
 
 from __future__ import annotations
@@ -42,14 +48,42 @@ class GnssCorrection:
     offset_m: list[float] | None = None
     sigma_m: list[float] | None = None
     notes: list[str] = field(default_factory=list)
+    time_offset_s: float | None = None  # the GNSS time lag removed (seconds), None when none was
+    time_sigma_s: float | None = None
 
 
 def shift_gnss(images: pa.Table, offset: np.ndarray) -> pa.Table:
     """``images`` with ``offset`` (metres E, N, Up in the flight's CRS) subtracted from gnss_x/y/z."""
+    return shift_gnss_each(images, np.broadcast_to(np.asarray(offset, dtype=float), (images.num_rows, 3)))
+
+
+def track_velocities(images: pa.Table) -> np.ndarray:
+    """Velocity (m/s, E N Up of the flight's CRS) of each recorded position from its neighbours in time within
+    its strip (:func:`aerocal.diagnose.hypotheses.velocities`); zero where the image has no neighbour."""
+    from aerocal.diagnose.hypotheses import velocities
+
+    C = np.column_stack([images.column(c).to_numpy(zero_copy_only=False).astype(float)
+                         for c in ("gnss_x", "gnss_y", "gnss_z")])
+    t = images.column("time").to_numpy(zero_copy_only=False)
+    if len(t) and not np.isnat(t).any():
+        secs = (t - t.min()).astype("timedelta64[us]").astype(float) / 1e6
+    else:
+        return np.zeros_like(C)
+    strip = np.array([-1 if v is None else v for v in images.column("strip").to_pylist()], dtype=np.int64)
+    return np.nan_to_num(velocities(np.nan_to_num(C), secs, strip))
+
+
+def shift_gnss_in_time(images: pa.Table, lag_s: float) -> pa.Table:
+    """``images`` with each recorded position moved back along its track by ``lag_s`` seconds."""
+    return shift_gnss_each(images, track_velocities(images) * float(lag_s))
+
+
+def shift_gnss_each(images: pa.Table, offsets: np.ndarray) -> pa.Table:
+    """``images`` with ``offsets`` ((N, 3) metres, one row per image) subtracted from gnss_x/y/z."""
     out = images
     for k, name in enumerate(("gnss_x", "gnss_y", "gnss_z")):
         i = out.schema.get_field_index(name)
-        col = out.column(name).to_numpy(zero_copy_only=False).astype(float) - float(offset[k])
+        col = out.column(name).to_numpy(zero_copy_only=False).astype(float) - offsets[:, k]
         out = out.set_column(i, out.schema.field(i), pa.array(col, pa.float64()))
     return out
 
@@ -61,10 +95,13 @@ def correct_gnss_offset(
     config: AdjustConfig,
     gcps: pa.Table | None,
     gcp_observations: pa.Table | None,
+    max_images: int | None = None,
 ) -> GnssCorrection:
-    """Test the recorded positions for a constant offset against the control GCPs and subtract its significant
-    components (see the module docstring). ``config`` is the self-calibration's adjustment (its free
-    IO is free here too, so that the offset is not mistaken for an IO error, nor the other way round)."""
+    """Test the recorded positions for a constant offset against the control GCPs and for a GNSS time lag, and
+    remove what passes (see the module docstring). ``config`` is the adjustment the positions are for (a
+    self-calibration's free IO is free here too, so that the offset is not mistaken for an IO error, nor the
+    other way round). ``max_images``: estimate on that many images nearest the block centre (None: all); the
+    correction applies to every image."""
     if config.gnss_sigma_m is None:
         return GnssCorrection(images, notes=["GNSS offset not tested: the adjustment does not use GNSS"])
     n_control = 0
@@ -72,38 +109,64 @@ def correct_gnss_offset(
         roles = dict(zip(gcps.column("gcp_id").to_pylist(), gcps.column("role").to_pylist(), strict=True))
         seen = set(gcp_observations.column("gcp_id").to_pylist())
         n_control = sum(1 for g in seen if roles.get(g) == "control")
-    if n_control < MIN_CONTROL or not config.use_gcps:
-        return GnssCorrection(images, notes=[
-            f"GNSS offset not testable: {n_control} control GCPs in the block (at least {MIN_CONTROL} are needed; "
-            "without them a constant offset is the datum itself)"])
+    offset_testable = n_control >= MIN_CONTROL and config.use_gcps
+    hypotheses = ("gnss_bias", "gnss_time_offset") if offset_testable else ("gnss_time_offset",)
     cfg = dataclasses.replace(config, thermal=(), adaptive=False, tie_thinning=None)
     try:
         d = diagnose(images, observations, camera, cfg, gcps, gcp_observations,
-                     DiagnoseConfig(hypotheses=("gnss_bias",), max_effects=1, max_images=None))
+                     DiagnoseConfig(hypotheses=hypotheses, max_effects=1, max_images=max_images, twins=0))
     except (AdjustmentError, np.linalg.LinAlgError, ValueError) as exc:
-        return GnssCorrection(images, notes=[f"GNSS offset not tested: the block could not be adjusted ({exc})"])
-    check = d.recorded_eo.get("gnss_bias", {})
+        return GnssCorrection(images, notes=[f"GNSS offset and time lag not tested: the block could not be adjusted "
+                                             f"({exc})"])
+    out = GnssCorrection(images)
+    if offset_testable:
+        _offset(out, d.recorded_eo.get("gnss_bias", {}), n_control)
+    else:
+        out.notes.append(f"GNSS offset not testable: {n_control} control GCPs in the block (at least {MIN_CONTROL} "
+                         "are needed; without them a constant offset is the datum itself)")
+    _time_lag(out, d.recorded_eo.get("gnss_time_offset", {}))
+    return out
+
+
+def _offset(out: GnssCorrection, check: dict, n_control: int) -> None:
     if "estimate" not in check or check.get("status") in ("not determined", "beyond physical size"):
         why = check.get("reason") or check.get("status", "not tested")
-        return GnssCorrection(images, notes=[f"GNSS offset tested against {n_control} control GCPs: {why}; "
-                                             "positions used as recorded"])
+        out.notes.append(f"GNSS offset tested against {n_control} control GCPs: {why}; positions used as recorded")
+        return
     est, sig = np.asarray(check["estimate"], dtype=float), np.asarray(check["sigma"], dtype=float)
     z = np.abs(est) / np.maximum(sig, 1e-300)
     text = (f"{', '.join(f'{v:+.3g}' for v in est)} +- {', '.join(f'{v:.2g}' for v in sig)} m E/N/Up against "
             f"{n_control} control GCPs")
     if not np.any(z > MIN_Z):
-        return GnssCorrection(images, notes=[f"GNSS offset {text}: no component beyond {MIN_Z:g} sigma; positions "
-                                             "used as recorded"])
+        out.notes.append(f"GNSS offset {text}: no component beyond {MIN_Z:g} sigma; positions used as recorded")
+        return
     # each horizontal component on its own. The vertical one is not corrected: with f free it is the focal
     # length's twin at a constant flying height (sigma 5 m on conte-calibration) and its linearised estimate
     # is biased there (+15 m on an effect-free block, +17 m with 2 m hidden); subtracting it moved f by 30 px
     use = (z > MIN_Z) & np.array([True, True, False])
     if not use.any():
-        return GnssCorrection(images, notes=[f"GNSS offset {text}: no horizontal component beyond {MIN_Z:g} sigma "
-                                             "(the vertical one is not corrected: with f free it is f's twin); "
-                                             "positions used as recorded"])
+        out.notes.append(f"GNSS offset {text}: no horizontal component beyond {MIN_Z:g} sigma (the vertical one is "
+                         "not corrected: with f free it is f's twin); positions used as recorded")
+        return
     offset = np.where(use, est, 0.0)
     axes = ", ".join(a for a, k in zip(("E", "N", "Up"), use, strict=True) if k)
-    note = (f"GNSS offset {text}: the {axes} component(s) beyond {MIN_Z:g} sigma subtracted from the recorded "
-            "positions before the self-calibration")
-    return GnssCorrection(shift_gnss(images, offset), [float(v) for v in offset], [float(v) for v in sig], [note])
+    out.notes.append(f"GNSS offset {text}: the {axes} component(s) beyond {MIN_Z:g} sigma subtracted from the "
+                     "recorded positions before the adjustment")
+    out.images = shift_gnss(out.images, offset)
+    out.offset_m, out.sigma_m = [float(v) for v in offset], [float(v) for v in sig]
+
+
+def _time_lag(out: GnssCorrection, check: dict) -> None:
+    if "estimate" not in check or check.get("status") in ("not determined", "beyond physical size", "not testable"):
+        why = check.get("reason") or check.get("status", "not tested")
+        out.notes.append(f"GNSS time lag: {why}; positions used as recorded")
+        return
+    lag, sig = float(check["estimate"][0]), float(check["sigma"][0])
+    text = f"GNSS time lag {lag:+.3g} +- {sig:.2g} s"
+    if abs(lag) <= MIN_Z * sig:
+        out.notes.append(f"{text}: not beyond {MIN_Z:g} sigma; positions used as recorded")
+        return
+    out.images = shift_gnss_in_time(out.images, lag)
+    out.time_offset_s, out.time_sigma_s = lag, sig
+    out.notes.append(f"{text}: removed from the recorded positions (each moved back along its track by its velocity "
+                     "x the lag) before the adjustment")

@@ -85,6 +85,8 @@ def _print_run(summary: dict[str, Any]) -> None:
         from tasks.products import recorded_eo_text
 
         console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
+    if summary.get("recorded_eo_corrections"):
+        console.print("recorded positions in the block adjustment: " + "; ".join(summary["recorded_eo_corrections"]))
     if summary.get("twin"):
         console.print(f"twin (what the simulation gets wrong): {summary['twin']}")
     for name, path in summary.get("files", {}).items():

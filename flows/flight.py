@@ -210,8 +210,10 @@ def _process(
         with ctx.database.session() as session:
             diag = json.loads(ctx.store.read_bytes(ctx.store.get(session, outputs["diagnosis"])))
             assess = json.loads(ctx.store.read_bytes(ctx.store.get(session, outputs["assessment"])))
+            adjustment = json.loads(ctx.store.read_bytes(ctx.store.get(session, outputs["adjustment"])))
         summary["diagnosis"] = diag.get("summary")
         summary["recorded_eo"] = diag.get("recorded_eo")
+        summary["recorded_eo_corrections"] = (adjustment.get("recorded_eo_corrections") or {}).get("notes")
         summary["twin"] = (diag.get("twin") or {}).get("summary")
         summary["accuracy"] = assess.get("check_points")
     return summary

@@ -4,6 +4,7 @@ measurements are corrected, not pixels; :func:`aerocal.adjust.adjust_fixed_io`).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,6 +13,7 @@ from prefect import task
 from aerocal.adjust import AdjustConfig, adjust_fixed_io
 from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
+from aerocal.eo_checks import correct_gnss_offset
 from tasks.resume import ArrayOutput, JsonOutput, StepContext, StepInputs, StepResult, TableOutput, run_step
 from tasks.retries import TASK_RETRIES, TASK_RETRY_DELAYS_S, retry_condition
 
@@ -24,6 +26,10 @@ class BlockStepConfig:
 
     adjust: AdjustConfig = field(default_factory=AdjustConfig)
     thermal_correction: bool = True
+    #: test the recorded positions for a GNSS time lag (and, with 3 control GCPs, a horizontal offset) on this
+    #: many central images and remove what passes before adjusting (:func:`aerocal.eo_checks.correct_gnss_offset`);
+    #: 0 = use the positions as recorded
+    recorded_eo_images: int = 200
 
 
 def adjust_step(
@@ -37,7 +43,8 @@ def adjust_step(
     """Adjust the whole flight with the certificate's IO.
 
     Outputs: ``poses``, ``points`` (tables), ``adjustment`` (summary, check-point and control residuals,
-    predicted check-point sigmas; metres, E N Up), ``residuals`` ((M, 2) pixels, predicted minus
+    predicted check-point sigmas; metres, E N Up; ``recorded_eo_corrections``: the GNSS time lag and offset
+    tested on the recorded positions and removed where they passed, with the notes), ``residuals`` ((M, 2) pixels, predicted minus
     observed, aligned with the observations table) and ``obs_weight`` ((M,) the weight of each
     observation at the solution: 0 for a blunder the screening rejected, NaN for one the block left out).
     """
@@ -60,8 +67,16 @@ def adjust_step(
             and isinstance(cert.thermal.model, LinearThermalModel)
         ):
             thermal = cert.thermal.model
+        images, corrections = inp.table("images"), None
+        if config.recorded_eo_images and acfg.gnss_sigma_m is not None:
+            eo = correct_gnss_offset(images, inp.table("observations"), cert.camera,
+                                     dataclasses.replace(acfg, free=()), inp.table("gcps"),
+                                     inp.table("gcp_observations"), config.recorded_eo_images)
+            images = eo.images
+            corrections = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
+                           "time_sigma_s": eo.time_sigma_s, "notes": eo.notes}
         res = adjust_fixed_io(
-            inp.table("images"),
+            images,
             inp.table("observations"),
             cert.camera,
             acfg,
@@ -81,6 +96,7 @@ def adjust_step(
                 "check_sigma_m": np.asarray(res.check_sigma).tolist(),
                 "control_ids": list(res.control_ids),
                 "control_errors_m": np.asarray(res.control_errors).tolist(),
+                "recorded_eo_corrections": corrections,
             }
         )
         return {

@@ -254,6 +254,7 @@ def diagnose_step(
     }
     if adjusted is not None and "obs_weight" in adjusted.outputs:
         inputs["obs_weight"] = adjusted["obs_weight"]
+        inputs["residuals"] = adjusted["residuals"]
         inputs["adjustment"] = adjusted["adjustment"]
     acfg = adjust_config or AdjustConfig()
     cfg = config
@@ -263,8 +264,9 @@ def diagnose_step(
 
         import pyarrow as pa
 
-        from aerocal.adjust import scale_tie_sigma
+        from aerocal.adjust import scale_tie_sigma, screened_rows
         from aerocal.diagnose.engine import diagnose
+        from aerocal.diagnose.io_uncertainty import IOUncertainty
 
         cert = Certificate.from_dict(inp.json("certificate"))
         t0 = getattr(_thermal(cert), "t0", None)
@@ -277,13 +279,13 @@ def diagnose_step(
             if len(weight) != obs.num_rows:
                 raise ValueError(f"diagnose: the block adjustment's obs_weight has {len(weight)} rows, the "
                                  f"observations {obs.num_rows}; re-run the adjust step")
-            keep = np.flatnonzero(weight != 0)
-            screening = (f"the block adjustment's screening: {obs.num_rows - len(keep)} of {obs.num_rows} "
-                         "observations left out (blunders, and observations left alone in their tracks)")
-            obs = obs.take(pa.array(keep, pa.int64()))
-            # and its estimate of the tie observations' sigma (1 for an adjustment that made none)
+            # its estimate of the tie observations' sigma (1 for an adjustment that made none)
             tie_scale = float(inp.json("adjustment").get("tie_sigma_scale", 1.0)) if inp.has("adjustment") else 1.0
-            obs = scale_tie_sigma(obs, tie_scale)
+            keep = screened_rows(obs, inp.array("residuals"), weight, tie_scale, acfg.reject_chi2)
+            screening = (f"the block adjustment's screening: {obs.num_rows - len(keep)} of {obs.num_rows} "
+                         "observations left out (blunders, observations it could not place, and observations "
+                         "left alone in their tracks)")
+            obs = scale_tie_sigma(obs.take(pa.array(keep, pa.int64())), tie_scale)
             screening += f"; tie-point sigma x {tie_scale:.3f} as estimated by the block adjustment"
             run_cfg = dataclasses.replace(run_cfg, robust_loss="none")
         result = diagnose(
@@ -294,6 +296,7 @@ def diagnose_step(
             inp.table("gcps"),
             inp.table("gcp_observations"),
             dcfg,
+            IOUncertainty.from_certificate(cert),
         )
         doc = result.to_dict()
         doc["summary"] = result.summary()
@@ -408,6 +411,8 @@ def report_step(
             "verdict": cp.get("verdict"),
             "diagnosis": diag.get("summary"),
             "recorded_eo_checks": recorded_eo_text(diag.get("recorded_eo") or {}),
+            "recorded_eo_corrections": "; ".join((adj.get("recorded_eo_corrections") or {}).get("notes") or [])
+                                       or "none tested",
             "twin": (diag.get("twin") or {}).get("summary", "not made"),
             "gsd_m": mos.get("gsd_m"),
             "mosaic_frames": mos.get("frames"),

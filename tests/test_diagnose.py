@@ -242,3 +242,25 @@ def test_a_switch_effect_far_from_its_physical_size_is_not_named():
     assert implausible_switch(ev("refraction", -20.0, 3.0))
     assert not implausible_switch(ev("refraction", 1.3, 0.2))  # hidden refraction, recovered
     assert not implausible_switch(ev("radial_k3", 216.0, 36.0))  # not a switch: any size is possible
+
+
+def test_an_io_error_within_the_certificates_sigma_is_not_named():
+    """A certificate's IO is an estimate: an error inside its own sigma leaves residuals that a hypothesis of
+    the same shape picks up. With the certificate's covariance the diagnosis must not name it; without, a
+    real error of that size is (so the test can fail)."""
+    from aerocal.diagnose.io_uncertainty import IOUncertainty
+
+    seed = 61
+    sim = simulate_flight(SPEC, seed=seed)
+    k3_sigma = 4.0  # the k3 sigma of a 640 x 480, 22 degree self-calibration (k1, k2, k3 correlated)
+    camera = SPEC.camera_true.replace(k3=SPEC.camera_true.k3 + k3_sigma)  # one sigma off
+    cfg = DiagnoseConfig(reference_temperature=SPEC.sensors.reference_temperature_c, twins=0)
+    base = fit_baseline(sim.images, sim.observations, camera, adjust_config(SPEC), sim.gcps, sim.gcp_observations)
+    blind = diagnose_baseline(base, cfg)
+    assert [e.name for e in blind.effects][:1] == ["radial_k3"], f"seed {seed}: {blind.summary()}"
+    io = IOUncertainty(("k3",), np.array([[k3_sigma**2]]))
+    aware = diagnose_baseline(base, cfg, io)
+    assert not aware.effects, f"seed {seed}: {aware.summary()}"
+    k3 = next(e for e in aware.hypotheses if e.name == "radial_k3" and e.round == 1)
+    assert abs(k3.estimate[0] + k3_sigma) < 3 * k3.sigma[0] and k3.sigma[0] >= 0.9 * k3_sigma, (
+        f"seed {seed}: {k3.estimate} +- {k3.sigma}")

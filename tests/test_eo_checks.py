@@ -34,3 +34,23 @@ def test_without_control_the_offset_is_not_testable():
     assert out.offset_m is None and out.images is sim.images
     assert "not testable: 0 control GCPs" in out.notes[0], out.notes
 
+
+
+def test_a_gnss_time_lag_is_found_and_removed_without_control():
+    """A camera clock 0.3 s off the receiver's (small drones: tenths of a second) moves every position along
+    its track; strips flown both ways determine it without GCPs."""
+    seed = 43
+    spec = SPEC.replace(n_gcp=0, n_check=0)
+    lag = 0.3
+    sim = simulate_flight(spec, seed=seed, effects={"gnss_time_offset": lag})
+    out = correct_gnss_offset(sim.images, sim.observations, spec.camera_nominal, CONFIG, sim.gcps,
+                              sim.gcp_observations)
+    assert out.time_offset_s is not None, f"seed {seed}: {out.notes}"
+    assert abs(out.time_offset_s - lag) < max(3 * out.time_sigma_s, 0.25 * lag), (
+        f"seed {seed}: {out.time_offset_s} +- {out.time_sigma_s}")
+    assert any("GNSS time lag" in n and "removed" in n for n in out.notes), out.notes
+    # and an effect-free flight keeps its positions
+    clean = simulate_flight(spec, seed=seed)
+    kept = correct_gnss_offset(clean.images, clean.observations, spec.camera_nominal, CONFIG, clean.gcps,
+                               clean.gcp_observations)
+    assert kept.time_offset_s is None and kept.images is clean.images, f"seed {seed}: {kept.notes}"

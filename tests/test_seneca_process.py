@@ -90,3 +90,23 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
     print("twin:", twin["summary"])
     assert set(twin["real"]) >= {"variance_tie", "per_image_scale", "gnss_lag1"} and twin["n_twins"] >= 2
     assert all(k in twin["z"] for k in twin["differs"]), twin
+    # the diagnosis baseline fits its weights like the block adjustment it repeats (it was 32 against 1.02
+    # when it kept the observations the block had screened out)
+    assert diagnosis["sigma0"]["before"] < 3.0, diagnosis["sigma0"]
+
+    # the study is a thin caller of the same run: its tables say what the product decided
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root)) if str(root) not in sys.path else None
+    from studies.seneca import write_study
+
+    md = write_study(out, tmp_path / "study", "seneca_quick").read_text()
+    assert (tmp_path / "study" / "seneca_quick_twin.png").stat().st_size > 10_000
+    rows = {r.split("|")[1].strip(): r.split("|")[2:-1] for r in md.splitlines()
+            if r.startswith("| ") and not r.startswith("| parameter")}
+    for name in ("f", "cx", "cy"):
+        value = rows[name][0].strip().split(" +- ")[0]
+        assert abs(float(value) - getattr(cert.camera, name)) <= 1e-3 * abs(getattr(cert.camera, name)), (name, md)
+    assert ("df_dt" in rows) == ("df_dt" in cert.significance), md
+    assert "| gnss_time_offset | s |" in md and "twin" in md and twin["summary"] in md

@@ -413,6 +413,35 @@ def scale_tie_sigma(observations: pa.Table, factor: float) -> pa.Table:
     return observations.set_column(i, observations.schema.field(i), pa.array(sigma.astype(np.float32)))
 
 
+def screened_rows(
+    observations: pa.Table,
+    residuals: np.ndarray,
+    obs_weight: np.ndarray,
+    tie_sigma_scale: float = 1.0,
+    chi2: float | None = 13.8,
+) -> np.ndarray:
+    """Rows of ``observations`` a least-squares re-adjustment of the same block may use: those the
+    adjustment kept (``obs_weight`` not 0), that it could place (finite ``residuals``, pixels), whose
+    squared residual normalised by ``sigma x tie_sigma_scale`` is at most ``chi2`` (a robust pass leaves
+    blunders with small but non-zero weights; tracks that thinning left out and intersection could not
+    place have NaN residuals and NaN weights), and that still share their track with another such row.
+
+    Keeping the robustly down-weighted and unplaced observations gave a re-adjustment of real seneca a
+    sigma0 of 32 where the block adjustment had 1.02.
+    """
+    residuals = np.asarray(residuals, dtype=float).reshape(-1, 2)
+    weight = np.asarray(obs_weight, dtype=float)
+    sigma = observations.column("sigma").to_numpy(zero_copy_only=False).astype(float) * tie_sigma_scale
+    s = np.sum(residuals**2, axis=1) / sigma**2
+    good = np.isfinite(s) & (weight != 0)
+    if chi2 is not None:
+        good &= s <= chi2
+    track = observations.column("track_id").to_numpy(zero_copy_only=False)
+    _, inv, counts = np.unique(track[good], return_inverse=True, return_counts=True)
+    rows = np.flatnonzero(good)
+    return rows[counts[inv] >= 2]
+
+
 def _intersect_left_out(
     inner: AdjustmentResult,
     images: pa.Table,
@@ -570,4 +599,4 @@ def _snoop(observations: pa.Table, first: AdjustmentResult, chi2: float) -> tupl
     return kept, why, variance
 
 
-__all__ = ["PARAM_NAMES", "AdjustConfig", "AdjustmentResult", "adjust", "scale_tie_sigma"]
+__all__ = ["PARAM_NAMES", "AdjustConfig", "AdjustmentResult", "adjust", "scale_tie_sigma", "screened_rows"]

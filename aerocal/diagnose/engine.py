@@ -35,6 +35,7 @@ from aerocal.adjust.problem import AdjustConfig
 from aerocal.adjust.solver import inverse_spd
 from aerocal.camera import Camera, LinearThermalModel
 from aerocal.diagnose import hypotheses as hyp
+from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.diagnose.model import Baseline, Conditional, check_rmse, fit_baseline, linearise, reduce, refit
 from aerocal.effects import CATALOGUE
 from aerocal.subset import central_images
@@ -192,18 +193,35 @@ class Diagnosis:
         return "; ".join(parts)
 
 
+def _io_columns(base: Baseline, lin, io: IOUncertainty) -> np.ndarray:
+    """d(whitened residuals)/d(fixed IO parameters ``io.names``): (rows, k), image rows only."""
+    b = base.block
+    M = len(b.obs_image)
+    J = base.camera.param_jacobian(lin.xn)[:, :, io.columns] / b.obs_sigma[:, None, None]
+    out = np.zeros((len(lin.r), len(io.names)))
+    out[: 2 * M] = J.reshape(2 * M, len(io.names))
+    return out
+
+
 def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str], round_no: int,
-          family_alpha: float, overdispersion: float = 1.0) -> list[Evidence]:
-    """Evidence for each of ``names`` given the block and the ``accepted`` effects' parameters."""
+          family_alpha: float, overdispersion: float = 1.0, io: IOUncertainty | None = None) -> list[Evidence]:
+    """Evidence for each of ``names`` given the block and the ``accepted`` effects' parameters.
+
+    With ``io`` (the covariance of the IO held fixed, :mod:`aerocal.diagnose.io_uncertainty`) each
+    estimate's covariance also holds that IO's uncertainty propagated to it, and the statistic is taken
+    against the sum."""
     lin = linearise(base)
     all_names = list(accepted) + [n for n in names if n not in accepted]
     cols = [hyp.columns(n, lin, base, ctx) for n in all_names]
     offsets = np.cumsum([0] + [c.shape[1] for c in cols])
-    red = reduce(lin, np.hstack(cols) if cols else np.zeros((len(lin.r), 0)))
+    io_cols = [_io_columns(base, lin, io)] if io is not None and not base.config.free else []
+    extra = np.hstack(cols + io_cols) if cols + io_cols else np.zeros((len(lin.r), 0))
+    red = reduce(lin, extra)
     nc = red.n_camera
     base_idx = np.concatenate([np.arange(nc)] + [nc + np.arange(offsets[k], offsets[k + 1])
                                                  for k in range(len(accepted))])
-    tests = nc + np.arange(offsets[len(accepted)], offsets[-1])
+    tests = nc + np.arange(offsets[len(accepted)], extra.shape[1])
+    io_idx = nc + offsets[-1] + np.arange(len(io.names)) if io_cols else None
     conditional = Conditional(red, base_idx, tests)
     s02 = max(base.solution.sigma0, 1e-12) ** 2
     n_obs = len(lin.r)
@@ -226,9 +244,13 @@ def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str
             continue
         inv = inverse_spd(info)
         theta = -inv @ grad
-        stat = float(grad @ inv @ grad) / s02 / overdispersion
+        cov = inv * s02 * overdispersion
+        if io_idx is not None:
+            A = inv @ conditional.cross(idx, io_idx)
+            cov = cov + A @ io.covariance @ A.T
+        stat = float(theta @ inverse_spd(cov) @ theta)
         p = float(stats.chi2.sf(stat, dof))
-        sigma = np.sqrt(np.maximum(np.diag(inv), 0.0) * s02 * overdispersion)
+        sigma = np.sqrt(np.maximum(np.diag(cov), 0.0))
         bic = stat - dof * np.log(n_obs)
         p_adj = min(1.0, p * m)
         out.append(Evidence(name, round_no, dof, stat, p, p_adj, theta.tolist(), sigma.tolist(), float(bic),
@@ -295,7 +317,7 @@ def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], it
     total = None
     first = None
     for _ in range(iterations):
-        ev = score(base, ctx, [name], accepted, round_no, alpha, phi)[0]
+        ev = score(base, ctx, [name], accepted, round_no, alpha, phi)[0]  # the estimate: IO's sigma irrelevant
         first = first or ev
         theta = np.asarray(ev.estimate)
         total = theta if total is None else total + theta
@@ -306,8 +328,10 @@ def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], it
     return base, total, first
 
 
-def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) -> Diagnosis:
-    """Diagnose an adjusted block (see the module docstring for the method)."""
+def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
+                      io: IOUncertainty | None = None) -> Diagnosis:
+    """Diagnose an adjusted block (see the module docstring for the method); ``io``: the covariance of the
+    IO the block holds fixed (:mod:`aerocal.diagnose.io_uncertainty`), taken into every statistic."""
     config = config or DiagnoseConfig()
     unknown = [n for n in config.hypotheses if n not in hyp.HYPOTHESES]
     if unknown:
@@ -345,7 +369,7 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None) 
         remaining = [n for n in names if n not in accepted]
         if not remaining:
             break
-        ev = score(current, ctx, remaining, accepted, round_no, config.family_alpha)
+        ev = score(current, ctx, remaining, accepted, round_no, config.family_alpha, io=io)
         evidence.extend(ev)
         candidates = [e for e in ev if e.significant and e.bic_gain > 0]
         for e in [e for e in candidates if implausible_switch(e)]:
@@ -501,8 +525,9 @@ def _extended_model(effects: list[NamedEffect], ctx: hyp.Context, camera: Camera
 
 def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_config: AdjustConfig,
              gcps: pa.Table | None = None, gcp_observations: pa.Table | None = None,
-             config: DiagnoseConfig | None = None) -> Diagnosis:
-    """Adjust the block with ``adjust_config`` and diagnose it.
+             config: DiagnoseConfig | None = None, io: IOUncertainty | None = None) -> Diagnosis:
+    """Adjust the block with ``adjust_config`` and diagnose it (``io``: the uncertainty of the fixed IO,
+    :func:`diagnose_baseline`).
 
     With a robust loss (and ``adjust_config.reject_chi2``) the blunders are found by a robust adjustment
     and removed first (:func:`aerocal.adjust.bundle.adjust`, which also estimates the tie observations'
@@ -538,7 +563,7 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
     # thinned ones (sigma x 1.5, so less power against smaller effects), for 18 s against 4 s
     adjust_config = dataclasses.replace(adjust_config, tie_thinning=None)
     base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations)
-    result = diagnose_baseline(base, config)
+    result = diagnose_baseline(base, config, io)
     if sub_note:
         result.notes.insert(0, sub_note)
     return result

@@ -166,6 +166,13 @@ class Conditional:
         grad = self.g[idx] - Sbt.T @ self.X[:, -1]
         return 0.5 * (info + info.T), grad
 
+    def cross(self, idx: np.ndarray, other: np.ndarray) -> np.ndarray:
+        """Conditional cross-information ``S_io - S_ib S_bb^-1 S_bo`` of test columns ``idx`` and ``other``
+        (both among the tests)."""
+        cols = [self.pos[int(t)] for t in other]
+        Sbt = self.S[np.ix_(self.base, idx)]
+        return self.S[np.ix_(idx, other)] - Sbt.T @ self.X[:, cols]
+
 
 def triangulate_checks(base: Baseline, block: Block | None = None) -> np.ndarray:
     """Check points triangulated from their image measurements with the adjusted block (local frame)."""

@@ -9,6 +9,7 @@ from aerocal import tables
 from aerocal.adjust import AdjustConfig
 from aerocal.camera import Camera
 from aerocal.diagnose.engine import DiagnoseConfig, Diagnosis, diagnose
+from aerocal.diagnose.io_uncertainty import IOUncertainty
 
 #: the interior orientation a baseline self-calibrates when no certificate fixes it
 SELF_CALIBRATED = ("f", "cx", "cy", "k1", "k2", "p1", "p2")
@@ -44,6 +45,7 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
     h, v = meta.get("gnss_sigma_m", [0.10, 0.15])
     imu = meta.get("imu_sigma_deg")
     t0 = None
+    io = None
     if certificate is not None:
         from aerocal.formats import import_certificate
 
@@ -52,6 +54,7 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
         except (OSError, ValueError) as exc:
             raise DiagnoseInputError(f"{certificate}: {exc}") from exc
         camera, free = cert.camera, ()
+        io = IOUncertainty.from_certificate(cert)
         if cert.thermal is not None:
             t0 = getattr(cert.thermal.model, "t0", None)
     else:
@@ -62,7 +65,7 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
     adjust_config = AdjustConfig(free=free, gnss_sigma_m=(h, h, v),
                                  attitude_sigma_deg=tuple(imu) if imu else None)
     config = config or DiagnoseConfig(reference_temperature=t0)
-    return diagnose(images, observations, camera, adjust_config, gcps, gcp_obs, config)
+    return diagnose(images, observations, camera, adjust_config, gcps, gcp_obs, config, io)
 
 
 def read_run_diagnosis(folder: str | Path) -> dict | None:
