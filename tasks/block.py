@@ -44,9 +44,10 @@ def adjust_step(
 
     Outputs: ``poses``, ``points`` (tables), ``adjustment`` (summary, check-point and control residuals,
     predicted check-point sigmas; metres, E N Up; ``recorded_eo_corrections``: the GNSS time lag and offset
-    tested on the recorded positions and removed where they passed, with the notes), ``residuals`` ((M, 2) pixels, predicted minus
-    observed, aligned with the observations table) and ``obs_weight`` ((M,) the weight of each
-    observation at the solution: 0 for a blunder the screening rejected, NaN for one the block left out).
+    tested on the recorded positions and removed where they passed, with the notes), ``residuals``
+    ((M, 2) pixels, predicted minus observed, aligned with the observations table) and ``obs_weight``
+    ((M,) the weight of each observation at the solution: 0 for a blunder the screening rejected, NaN for one
+    the block left out).
     """
     config = config or BlockStepConfig()
     acfg = adjust_config or config.adjust

@@ -89,4 +89,4 @@ def test_flight_without_gnss_is_oriented_by_sfm_and_georeferenced_on_control(pre
     n_obs = int(re.search(r"screening: \d+ of (\d+)", screening).group(1))
     assert screened <= int(left_out.group(1)) <= screened + 0.05 * n_obs, (selection, screening)
     sigma0 = json.loads((out / "diagnosis.json").read_text())["sigma0"]["before"]
-    assert sigma0 < 1.5, f"seed {SEED}: the diagnosis baseline's sigma0 {sigma0:.2f} against the block's {adj['sigma0']:.2f}"
+    assert sigma0 < 1.5, f"seed {SEED}: diagnosis baseline sigma0 {sigma0:.2f}, the block's {adj['sigma0']:.2f}"
