@@ -280,7 +280,7 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path):
         start_run(session, ctx.run_id, "test")
         session.commit()
     ing = ingest_step(ctx, folder, register_manifest(ctx, folder))
-    matched = match_step(ctx, ing, MatchStepConfig(dask_workers=2))
+    matched = match_step(ctx, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
     assert not matched.reused
     with ctx.database.session() as session:
         obs = ctx.store.read_table(ctx.store.get(session, matched["observations"]), "observations")
@@ -291,7 +291,7 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path):
     assert per_image.min() > 100, f"observations per image {per_image.tolist()}"
     track_len = np.bincount(obs.column("track_id").to_numpy())
     assert track_len[track_len > 0].min() >= 2
-    again = match_step(ctx, ing, MatchStepConfig(dask_workers=2))
+    again = match_step(ctx, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
     assert again.reused and again.outputs == matched.outputs
 
 
