@@ -256,6 +256,8 @@ def diagnose_step(
         inputs["obs_weight"] = adjusted["obs_weight"]
         inputs["residuals"] = adjusted["residuals"]
         inputs["adjustment"] = adjusted["adjustment"]
+        inputs["poses"] = adjusted["poses"]
+        inputs["points"] = adjusted["points"]
     acfg = adjust_config or AdjustConfig()
     cfg = config
 
@@ -297,6 +299,7 @@ def diagnose_step(
             inp.table("gcp_observations"),
             dcfg,
             IOUncertainty.from_certificate(cert),
+            (inp.table("poses"), inp.table("points")) if inp.has("poses") else None,
         )
         doc = result.to_dict()
         doc["summary"] = result.summary()

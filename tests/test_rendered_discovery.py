@@ -56,8 +56,8 @@ def _run(args: list[str], env: dict, cwd: Path) -> str:
     return done.stdout
 
 
-def _flight(work: Path, api: str, preset: str, seed: int, effect: str | None = None) -> dict:
-    """Simulate, import the lab certificate, process and diagnose one flight; its diagnosis."""
+def _flight(work: Path, api: str, preset: str, seed: int, effect: str | None = None) -> tuple[dict, Path]:
+    """Simulate, import the lab certificate, process and diagnose one flight; its diagnosis and folder."""
     name = f"{preset}-{seed}" + (f"-{effect.split('=')[0]}" if effect else "")
     here = work / name
     here.mkdir(parents=True)
@@ -79,20 +79,27 @@ def _flight(work: Path, api: str, preset: str, seed: int, effect: str | None = N
     _run(["process", "flight", "--certificate", cert_id, "--out", "run", "--database-url", db,
           "--artifacts", "artifacts"], env, here)
     out = _run(["diagnose", "run", "--json"], env, here)
-    return json.JSONDecoder().raw_decode(out[out.index("{"):])[0]
+    return json.JSONDecoder().raw_decode(out[out.index("{"):])[0], here
 
 
 def _named(diagnosis: dict) -> list[str]:
     return [e["name"] for e in diagnosis["effects"]]
 
 
-@pytest.mark.slow
-def test_rendered_flights_name_the_hidden_effect_and_nothing_else(tmp_path, prefect_api):
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory, prefect_api):
+    """Every flight of EFFECT_FREE and HIDDEN, made and diagnosed: {(preset, seed, effect): (diagnosis, folder)}."""
+    work = tmp_path_factory.mktemp("rendered")
     jobs = [(p, s, None) for p, s in EFFECT_FREE] + [
         (p, s, f"{name}={','.join(str(v) for v in value)}") for p, s, name, value in HIDDEN]
     with ThreadPoolExecutor(max_workers=2) as pool:
-        results = list(pool.map(lambda job: _flight(tmp_path, prefect_api, *job), jobs))
-    by_job = dict(zip(jobs, results, strict=True))
+        results = list(pool.map(lambda job: _flight(work, prefect_api, *job), jobs))
+    return dict(zip(jobs, results, strict=True))
+
+
+@pytest.mark.slow
+def test_rendered_flights_name_the_hidden_effect_and_nothing_else(rendered):
+    by_job = {job: d for job, (d, _) in rendered.items()}
     for job, d in by_job.items():
         print(job, "->", d["summary"])
 
@@ -108,3 +115,30 @@ def test_rendered_flights_name_the_hidden_effect_and_nothing_else(tmp_path, pref
         truth = np.asarray(value, dtype=float)
         assert np.linalg.norm(found - truth) <= 0.25 * np.linalg.norm(truth), (
             f"{preset} seed {seed}: {name} {found} against the hidden {truth}")
+
+
+@pytest.mark.slow
+def test_a_rendered_flat_block_without_gcps_keeps_the_nominal_focal_length(rendered, prefect_api, tmp_path):
+    """The frames of an effect-free flight, as a survey with consumer GNSS/IMU and no ground control would
+    hand them over (no GCP files; flight.json declares 3/5 m and 2/2/5 deg): the self-calibration does not
+    free a focal length the flat, GCP-free block cannot determine, keeps the nominal one and says why."""
+    import shutil
+
+    preset, seed = EFFECT_FREE[0]
+    _, source = rendered[(preset, seed, None)]
+    flight = tmp_path / "flight"
+    shutil.copytree(source / "flight", flight, symlinks=True)
+    for name in ("gcp_list.txt", "gcps.csv"):
+        (flight / name).unlink()
+    meta = json.loads((flight / "flight.json").read_text())
+    meta.update(gnss_sigma_m=[3.0, 5.0], imu_sigma_deg=[2.0, 2.0, 5.0])
+    (flight / "flight.json").write_text(json.dumps(meta, indent=1))
+    env = {**os.environ, "PREFECT_API_URL": prefect_api, "COLUMNS": "250"}
+    _run(["process", "flight", "--certificate", "none", "--out", "run", "--database-url",
+          f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", "artifacts"], env, tmp_path)
+    from aerocal.certificate import Certificate
+
+    cert = Certificate.from_json((tmp_path / "run" / "calibration_certificate.json").read_text())
+    nominal = json.loads((flight / "camera.json").read_text())["camera"]["f"]
+    assert "f" not in cert.estimated and cert.camera.f == nominal, f"{preset} seed {seed}: {cert.render_text()}"
+    assert "f not determined by this block" in cert.significance["f"].dropped, cert.significance

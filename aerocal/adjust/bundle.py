@@ -540,8 +540,14 @@ def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
     parameter the adaptive selection drops must stay at the nominal or certificate value, not at the
     robust pass's estimate.
     """
+    return warm_start(block, start, first.poses, first.points)
+
+
+def warm_start(block: Block, start: State, poses: pa.Table, points: pa.Table) -> State:
+    """``start`` with the poses and tie points of an earlier adjustment of the same images (``poses`` and
+    ``points`` tables, world coordinates) where they have them; IO, the recorded observations and their
+    weights are unchanged."""
     st = start.copy()
-    poses, points = first.poses, first.points
     where = {int(k): n for n, k in enumerate(block.image_ids.tolist())}
     pid = poses.column("image_id").to_numpy()
     rows = np.array([where.get(int(k), -1) for k in pid])

@@ -403,6 +403,12 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
         extended_base, total, first = _extend(current, ctx, best.name, accepted, config.refine_iterations, round_no,
                                               config.family_alpha)
         settled = dataclasses.replace(best, estimate=[float(v) for v in total])
+        if extended_base.solution.sigma0 > EXTENSION_WORSE * current.solution.sigma0:
+            # the data corrected for the effect fit worse than before (real seneca, radial_k3: sigma0 2.6 -> 33):
+            # the refit did not settle; an overdispersion measured on it would be that failure, not the block
+            notes.append(f"{best.name}: the block corrected for {total[0]:.3g} {best.units} fits worse (sigma0 "
+                         f"{current.solution.sigma0:.3g} -> {extended_base.solution.sigma0:.3g}): not named")
+            break
         why = physical_verdict(settled, current.camera, ctx)
         if why is not None:
             # the correct-and-refit iterations ran away from the first estimate (the real seneca block: k3 -0.062
@@ -504,6 +510,8 @@ def recorded_eo_checks(round1: list[Evidence], phi: float, camera: Camera, ctx: 
 
 #: a baseline sigma0 above this says the block does not fit its weights: the diagnosis says not to rely on it
 MISFIT_SIGMA0 = 3.0
+#: an effect whose correct-and-refit leaves the block's sigma0 this much larger is not named
+EXTENSION_WORSE = 1.05
 
 #: hypotheses that need every image's sensor temperature, and those that act on GNSS observations
 THERMAL_HYPOTHESES = ("thermal_focal", "thermal_principal_point")
@@ -525,9 +533,11 @@ def _extended_model(effects: list[NamedEffect], ctx: hyp.Context, camera: Camera
 
 def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_config: AdjustConfig,
              gcps: pa.Table | None = None, gcp_observations: pa.Table | None = None,
-             config: DiagnoseConfig | None = None, io: IOUncertainty | None = None) -> Diagnosis:
+             config: DiagnoseConfig | None = None, io: IOUncertainty | None = None,
+             start: tuple[pa.Table, pa.Table] | None = None) -> Diagnosis:
     """Adjust the block with ``adjust_config`` and diagnose it (``io``: the uncertainty of the fixed IO,
-    :func:`diagnose_baseline`).
+    :func:`diagnose_baseline`; ``start``: poses and points of an adjustment of the block to start from,
+    :func:`aerocal.diagnose.model.fit_baseline`).
 
     With a robust loss (and ``adjust_config.reject_chi2``) the blunders are found by a robust adjustment
     and removed first (:func:`aerocal.adjust.bundle.adjust`, which also estimates the tie observations'
@@ -562,7 +572,7 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
     # term the certificate lacked came out at 0.60 +- 0.15 from every track and 0.87 +- 0.22 from the
     # thinned ones (sigma x 1.5, so less power against smaller effects), for 18 s against 4 s
     adjust_config = dataclasses.replace(adjust_config, tie_thinning=None)
-    base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations)
+    base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations, start)
     result = diagnose_baseline(base, config, io)
     if sub_note:
         result.notes.insert(0, sub_note)
