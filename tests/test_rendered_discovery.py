@@ -98,6 +98,7 @@ def rendered(tmp_path_factory, prefect_api):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1500)  # the ten flights are made in this test's setup: ~9 min on the idle 2-core machine
 def test_rendered_flights_name_the_hidden_effect_and_nothing_else(rendered):
     by_job = {job: d for job, (d, _) in rendered.items()}
     for job, d in by_job.items():
@@ -118,6 +119,7 @@ def test_rendered_flights_name_the_hidden_effect_and_nothing_else(rendered):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1500)
 def test_a_rendered_flat_block_without_gcps_keeps_the_nominal_focal_length(rendered, prefect_api, tmp_path):
     """The frames of an effect-free flight, as a survey with consumer GNSS/IMU and no ground control would
     hand them over (no GCP files; flight.json declares 3/5 m and 2/2/5 deg): the self-calibration does not
