@@ -61,16 +61,14 @@ def track_velocities(images: pa.Table) -> np.ndarray:
     """Velocity (m/s, E N Up of the flight's CRS) of each recorded position from its neighbours in time within
     its strip (:func:`aerocal.diagnose.hypotheses.velocities`); zero where the image has no neighbour."""
     from aerocal.diagnose.hypotheses import velocities
+    from aerocal.diagnose.model import image_strips, image_times_s
 
     C = np.column_stack([images.column(c).to_numpy(zero_copy_only=False).astype(float)
                          for c in ("gnss_x", "gnss_y", "gnss_z")])
-    t = images.column("time").to_numpy(zero_copy_only=False)
-    if len(t) and not np.isnat(t).any():
-        secs = (t - t.min()).astype("timedelta64[us]").astype(float) / 1e6
-    else:
+    secs = image_times_s(images)
+    if secs is None:
         return np.zeros_like(C)
-    strip = np.array([-1 if v is None else v for v in images.column("strip").to_pylist()], dtype=np.int64)
-    return np.nan_to_num(velocities(np.nan_to_num(C), secs, strip))
+    return np.nan_to_num(velocities(np.nan_to_num(C), secs, image_strips(images)))
 
 
 def shift_gnss_in_time(images: pa.Table, lag_s: float) -> pa.Table:

@@ -214,8 +214,7 @@ def test_on_a_visible_cameras_jpegs_auto_verifies_more_matches_than_wallis():
     from aerocal.matching.features import detect
     from aerocal.matching.verify import match_descriptors, verify
 
-    if not SENECA.is_dir():
-        pytest.skip(f"measured data not found at {SENECA}")
+    assert SENECA.is_dir(), f"the measured seneca images are expected at {SENECA} (../shared/data beside the project)"
     paths = [SENECA / f"IMG_{k:04d}.jpg" for k in (474, 475, 476)]  # one strip, consecutive
     raws = [read_raw(p) for p in paths]
     assert raws[0].dtype == np.uint8 and raws[0].ndim == 3

@@ -98,7 +98,8 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
     import sys
 
     root = Path(__file__).resolve().parents[1]
-    sys.path.insert(0, str(root)) if str(root) not in sys.path else None
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
     from studies.seneca import write_study
 
     md = write_study(out, tmp_path / "study", "seneca_quick").read_text()

@@ -3,7 +3,7 @@
 A diagnosis adjusts the block with IO fixed from a certificate and asks what the residuals still hold. The
 certificate's IO is an estimate: an error within its own sigmas leaves a residual pattern (J_io delta_io)
 that hypotheses sharing its signature pick up. On a rendered, effect-free 640 x 480 block calibrated on its
-own images (k1, k2 and k3 correlated at -0.97 to -0.99 on a 22 degree field) the fixed-IO block named
+own images (k1, k2 and k3 correlated with |r| 0.92 to 0.99 on a 22 degree field) the fixed-IO block named
 ``radial_k3 = 1.13 +- 0.23``, well inside the certificate's own k3 sigma of 3.2: the diagnosis saw the
 certificate's error, not an effect.
 

@@ -69,17 +69,27 @@ class Linear:
         return float(self.r @ self.r)
 
 
+def image_times_s(images: pa.Table) -> np.ndarray | None:
+    """Seconds after the first image of each row of ``images`` (None when a time is missing)."""
+    t = images.column("time").to_numpy(zero_copy_only=False)
+    if not len(t) or np.isnat(t).any():
+        return None
+    return (t - t.min()).astype("timedelta64[us]").astype(float) / 1e6
+
+
+def image_strips(images: pa.Table) -> np.ndarray:
+    """Strip number of each row of ``images`` (-1 = none)."""
+    return np.array([-1 if v is None else v for v in images.column("strip").to_pylist()], dtype=np.int64)
+
+
 def covariates_from_images(images: pa.Table, block: Block) -> Covariates:
     ids = images.column("image_id").to_numpy()
     pos = {int(v): k for k, v in enumerate(ids)}
     rows = np.array([pos[int(v)] for v in block.image_ids])
-    t = images.column("time").to_numpy(zero_copy_only=False)
-    if len(t) and not np.isnat(t).any():
-        secs = (t - t.min()).astype("timedelta64[us]").astype(float) / 1e6
-    else:
+    secs = image_times_s(images)
+    if secs is None:
         secs = np.arange(len(ids), dtype=float)  # no times: assume the table is in acquisition order
-    strip = np.array([-1 if v is None else v for v in images.column("strip").to_pylist()], dtype=np.int64)
-    return Covariates(time_s=secs[rows], strip=strip[rows])
+    return Covariates(time_s=secs[rows], strip=image_strips(images)[rows])
 
 
 def fit_baseline(images: pa.Table, observations: pa.Table, camera: Camera, config: AdjustConfig,
