@@ -86,7 +86,8 @@ def fail(message: str, code: int = 2) -> None:
 @app.command()
 def simulate(
     preset: str = typer.Argument(..., help="Flight preset: conte-city, conte-calibration, daakir-uav, "
-                                            "daakir-calibration, mitishita-block, seneca (stations read "
+                                            "daakir-calibration, mitishita-block, xt2-survey (FLIR R-JPEG), "
+                                            "seneca (stations read "
                                             "from real images)."),
     out: Path = typer.Option(..., "--out", help="Flight folder to write (must not exist or be empty)."),
     seed: int = typer.Option(0, help="Random seed; the same seed gives the same flight."),
@@ -96,6 +97,9 @@ def simulate(
                                                           "thermal_focal=0.075 or boresight=0.01,0,0."),
     max_images: int | None = typer.Option(None, "--max-images", help="Keep only the N frames nearest the "
                                                                       "block centre."),
+    as_recorded: bool = typer.Option(False, "--as-recorded", help="Images mode: write only the images, as "
+                                                                   "they come off the aircraft (no camera.json, "
+                                                                   "flight.json, eo.csv or GCP files)."),
     as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
     source: Path | None = typer.Option(None, "--source", help="Image folder of a measured preset (seneca); "
                                                               "default ../shared/data/seneca/images."),
@@ -103,6 +107,8 @@ def simulate(
     """Simulate a flight and write a flight folder (with the truth beside it, for tests and studies only).
 
     Example: aerocal simulate conte-calibration --out flight --seed 3 --effect thermal_focal=0.05
+
+    Example: aerocal simulate xt2-survey --mode images --as-recorded --out xt2  (FLIR R-JPEGs only)
     """
     from aerocal.effects import EffectError, parse_effect
     from aerocal.simulate import (
@@ -124,7 +130,7 @@ def simulate(
             raise SimulationError(f"output folder {out} exists and is not empty; choose a new --out or remove it")
         sim = simulate_flight(spec, seed=seed, effects=effects, max_images=max_images)
         with _progress(f"writing {mode}", sim.images.num_rows if mode == "images" else 0) as advance:
-            write_flight(sim, out, mode=mode, progress=advance)
+            write_flight(sim, out, mode=mode, progress=advance, as_recorded=as_recorded)
     except (PresetError, EffectError, SimulationError) as exc:
         fail(str(exc))
     summary = spec_summary(sim)

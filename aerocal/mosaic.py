@@ -500,3 +500,33 @@ def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict) -
                     src.build_overviews(factors, resampling)
             rasterio.shutil.copy(work, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", PREDICTOR=2,
                                  BLOCKXSIZE=config.tile_px, BLOCKYSIZE=config.tile_px, COPY_SRC_OVERVIEWS="YES")
+
+
+def write_temperature_raster(
+    counts_path: str | Path,
+    out_path: str | Path,
+    to_celsius: Callable[[np.ndarray], np.ndarray],
+) -> Path:
+    """A float32 GeoTIFF of temperatures (degC) from a radiometric counts orthomosaic, block by block.
+
+    ``to_celsius`` converts raw counts to degC (e.g. :func:`aerocal.ingest.flir.raw_to_celsius` with the
+    flight's camera information). Nodata cells of the counts stay NaN; the grid, CRS and tiling are the
+    orthomosaic's, so memory is bounded by one block whatever the area. Written atomically."""
+    import rasterio
+
+    from aerocal.io import atomic_path
+
+    out_path = Path(out_path)
+    with rasterio.open(counts_path) as src:
+        profile = src.profile.copy()
+        profile.update(count=1, dtype="float32", nodata=float("nan"), predictor=3)
+        nodata = src.nodata
+        with atomic_path(out_path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+            for _, window in src.block_windows(1):
+                raw = src.read(1, window=window)
+                t = np.asarray(to_celsius(raw), dtype=np.float32)
+                if nodata is not None:
+                    t[raw == nodata] = np.nan
+                dst.write(t, 1, window=window)
+            dst.update_tags(1, units="degC", quantity="object temperature")
+    return out_path

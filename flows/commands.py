@@ -146,6 +146,7 @@ def process(
     Example: aerocal process flights/2016-03-14 --certificate auto --out runs/2016-03-14
     """
     _require_folder(flight_dir)
+    _stop_if_not_processable(flight_dir)
     _prefect_ready()
     with _user_errors():
         from flows.flight import process_flight
@@ -164,6 +165,38 @@ def process(
         console.print_json(json.dumps(summary, default=str))
     else:
         _print_run(summary)
+
+
+def _print_problems(result: Any, out: Console, warnings: bool = True, limit: int = 50) -> None:
+    """Every error (blocking ones first), then warnings up to ``limit`` lines in all."""
+    ordered = result.blocking + [p for p in result.errors if not p.stops_processing]
+    if warnings:
+        ordered += result.warnings[: max(0, limit - len(ordered))]
+    for p in ordered:
+        out.print(str(p), markup=False)
+    rest = len(result.warnings) - len([p for p in ordered if p.severity == "warning"])
+    if warnings and rest > 0:
+        out.print(f"... and {rest} more warnings (aerocal ingest FOLDER --out DIR writes them all)")
+
+
+def _stop_if_not_processable(flight_dir: Path) -> None:
+    """Run ingest's checks on an image-mode flight before any server starts; on a blocking problem print
+    ingest's errors and exit 2 (bad input)."""
+    from aerocal.ingest import ingest_folder
+
+    if (flight_dir / "observations" / "observations.parquet").is_file():
+        return
+    with _user_errors():
+        with console.status(f"checking {flight_dir} ..."):
+            result = ingest_folder(flight_dir)
+    if result.blocking:
+        err_console.print(
+            f"[red]error:[/red] {flight_dir} cannot be processed: {len(result.blocking)} problem(s) stop "
+            f"processing ({len(result.errors)} error(s) in all; nothing was processed or stored):",
+            markup=True,
+        )
+        _print_problems(result, err_console, warnings=False)
+        raise typer.Exit(2)
 
 
 # ------------------------------------------------------------------------------------------- calibrate
@@ -380,6 +413,9 @@ def ingest(
 ) -> None:
     """Read images, metadata, EO and ground control; print a summary and every problem by file and line.
 
+    Exit code 0 when nothing is wrong (warnings only), 2 when there are errors: skipped images or rows, and
+    problems that stop `aerocal process` (each names the file, the field and the fix).
+
     Example: aerocal ingest flights/0314 --gcp gcp_list.txt --eo eo.csv
     """
     from aerocal.ingest import ingest_folder, summary_rows, write_ingest
@@ -395,14 +431,17 @@ def ingest(
     for item, value in summary_rows(result):
         table.add_row(item, value)
     console.print(table)
-    for p in result.problems[:50]:
-        console.print(str(p))
-    if len(result.problems) > 50:
-        console.print(f"... and {len(result.problems) - 50} more problems")
+    _print_problems(result, console)
     if out is not None:
         console.print(f"tables written to {out}")
-    if result.images.num_rows == 0:
-        raise typer.Exit(1)
+    if result.blocking:
+        err_console.print(
+            f"[red]{len(result.blocking)} problem(s) stop `aerocal process`[/red] (marked 'stops processing'); "
+            "fix them and ingest again",
+            markup=True,
+        )
+    if result.errors:
+        raise typer.Exit(2)
 
 
 # ----------------------------------------------------------------------------------------------- match

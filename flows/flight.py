@@ -42,6 +42,7 @@ EXPORTS = {
     "report_summary": "summary.json",
     "dsm": "dsm.tif",
     "orthomosaic": "orthomosaic.tif",
+    "temperature": "temperature.tif",
     "certificate": "certificate.json",
     "calibration_certificate": "calibration_certificate.json",
     "calibration": "calibration.json",

@@ -4,7 +4,10 @@ A camera is identified by make, model, serial number and lens, as in
 :class:`aerocal.certificate.CameraIdentity`. The lens is ``"unknown"`` when not recorded (a value, not
 NULL, so that the unique constraint on the four fields holds on every database; an empty lens is read
 as ``"unknown"``). Make, model and serial must be known: a certificate of "some camera" must never be
-selected for another one, so an identity without them is refused. The textual form used by the Arrow
+selected for another one, so an identity without them is refused. A camera that records no serial number
+is identified by make, model, lens and frame size, with the serial ``"no-serial WxH"``
+(:data:`aerocal.ingest.inferred.NO_SERIAL`): its certificates may be shared by several bodies of the model,
+which :attr:`CameraIdentity.shared_body` and its text say. The textual form used by the Arrow
 ``images`` table is ``"make|model|serial|lens"``.
 """
 
@@ -16,6 +19,7 @@ from dataclasses import dataclass
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
+from aerocal.ingest.camera_identity import is_shared_identity
 from storage.errors import CertificateDocumentError, NotFoundError
 from storage.models import Camera
 
@@ -94,7 +98,16 @@ class CameraIdentity:
         """``{"make", "model", "serial", "lens"}``."""
         return {name: getattr(self, name) for name in _FIELDS}
 
+    @property
+    def shared_body(self) -> bool:
+        """True for a camera that records no serial number, identified by make, model, lens and frame size
+        (serial ``"no-serial WxH"``): its certificates may be shared by several bodies of that model."""
+        return is_shared_identity(self.serial)
+
     def __str__(self) -> str:
+        if self.shared_body:
+            text = f"{self.make} {self.model} ({self.serial}: any body of this model; no serial recorded)"
+            return text if self.lens == UNKNOWN else f"{text} lens {self.lens}"
         text = f"{self.make} {self.model} s/n {self.serial}"
         return text if self.lens == UNKNOWN else f"{text} lens {self.lens}"
 

@@ -40,6 +40,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
+from aerocal.ingest.camera_identity import is_shared_identity
 from storage.errors import ImmutableCertificateError
 
 #: Constraint names follow one pattern, so migrations (and SQLite batch mode) can refer to them.
@@ -124,8 +125,12 @@ class Camera(Base):
 
     @property
     def label(self) -> str:
-        """Human-readable identity, e.g. ``NEC TS9260 s/n 123``."""
-        text = f"{self.make} {self.model} s/n {self.serial}"
+        """Human-readable identity, e.g. ``NEC TS9260 s/n 123``; a camera without a recorded serial number
+        (``"no-serial WxH"``) says that its certificates may be shared by several bodies of the model."""
+        if is_shared_identity(self.serial):
+            text = f"{self.make} {self.model} ({self.serial}: any body of this model, no serial recorded)"
+        else:
+            text = f"{self.make} {self.model} s/n {self.serial}"
         return text if self.lens == "unknown" else f"{text} lens {self.lens}"
 
 

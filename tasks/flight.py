@@ -141,6 +141,14 @@ def _flight_summary(
     }
 
 
+def blocking_report(result) -> str:
+    """The message of a flight that cannot be processed: every blocking problem of ingest, one per line."""
+    lines = [f"{result.sources.get('images', 'flight')}: cannot be processed ({len(result.blocking)} problem(s); "
+             "`aerocal ingest FOLDER` shows the whole report):"]
+    lines += [f"  - {p}" for p in result.blocking]
+    return "\n".join(lines)
+
+
 def ingest_step(
     ctx: StepContext, flight_dir: str | Path, manifest: str, config: IngestStepConfig | None = None
 ) -> StepResult:
@@ -176,31 +184,30 @@ def ingest_step(
             from aerocal.ingest import ingest_folder
 
             res = ingest_folder(folder, gcp_file=config.gcp_file, eo_file=config.eo_file, crs=config.crs)
-            if res.images.num_rows == 0:
-                first = res.errors[0] if res.errors else None
-                raise FlightInputError(
-                    f"{folder}: no image could be ingested"
-                    + (f" ({first})" if first else "")
-                    + "; run `aerocal ingest` to see why"
-                )
-            if res.camera is None:
-                raise FlightInputError(
-                    f"{cam_path} is missing; image-mode processing needs the camera's nominal "
-                    "model (width, height, f, cx, cy in pixels) there"
-                )
+            if res.blocking:
+                raise FlightInputError(blocking_report(res))
             ident = res.camera_identity
             cam_doc = {
                 "identity": {k: getattr(ident, k) for k in ("make", "model", "serial", "lens")},
                 "camera": res.camera.to_dict(),
+                "source": res.camera_source,
             }
             tabs = {"images": res.images, "gcps": res.gcps, "gcp_observations": res.gcp_observations}
             crs, mode = res.crs, "images"
             problems = [str(p) for p in res.problems]
+            meta = {**meta, "height_agl_m": res.height_agl_m}
+            if meta.get("gnss_sigma_m") is None and res.gnss_sigma_m is not None:
+                meta["gnss_sigma_m"] = list(res.gnss_sigma_m)
+            out["skipped"] = res.skipped_images
         for kind, tab in tabs.items():
             out[kind] = TableOutput(tab, kind)
         out["camera"] = JsonOutput(cam_doc, "camera")
+        skipped = out.pop("skipped", [])
         summary = _flight_summary(tabs["images"], meta, crs, name, mode, folder)
         summary["problems"] = problems
+        summary["skipped_images"] = skipped
+        if mode == "images":
+            summary["facts"] = res.flight_facts
         out["flight"] = JsonOutput(summary, "flight")
         return out
 

@@ -169,6 +169,8 @@ def mosaic_step(
                 res = build_mosaic(frames, paths, dsm, path, mcfg, None)
             out["orthomosaic"] = FileOutput(res.path, "orthomosaic", temporary=True)
             info.update({k: v for k, v in res.to_dict().items() if k != "path"})
+            if res.dtype == "uint16":
+                out.update(_temperature_output(paths.values(), res.path, work, info))
             info["frames"] = len(frames)
         out["mosaic"] = JsonOutput(info, "mosaic")
         return out
@@ -179,6 +181,24 @@ def mosaic_step(
     return run_step(
         ctx, "mosaic", inputs, {"config": config, "frames": frames_key(flight, images_tab)}, compute
     )
+
+
+def _temperature_output(paths, counts_path: Path, work: Path, info: dict[str, Any]) -> dict[str, Any]:
+    """``temperature`` (float32 degC GeoTIFF on the orthomosaic's grid) when every frame is a FLIR
+    radiometric JPEG with one temperature scale; ``info["temperature"]`` says what was done and why."""
+    from aerocal.ingest.flir import common_camera_info, raw_to_celsius
+    from aerocal.mosaic import write_temperature_raster
+
+    flir, why = common_camera_info(list(paths))
+    if flir is None:
+        info["temperature"] = f"no temperature raster: {why}"
+        return {}
+    path = write_temperature_raster(counts_path, work / "temperature.tif", lambda raw: raw_to_celsius(raw, flir))
+    info["temperature"] = (
+        f"temperature.tif: object temperature (degC) from the counts mosaic, emissivity {flir.emissivity:g}, "
+        f"object distance {flir.object_distance_m:g} m, as the camera recorded them ({why})"
+    )
+    return {"temperature": FileOutput(path, "temperature", temporary=True)}
 
 
 # ------------------------------------------------------------------------------------------- assess

@@ -61,7 +61,13 @@ def test_seneca_every_image_has_position_attitude_and_temperature(seneca):
     assert set(img.column("attitude_convention").to_pylist()) == {"body_rpy"}
     assert set(img.column("camera_id").to_pylist()) == {"Canon|Canon PowerShot ELPH 300 HS||"}
     assert seneca.crs == "EPSG:32617" and tables.crs_of(img) == "EPSG:32617"
-    assert not seneca.errors, [str(p) for p in seneca.errors]
+    # the folder as published has no camera.json and no flight.json, and the camera is not in the catalogue
+    # (its frames are halved, so EXIF cannot give the pixel pitch): ingest says that process would stop
+    # on exactly these two, each naming the file to write
+    assert [(p.field, p.stops_processing) for p in seneca.errors] == [("camera", True), ("height_agl_m", True)], [
+        str(p) for p in seneca.errors
+    ]
+    assert "camera.json" in seneca.errors[0].file and "flight.json" in seneca.errors[1].file
     # projected positions are the WGS84 positions in UTM 17N
     lat, lon = img.column("lat").to_pylist()[0], img.column("lon").to_pylist()[0]
     x, y = lonlat_to_projected(lon, lat, "EPSG:32617")
@@ -121,7 +127,7 @@ def test_seneca_summary_rows(seneca):
     assert rows["images"] == "167 ingested"
     assert rows["strips"].startswith("23 ")
     assert "23.0 .. 37.0 degC" in rows["camera temperature"]
-    assert rows["problems"] == "0 error(s), 1 warning(s)"
+    assert rows["problems"] == "2 error(s) (2 stop processing), 1 warning(s)"
 
 
 def test_metadata_parser_agrees_with_pillow():

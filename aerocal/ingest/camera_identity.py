@@ -17,6 +17,9 @@ from aerocal.camera import Camera
 from aerocal.ingest.problems import ProblemLog
 
 UNKNOWN_CAMERA_ID = "unknown|unknown||"
+#: serial part of the identity of a camera whose images record no serial number: ``"no-serial WxH"``
+#: (make, model, lens and frame size identify it; several bodies may share its certificates)
+NO_SERIAL = "no-serial"
 MAX_JSON_BYTES = 4 * 1024 * 1024
 
 
@@ -35,6 +38,11 @@ class CameraIdentity:
     @property
     def is_known(self) -> bool:
         return bool(self.make or self.model)
+
+
+def is_shared_identity(serial: str | None) -> bool:
+    """True for the serial part of a camera that records none (:data:`NO_SERIAL`)."""
+    return bool(serial) and str(serial).startswith(NO_SERIAL)
 
 
 def identity_of(make: str | None, model: str | None, serial: str | None, lens: str | None) -> CameraIdentity:

@@ -8,13 +8,16 @@ and RTK/non-RTK modes), ``RelativeAltitude`` (m above the take-off point), ``Gim
 :func:`aerocal.geometry.dji_gimbal_to_R_cw`), ``FlightRoll/Pitch/YawDegree`` (the aircraft's),
 ``FlightX/Y/ZSpeed`` (m/s), ``LRFTargetDistance`` and friends (laser range finder), RTK fields.
 
-R-JPEG (H20T, M2EA, M30T, ...): the visible part is an 8-bit false-colour preview; the raw sensor frame
-is stored little-endian uint16, row-major, split over consecutive APP3 segments (concatenate their
-payloads; 640 x 512 x 2 = 655360 bytes on the H20T). The APP4 segment holds a DJI parameter block;
-float32 values at byte offsets 132, 136 and 156 drift smoothly over a flight (27.4 -> 26.7,
-28.7 -> 28.1, 25.3 -> 24.9 on ``h20t_forest``) and read as internal camera temperatures in degC. This
-reading is **not documented by DJI**: they are reported as ``dji_app4_f132_undocumented`` etc. and are
-used as the sensor temperature only when the user opts in (``IngestConfig.dji_app4_temperature``).
+R-JPEG (H20T, H20N, M2EA, M30T, M3T, H30T, XT S): the visible part is an 8-bit false-colour preview; the
+raw sensor frame is stored little-endian uint16, row-major, split over consecutive APP3 segments
+(APP4 on the XT S; concatenate their payloads; 640 x 512 x 2 = 655360 bytes on the H20T). The Zenmuse XT
+and XT2 are FLIR cores and write FLIR's own format instead (:mod:`aerocal.ingest.flir`). On the H20T the
+APP4 segment holds a DJI parameter block; float32 values at byte offsets 132, 136 and 156 drift smoothly
+over a flight (27.4 -> 26.7, 28.7 -> 28.1, 25.3 -> 24.9 on ``h20t_forest``) and read as internal camera
+temperatures in degC. This reading is **not documented by DJI**: they are reported as
+``dji_app4_f132_undocumented`` etc. and are used as the sensor temperature only when the user opts in
+(``IngestConfig.dji_app4_temperature``). On the M2EA, M30T and H30T the same bytes hold zeros or values
+like 1e28, so they are read on the H20T only.
 """
 
 from __future__ import annotations
@@ -95,30 +98,44 @@ def read_dji_xmp(xmp: dict[str, str]) -> RecordedPose:
     return pose
 
 
-def raw_thermal_layout(jpeg: JpegStructure) -> tuple[int, int] | None:
-    """(width, height) of the raw uint16 frame in the APP3 segments, or ``None`` if there is none.
+def raw_thermal_segments(jpeg: JpegStructure) -> tuple[int, int, int] | None:
+    """(APPn marker, width, height) of the raw uint16 frame of a DJI R-JPEG, or ``None`` if there is none.
 
-    The APP3 payload length must equal 2 x width x height: of the JPEG frame size first, else of one of
-    :data:`KNOWN_RAW_SIZES`.
+    The raw frame is in the APP3 segments (H20T, H20N, M2EA, M30T, M3T, H30T) or, on the Zenmuse XT S, in
+    the APP4 segments (its APP3 then holds a 32 KiB block that is not the frame). A segment group holds the
+    frame when its payload length equals 2 x width x height: of the JPEG frame size first (H30T
+    1280 x 1024), else of one of :data:`KNOWN_RAW_SIZES` (the M30T's 1280 x 1024 preview of a 640 x 512
+    frame).
     """
-    total = sum(len(p) for p in jpeg.app(APP3))
-    if total == 0:
-        return None
-    if total == 2 * jpeg.width * jpeg.height:
-        return jpeg.width, jpeg.height
-    for w, h in KNOWN_RAW_SIZES:
-        if total == 2 * w * h:
-            return w, h
+    for marker in (APP3, APP4):
+        total = sum(len(p) for p in jpeg.app(marker))
+        if total == 0:
+            continue
+        if total == 2 * jpeg.width * jpeg.height:
+            return marker, jpeg.width, jpeg.height
+        for w, h in KNOWN_RAW_SIZES:
+            if total == 2 * w * h:
+                return marker, w, h
     return None
 
 
+def raw_thermal_layout(jpeg: JpegStructure) -> tuple[int, int] | None:
+    """(width, height) of the raw uint16 frame of a DJI R-JPEG (:func:`raw_thermal_segments`), or ``None``."""
+    found = raw_thermal_segments(jpeg)
+    return None if found is None else found[1:]
+
+
 def raw_thermal_frame(jpeg: JpegStructure) -> np.ndarray | None:
-    """The raw thermal frame (uint16, shape (height, width)) of an R-JPEG, or ``None``."""
-    layout = raw_thermal_layout(jpeg)
-    if layout is None:
+    """The raw thermal frame (uint16 counts, shape (height, width)) of a DJI R-JPEG, or ``None``.
+
+    DJI stores counts only; their conversion to temperature is in DJI's Thermal SDK and is not documented,
+    so no temperature is derived from them here.
+    """
+    found = raw_thermal_segments(jpeg)
+    if found is None:
         return None
-    w, h = layout
-    raw = b"".join(jpeg.app(APP3))
+    marker, w, h = found
+    raw = b"".join(jpeg.app(marker))
     return np.frombuffer(raw, dtype="<u2").reshape(h, w).astype(np.uint16)
 
 
@@ -128,7 +145,8 @@ def app4_floats(jpeg: JpegStructure) -> dict[int, float]:
     Values are returned as read (possibly NaN or absurd); the caller checks them.
     """
     segments = jpeg.app(APP4)
-    if not segments:
+    found = raw_thermal_segments(jpeg)
+    if not segments or (found is not None and found[0] == APP4):
         return {}
     block = segments[0]
     out: dict[int, float] = {}

@@ -5,7 +5,10 @@ A *flight folder* keeps its images in ``images/`` and beside it, all optional::
     eo.csv          exterior orientation overriding the image metadata (see aerocal.ingest.eo_csv)
     gcp_list.txt    OpenDroneMap ground control list (see aerocal.ingest.gcp_odm)
     gcps.csv        GCP coordinates with sigmas and roles (see aerocal.ingest.gcp_csv)
-    camera.json     camera identity and nominal camera (see aerocal.ingest.camera_identity)
+    camera.json     camera identity and nominal camera (see aerocal.ingest.camera_identity); without it,
+                    the nominal camera comes from the camera catalogue (aerocal.ingest.camera_catalogue)
+    flight.json     the flight plan: height_agl_m, gnss_sigma_m [h, v], imu_sigma_deg, ...; without it the
+                    flying height and GNSS sigmas are inferred from the images (aerocal.ingest.inferred)
     (the simulator's ground-truth file is never read by ingest or any processing code)
 
 A plain folder of images is also accepted (its sidecars are looked for in the folder itself).
@@ -14,8 +17,10 @@ Explicit ``gcp_file``/``eo_file``/``crs`` arguments win over what is found.
 Order of work: list and read every image (metadata only, no pixel decoding); drop duplicates; apply the
 EO CSV; fill the camera identity; resolve UTC times; choose the flight CRS (the ``crs`` argument, else the
 UTM zone of the images' median position, else the ground control's CRS); project positions; find
-strips; read and check ground control; build the tables. Problems never stop the flight: each names its
-file (and line and field), and the result carries them all.
+strips; read and check ground control; infer what the sidecars do not give (nominal camera, identity,
+flying height, GNSS sigmas); build the tables; check that processing can run (:mod:`aerocal.ingest.
+readiness`). Problems never stop ingest: each names its file (and line and field), and the result carries
+them all; those that ``aerocal process`` cannot go past are marked ``stops_processing``.
 """
 
 from __future__ import annotations
@@ -44,8 +49,10 @@ from aerocal.ingest.dji import APP4_FLOAT_OFFSETS, app4_field_name
 from aerocal.ingest.eo_csv import EoFile, read_eo_csv
 from aerocal.ingest.gcp import ImageFrame, build_gcp_tables, read_gcp_file
 from aerocal.ingest.gcp_records import GcpFile
+from aerocal.ingest.inferred import certificate_identity, infer_camera, infer_gnss_sigma, infer_height_agl
 from aerocal.ingest.metadata import ImageMetadata, read_image_metadata, sniff_container
 from aerocal.ingest.problems import Problem, ProblemLog, name_list
+from aerocal.ingest.readiness import check_processable, read_flight_json
 from aerocal.ingest.strips import find_strips
 
 #: extensions of image formats ingest does not read; such files are reported, not silently ignored
@@ -63,6 +70,7 @@ OTHER_IMAGE_EXTENSIONS = (
     ".jp2",
 )
 EO_NAME, GCP_LIST_NAME, GCP_CSV_NAME, CAMERA_JSON_NAME = "eo.csv", "gcp_list.txt", "gcps.csv", "camera.json"
+FLIGHT_JSON_NAME = "flight.json"
 _HEADING_CONVENTIONS = ("dji_gimbal", "body_rpy")
 
 
@@ -78,7 +86,12 @@ class IngestResult:
     * ``problems``: everything found wrong, by file, line and field;
     * ``camera``, ``camera_identity``: the nominal camera of ``camera.json`` if there is one;
     * ``skipped_images``: image files that could not be ingested (each has an error in ``problems``);
-    * ``sources``: the sidecar files that were read.
+    * ``sources``: the sidecar files that were read;
+    * ``camera_source``: where the nominal camera came from (``camera.json`` or the catalogue, with values);
+    * ``height_agl_m``, ``gnss_sigma_m`` (horizontal, vertical): the flight's flying height and GNSS
+      sigmas, from ``flight.json`` or inferred from the images, ``None`` where unknown; ``flight_facts``:
+      one sentence per fact on where it came from;
+    * ``plan``: the other ``flight.json`` fields (name, description, imu_sigma_deg, tie_sigma_px, ...).
     """
 
     images: pa.Table
@@ -92,6 +105,16 @@ class IngestResult:
     skipped_images: list[str] = field(default_factory=list)
     sources: dict[str, str] = field(default_factory=dict)
     config: IngestConfig = field(default_factory=IngestConfig)
+    camera_source: str | None = None
+    height_agl_m: float | None = None
+    gnss_sigma_m: tuple[float, float] | None = None
+    flight_facts: dict[str, str] = field(default_factory=dict)
+    plan: dict = field(default_factory=dict)
+
+    @property
+    def blocking(self) -> list[Problem]:
+        """The errors ``aerocal process`` cannot go past."""
+        return [p for p in self.problems if p.stops_processing]
 
     @property
     def errors(self) -> list[Problem]:
@@ -251,6 +274,11 @@ def ingest_folder(
             None,
         )
         sources["camera_json"] = str(camera_json)
+    flight_json = _sidecar(None, inputs.sidecar_dir, FLIGHT_JSON_NAME, problems)
+    plan: dict = {}
+    if flight_json is not None:
+        plan = _guarded(problems, flight_json, read_flight_json, flight_json, problems) or {}
+        sources["flight_json"] = str(flight_json)
     if eo_path is not None:
         sources["eo"] = str(eo_path)
         eo = _guarded(problems, eo_path, read_eo_csv, eo_path, problems, user_crs, cfg.eo_default_attitude)
@@ -265,6 +293,25 @@ def ingest_folder(
         sources["gcp"] = ";".join(str(p) for p in gcp_paths)
 
     camera_ids = _camera_ids(metas, identity, camera, camera_json, problems)
+    facts: dict[str, str] = {}
+    if camera is not None:
+        camera_source = f"{camera_json}"
+    else:
+        camera, camera_source = infer_camera(metas)
+        facts["camera"] = camera_source
+        if camera is None and camera_json is not None:
+            camera_source = f"{camera_json} gives no valid camera, and {camera_source}"
+    identity = certificate_identity(metas, identity, camera)
+    height = plan.get("height_agl_m")
+    facts["height_agl_m"] = f"{FLIGHT_JSON_NAME} height_agl_m"
+    if height is None:
+        guess = infer_height_agl(metas)
+        height, facts["height_agl_m"] = guess.value, guess.source
+    gnss = plan.get("gnss_sigma_m")
+    facts["gnss_sigma_m"] = f"{FLIGHT_JSON_NAME} gnss_sigma_m"
+    if gnss is None:
+        guess = infer_gnss_sigma(metas)
+        gnss, facts["gnss_sigma_m"] = guess.value, guess.source
     times = resolve_utc_times(metas, where, problems, cfg.time_zone_from_gnss)
     _flight_warnings(metas, where, problems)
 
@@ -297,6 +344,10 @@ def ingest_folder(
     extra = _extra_table(metas)
     if flight_crs is not None:
         gcps, gcp_obs = tables.with_crs(gcps, flight_crs), tables.with_crs(gcp_obs, flight_crs)
+    _temperature_notes(metas, where, problems)
+    check_processable(
+        problems, where, images, gcps, camera, camera_source, identity, height, inputs.sidecar_dir, skipped
+    )
     return IngestResult(
         images=images,
         gcps=gcps,
@@ -309,6 +360,32 @@ def ingest_folder(
         skipped_images=skipped,
         sources=sources,
         config=cfg,
+        camera_source=camera_source if camera is not None else None,
+        height_agl_m=None if height is None else float(height),
+        gnss_sigma_m=None if gnss is None else (float(gnss[0]), float(gnss[-1])),
+        flight_facts=facts,
+        plan=plan,
+    )
+
+
+def _temperature_notes(metas: list[ImageMetadata], where: str, problems: ProblemLog) -> None:
+    """Say where the sensor temperature came from, or that it is unknown, for radiometric thermal flights."""
+    thermal = [m for m in metas if m.raw_format is not None]
+    if not thermal or any(m.temperature_c is not None for m in thermal):
+        return
+    scene = [m for m in thermal if "flir_central_temperature_scene_c" in m.extra]
+    note = (
+        f"; XMP FLIR:CentralTemperature ({len(scene)} images) is the scene's temperature at the frame "
+        "centre, not the sensor's, and is not used as one"
+        if scene
+        else ""
+    )
+    problems.warning(
+        where,
+        f"sensor (core) temperature unknown for {len(thermal)} radiometric thermal image(s): "
+        f"{', '.join(sorted({m.raw_format or '' for m in thermal}))} record no documented one{note}; give it per image "
+        "in eo.csv (temperature_c) to model thermal drift",
+        "temperature_c",
     )
 
 

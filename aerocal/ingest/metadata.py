@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import datetime as dt
 import hashlib
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,6 +36,7 @@ from aerocal.ingest.exif import (
     parse_utc_offset,
     read_exif,
 )
+from aerocal.ingest.flir import FlirCameraInfo, FlirFormatError, flir_layout, has_flir
 from aerocal.ingest.jpeg import JpegFormatError, is_jpeg, parse_jpeg
 from aerocal.ingest.numbers import PLAUSIBLE_RANGES, in_range
 from aerocal.ingest.problems import Problem
@@ -43,6 +45,9 @@ from aerocal.ingest.sensefly import has_sensefly, read_sensefly
 from aerocal.ingest.tiff import TiffFormatError, entry_int, entry_numbers, parse_tiff
 from aerocal.ingest.xmp import XmpError, packet_from_app1, parse_xmp
 
+#: DJI models whose APP4 floats were seen to drift like internal temperatures (``h20t_forest``); on the
+#: M2EA, M30T and H30T samples the same bytes hold zeros or values like 1e28, so they are not read there
+APP4_TEMPERATURE_MODELS = ("H20T",)
 MAX_IMAGE_SIDE = 1 << 17  # 131072 px: larger frame sizes are corrupt headers, not cameras
 _XMP_TIME = re.compile(r"^(\d{4})-(\d{2})-(\d{2})T(\d{2}):(\d{2}):(\d{2})(\.\d+)?(Z|[+-]\d{2}:?\d{2})?$")
 
@@ -59,6 +64,7 @@ class ImageMetadata:
     height: int
     bit_depth: int
     raw_thermal: bool = False
+    raw_format: str | None = None  # "flir-fff", "dji-rjpeg" (counts read from the JPEG's APPn segments)
     make: str | None = None
     model: str | None = None
     serial: str | None = None
@@ -150,8 +156,15 @@ def _read_jpeg(data, path, digest, cfg, error, warn):
         jpeg = parse_jpeg(data)
     except JpegFormatError as exc:
         return error(f"not a readable JPEG: {exc}; skipped")
-    if not jpeg.has_eoi:
+    raw_in_app = has_flir(jpeg) or raw_thermal_layout(jpeg) is not None
+    if not jpeg.has_eoi and not raw_in_app:
         return error("truncated JPEG: no end-of-image marker after the image data; skipped")
+    if not jpeg.has_eoi:
+        warn(
+            "the JPEG preview has no end-of-image marker (cut); the raw thermal frame stored before it is "
+            "complete and is what is used",
+            "EOI",
+        )
     if not (0 < jpeg.width <= MAX_IMAGE_SIDE and 0 < jpeg.height <= MAX_IMAGE_SIDE):
         return error(
             f"JPEG frame header gives an impossible size {jpeg.width}x{jpeg.height}; skipped", "size"
@@ -168,12 +181,30 @@ def _read_jpeg(data, path, digest, cfg, error, warn):
             packet = packet_from_app1(payload)
             if packet is not None and not xmp:
                 xmp = _xmp_from(packet, warn)
+    if has_flir(jpeg):
+        try:
+            flir = flir_layout(jpeg)
+        except FlirFormatError as exc:
+            return error(
+                f"FLIR radiometric JPEG whose FLIR segments are broken ({exc}); the 8-bit picture beside them "
+                "is a palette rendering, not the measurement; skipped",
+                "FLIR",
+            )
+        assert flir is not None
+        meta.width, meta.height, info = flir
+        meta.bit_depth = 16
+        meta.raw_thermal = True
+        meta.raw_format = "flir-fff"
+        _flir_extra(meta, info, warn)
+        return meta, exif, xmp
     layout = raw_thermal_layout(jpeg)
     if layout is not None:
         meta.width, meta.height = layout
         meta.bit_depth = 16
         meta.raw_thermal = True
-        floats = app4_floats(jpeg)
+        meta.raw_format = "dji-rjpeg"
+        model = (exif.model if exif is not None else None) or ""
+        floats = app4_floats(jpeg) if any(m in model for m in APP4_TEMPERATURE_MODELS) else {}
         lo, hi = cfg.temperature_range_c
         for off, value in floats.items():
             name = app4_field_name(off)
@@ -200,6 +231,43 @@ def _read_jpeg(data, path, digest, cfg, error, warn):
             "APP3",
         )
     return meta, exif, xmp
+
+
+#: FLIR camera-information fields kept per image in ``extra`` (name -> attribute, unit in the name)
+FLIR_EXTRA = {
+    "flir_emissivity": "emissivity",
+    "flir_object_distance_m": "object_distance_m",
+    "flir_reflected_temperature_k": "reflected_temperature_k",
+    "flir_atmospheric_temperature_k": "atmospheric_temperature_k",
+    "flir_relative_humidity": "relative_humidity",
+    "flir_planck_r1": "planck_r1",
+    "flir_planck_b": "planck_b",
+    "flir_planck_f": "planck_f",
+    "flir_planck_o": "planck_o",
+    "flir_planck_r2": "planck_r2",
+    "flir_field_of_view_deg": "field_of_view_deg",
+}
+
+
+def _flir_extra(meta: ImageMetadata, info: FlirCameraInfo | None, warn) -> None:
+    """Record the FLIR camera information of one frame in ``meta.extra``; warn where temperatures fail."""
+    if info is None:
+        warn("FLIR file without a camera-information record: counts are read, temperatures cannot be", "FLIR")
+        return
+    for key, attr in FLIR_EXTRA.items():
+        value = float(getattr(info, attr))
+        if math.isfinite(value):
+            meta.extra[key] = value
+    for key, text in (
+        ("flir_camera_model", info.camera_model),
+        ("flir_camera_serial", info.camera_serial),
+        ("flir_lens_model", info.lens_model),
+    ):
+        if text and text != "*":
+            meta.extra[key] = text[:64]
+    bad = info.problems()
+    if bad:
+        warn("FLIR camera information unusable for temperatures (" + "; ".join(bad) + "): counts only", "FLIR")
 
 
 def _read_tiff(data, path, digest, cfg, error, warn):
@@ -318,6 +386,19 @@ def _interpret(
     meta.model = meta.model or _clean(xmp.get("tiff:Model"))
     meta.serial = meta.serial or _clean(xmp.get("aux:SerialNumber"))
     meta.lens = meta.lens or _clean(xmp.get("aux:Lens"))
+    if meta.serial and set(meta.serial) <= {"0"}:  # DJI M2EA/M30T/H30T write "0": no serial recorded
+        meta.serial = None
+    if meta.raw_format == "flir-fff":  # the FFF record names the core where EXIF does not
+        meta.serial = meta.serial or _clean(str(meta.extra.get("flir_camera_serial") or "")) or None
+        if not meta.model and meta.extra.get("flir_camera_model"):
+            meta.make = meta.make or "FLIR"
+            meta.model = str(meta.extra["flir_camera_model"])
+    central = xmp.get("FLIR:CentralTemperature")
+    if central is not None:
+        try:
+            meta.extra["flir_central_temperature_scene_c"] = float(central)
+        except ValueError:
+            warn(f"XMP FLIR:CentralTemperature {central[:40]!r} is not a number; ignored", "CentralTemperature")
     for key in ("exif:DateTimeOriginal", "xmp:CreateDate"):
         local, offset = _parse_xmp_time(xmp.get(key))
         if local is None:

@@ -21,6 +21,7 @@ from aerocal.ingest.exif import (
     TAG_BODY_SERIAL,
     TAG_DATETIME_ORIGINAL,
     TAG_EXIF_IFD,
+    TAG_FOCAL_LENGTH,
     TAG_GPS_IFD,
     TAG_LENS_MODEL,
     TAG_MAKE,
@@ -87,9 +88,15 @@ def _ifd_bytes(entries: list[Entry], start: int) -> bytes:
 
 
 def _exif_entries(
-    serial: str | None, lens: str | None, time: dt.datetime | None, utc_offset: str | None
+    serial: str | None,
+    lens: str | None,
+    time: dt.datetime | None,
+    utc_offset: str | None,
+    focal_mm: float | None = None,
 ) -> list[Entry]:
     exif: list[Entry] = []
+    if focal_mm is not None:
+        exif.append((TAG_FOCAL_LENGTH, 5, [float(focal_mm)]))
     if time is not None:
         exif.append((TAG_DATETIME_ORIGINAL, 2, time.strftime("%Y:%m:%d %H:%M:%S")))
         if time.microsecond:
@@ -134,6 +141,7 @@ def exif_block(
     utc_offset: str | None = None,
     gps: tuple[float, float, float | None] | None = None,
     ifd0_extra: list[Entry] | None = None,
+    focal_mm: float | None = None,
 ) -> bytes:
     """A little-endian TIFF block: IFD0 (Make, Model), the EXIF IFD and the GPS IFD (a JPEG APP1 body)."""
     ifd0: list[Entry] = list(ifd0_extra or [])
@@ -141,7 +149,7 @@ def exif_block(
         ifd0.append((TAG_MAKE, 2, make))
     if model:
         ifd0.append((TAG_MODEL, 2, model))
-    exif = _exif_entries(serial, lens, time, utc_offset)
+    exif = _exif_entries(serial, lens, time, utc_offset, focal_mm)
     gps_e = _gps_entries(*gps) if gps else []
     # lay out: header (8) | IFD0 | EXIF IFD | GPS IFD; pointers are fixed up once sizes are known
     ifd0_full = ifd0 + ([(TAG_EXIF_IFD, 4, [0])] if exif else []) + ([(TAG_GPS_IFD, 4, [0])] if gps_e else [])
@@ -257,3 +265,69 @@ def jpeg_with_metadata(jpeg: bytes, exif: bytes | None = None, xmp: str | None =
     if xmp is not None:
         segs += _segment(0xE1, XMP_APP1_HEADER + xmp.encode("utf-8"))
     return body[:2] + segs + body[2:]
+
+
+# ------------------------------------------------------------------------------ FLIR radiometric JPEG
+def fff_file(raw: np.ndarray, info, byte_order: str = "<", payload: str = "raw", creator: str = "ATAU_RBFO") -> bytes:
+    """A FLIR FFF file holding ``raw`` (uint16 (H, W) counts) and the camera information ``info``
+    (:class:`aerocal.ingest.flir.FlirCameraInfo`), laid out as :mod:`aerocal.ingest.flir` documents.
+
+    ``byte_order`` ``"<"`` writes the header and records little-endian (DJI Zenmuse XT family), ``">"``
+    a big-endian header (FLIR handhelds; records stay little-endian, as those cameras write them);
+    ``payload`` ``"raw"`` stores the counts unwrapped, ``"png"`` as a 16-bit PNG with FLIR's swapped bytes.
+    """
+    import cv2
+
+    from aerocal.ingest.flir import CAMERA_INFO_BYTES, CAMERA_INFO_FLOATS, CAMERA_INFO_TEXT, PLANCK_O_OFFSET
+
+    raw = np.asarray(raw)
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise ValueError(f"a FLIR raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")
+    h, w = raw.shape
+    rec_order = "<"  # FLIR's records are little-endian on every sample of shared/data/flir_samples
+    header = struct.pack(rec_order + "HHH", 2, w, h).ljust(32, b"\x00")
+    if payload == "png":
+        ok, png = cv2.imencode(".png", raw.byteswap())
+        if not ok:
+            raise ValueError("OpenCV could not encode the raw frame as PNG")
+        raw_rec = header + png.tobytes()
+    elif payload == "raw":
+        raw_rec = header + raw.astype(rec_order + "u2").tobytes()
+    else:
+        raise ValueError(f"payload {payload!r} unknown; valid: raw, png")
+    info_rec = bytearray(CAMERA_INFO_BYTES + 4)
+    struct.pack_into(rec_order + "H", info_rec, 0, 2)
+    for name, off in CAMERA_INFO_FLOATS.items():
+        struct.pack_into(rec_order + "f", info_rec, off, float(getattr(info, name)))
+    struct.pack_into(rec_order + "i", info_rec, PLANCK_O_OFFSET, int(round(info.planck_o)))
+    for name, (off, size) in CAMERA_INFO_TEXT.items():
+        text = str(getattr(info, name) or "").encode("latin-1", "replace")[: size - 1]
+        info_rec[off : off + len(text)] = text
+    records = [(1, raw_rec), (0x20, bytes(info_rec))]
+    directory_at = 64
+    data_at = directory_at + 32 * len(records)
+    directory, blob = b"", b""
+    for k, (kind, rec) in enumerate(records):
+        directory += struct.pack(byte_order + "HHIIIIIII", kind, 0, 100, k + 1, data_at + len(blob), len(rec), 0, 0, 0)
+        blob += rec
+    head = b"FFF\x00" + creator.encode("ascii")[:16].ljust(16, b"\x00")
+    head += struct.pack(byte_order + "III", 100, directory_at, len(records)).ljust(44, b"\x00")
+    return head + directory + blob
+
+
+def flir_app1_segments(fff: bytes, chunk: int = 65000) -> list[bytes]:
+    """The APP1 payloads carrying ``fff``: ``FLIR\\0``, 1, segment index, last index, then the bytes."""
+    parts = [fff[i : i + chunk] for i in range(0, len(fff), chunk)]
+    if len(parts) > 256:
+        raise ValueError(f"an FFF file of {len(fff)} bytes needs more than 256 APP1 segments")
+    return [b"FLIR\x00\x01" + bytes([k, len(parts) - 1]) + p for k, p in enumerate(parts)]
+
+
+def jpeg_with_flir(jpeg: bytes, fff: bytes) -> bytes:
+    """``jpeg`` with the FFF file's APP1 ``FLIR`` segments inserted after its leading APPn segments."""
+    s = parse_jpeg(jpeg)
+    i = 2
+    while i < s.sos_offset and 0xE0 <= jpeg[i + 1] <= 0xEF:
+        i += 2 + struct.unpack_from(">H", jpeg, i + 2)[0]
+    segs = b"".join(_segment(0xE1, p) for p in flir_app1_segments(fff))
+    return jpeg[:i] + segs + jpeg[i:]

@@ -3,7 +3,9 @@
 :func:`read_raw` returns the sensor's pixel grid as stored (EXIF orientation is *not* applied: the
 camera model refers to the stored grid):
 
-* DJI R-JPEG: the raw thermal frame from the APP3 segments, ``uint16`` (H, W);
+* FLIR radiometric JPEG: the raw frame of the FFF records (:mod:`aerocal.ingest.flir`), ``uint16`` (H, W)
+  counts (temperatures: :func:`read_temperature_c`);
+* DJI R-JPEG: the raw thermal frame from the APP3 (XT S: APP4) segments, ``uint16`` (H, W) counts;
 * TIFF: the first page via :mod:`tifffile`, in its own dtype (``uint16`` for 16-bit thermal frames),
   (H, W) or (H, W, C);
 * JPEG: decoded by ``cv2.imdecode`` with ``IMREAD_UNCHANGED``, ``uint8`` (H, W) for greyscale or
@@ -17,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from aerocal.ingest.dji import raw_thermal_frame
+from aerocal.ingest.flir import FlirFormatError, read_flir
 from aerocal.ingest.jpeg import JpegFormatError, parse_jpeg
 from aerocal.ingest.metadata import sniff_container
 
@@ -38,6 +41,12 @@ def read_raw(path: str | Path) -> np.ndarray:
             jpeg = parse_jpeg(data)
         except JpegFormatError as exc:
             raise ImageReadError(f"{path}: not a readable JPEG: {exc}") from exc
+        try:
+            flir = read_flir(jpeg)
+        except FlirFormatError as exc:
+            raise ImageReadError(f"{path}: FLIR radiometric JPEG with broken FLIR segments: {exc}") from exc
+        if flir is not None:
+            return flir.raw
         raw = raw_thermal_frame(jpeg)
         if raw is not None:
             return raw
@@ -57,3 +66,16 @@ def read_raw(path: str | Path) -> np.ndarray:
         except Exception as exc:  # tifffile raises many types (TiffFileError, ValueError, struct.error, ...)
             raise ImageReadError(f"{path}: not a readable TIFF ({type(exc).__name__}: {exc})") from exc
     raise ImageReadError(f"{path}: not a JPEG or TIFF image")
+
+
+def read_temperature_c(path: str | Path) -> np.ndarray | None:
+    """Object temperatures (degC, float32, (H, W)) of a FLIR radiometric JPEG, on the grid of :func:`read_raw`;
+    ``None`` for any other image (DJI R-JPEG counts have no documented conversion) or when the file's
+    camera information cannot convert them (the reason is in ingest's problems)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+        flir = read_flir(parse_jpeg(data)) if sniff_container(data) == "jpeg" else None
+        return None if flir is None else flir.celsius().astype(np.float32)
+    except (OSError, JpegFormatError, FlirFormatError):
+        return None

@@ -1,7 +1,9 @@
 """Problems found while ingesting a flight: one line each, naming the file, the line and the field.
 
 Severity ``"error"`` means the item (an image, a row of a text file, a whole sidecar file) was skipped;
-``"warning"`` means it was kept with a caveat the message states.
+``"warning"`` means it was kept with a caveat the message states. An error with ``stops_processing``
+is one that ``aerocal process`` cannot go past (no nominal camera, no flying height, ...): process
+checks for them before any work and stops with the same report.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ class Problem:
     field: str | None
     message: str
     severity: str = "warning"
+    stops_processing: bool = False
 
     def __post_init__(self) -> None:
         if self.severity not in SEVERITIES:
@@ -30,7 +33,8 @@ class Problem:
     def __str__(self) -> str:
         where = self.file if self.line is None else f"{self.file}:{self.line}"
         what = f" {self.field}:" if self.field else ""
-        return f"{where}:{what} {self.message} [{self.severity}]"
+        tag = "error, stops processing" if self.stops_processing else self.severity
+        return f"{where}:{what} {self.message} [{tag}]"
 
 
 class ProblemLog:
@@ -49,6 +53,10 @@ class ProblemLog:
         self, file: str | Path, message: str, field: str | None = None, line: int | None = None
     ) -> None:
         self.add(Problem(str(file), line, field, message, "error"))
+
+    def blocker(self, file: str | Path, message: str, field: str | None = None) -> None:
+        """An error that ``aerocal process`` cannot go past; ``message`` names the fix."""
+        self.add(Problem(str(file), None, field, message, "error", stops_processing=True))
 
     def warning(
         self, file: str | Path, message: str, field: str | None = None, line: int | None = None

@@ -73,6 +73,19 @@ def summary_rows(result: IngestResult) -> list[tuple[str, str]]:
         )
     else:
         rows.append(("ground control", "none"))
-    errors, warnings = len(result.errors), len(result.warnings)
-    rows.append(("problems", f"{errors} error(s), {warnings} warning(s)"))
+    if result.camera is not None:
+        cam = result.camera
+        rows.append(("nominal camera", f"{cam.width}x{cam.height}, f {cam.f:.1f} px ({result.camera_source})"))
+    if result.camera_identity is not None:
+        rows.append(("certificate identity", result.camera_identity.camera_id.replace("|", " | ")))
+    for key, label in (("height_agl_m", "flying height"), ("gnss_sigma_m", "GNSS sigma")):
+        value = getattr(result, key)
+        text = "unknown" if value is None else (
+            f"{value:.1f} m" if key == "height_agl_m" else f"{value[0]:g} m horizontal, {value[1]:g} m vertical"
+        )
+        source = result.flight_facts.get(key)
+        rows.append((label, f"{text} ({source})" if source and value is not None else text))
+    errors, warnings, blocking = len(result.errors), len(result.warnings), len(result.blocking)
+    stop = f" ({blocking} stop processing)" if blocking else ""
+    rows.append(("problems", f"{errors} error(s){stop}, {warnings} warning(s)"))
     return rows

@@ -33,6 +33,8 @@ KNOWN_NAMESPACES: dict[str, str] = {
     "http://purl.org/dc/elements/1.1/": "dc",
     "http://ns.google.com/photos/1.0/panorama/": "GPano",
     "http://pix4d.com/camera/1.0/": "Camera",
+    "http://www.dji.com/FLIR/": "FLIR",  # DJI Zenmuse XT/XT2: CentralTemperature, BandName, ...
+    "http://ns.flir.com/xmp/": "FLIR",  # FLIR's own cameras (Duo Pro R, Vue Pro R)
 }
 
 _QNAME = re.compile(r"^\{([^}]*)\}(.+)$")

@@ -212,6 +212,64 @@ def write_rgb_jpeg(path: str | Path, img_uint8: np.ndarray, meta: FrameMetadata,
     return path
 
 
+# ------------------------------------------------------------------------------ FLIR radiometric JPEG
+def zenmuse_xt2_camera_info(object_distance_m: float = 20.0, air_temperature_c: float = 20.0):
+    """FLIR camera information as a DJI Zenmuse XT2 (Tau 2 core) records it: the Planck constants of
+    ``shared/data/flir_samples/fff_dji_xt2.jpg`` (R1 17096.453, B 1428, F 1, O -267, R2 0.04658), emissivity 1,
+    FLIR's default atmospheric-transmission constants, the given object distance and air temperature."""
+    from aerocal.ingest.flir import KELVIN, FlirCameraInfo
+
+    return FlirCameraInfo(
+        emissivity=1.0, object_distance_m=float(object_distance_m), reflected_temperature_k=KELVIN + 20.0,
+        atmospheric_temperature_k=KELVIN + float(air_temperature_c), window_temperature_k=KELVIN + 20.0,
+        window_transmission=1.0, relative_humidity=0.5, planck_r1=17096.453, planck_b=1428.0, planck_f=1.0,
+        planck_o=-267.0, planck_r2=0.046582058, atm_alpha1=0.006569, atm_alpha2=0.01262, atm_beta1=-0.002276,
+        atm_beta2=-0.00667, atm_x=1.9,
+    )
+
+
+def write_flir_rjpeg(path: str | Path, dn_uint16: np.ndarray, meta: FrameMetadata, info, dn_per_kelvin: float,
+                     focal_mm: float | None = None) -> Path:
+    """Write a rendered thermal frame as a DJI Zenmuse XT/XT2 writes it: a FLIR radiometric JPEG.
+
+    ``dn_uint16`` holds ``dn_per_kelvin`` x scene temperature (the renderer's counts); they become FLIR
+    counts through ``info``'s Planck curve, so that the file's temperatures are the scene's. The file has an
+    8-bit grey preview, EXIF Make/Model/DateTimeOriginal/FocalLength and the GNSS position in the GPS IFD
+    (no serial number when ``meta.serial`` is empty, as on the XT2), the DJI XMP altitude and gimbal
+    attitude (plus ``meta.extra_xmp``, e.g. RelativeAltitude), and the FFF file in APP1 ``FLIR`` segments
+    (little-endian, unwrapped counts, as in ``fff_dji_xt2.jpg``).
+    """
+    import io
+
+    from PIL import Image
+
+    from aerocal.ingest.flir import KELVIN, celsius_to_raw
+    from aerocal.ingest.metadata_writer import dji_xmp_packet, exif_block, fff_file, jpeg_with_flir, jpeg_with_metadata
+
+    dn = np.asarray(dn_uint16)
+    if dn.dtype != np.uint16 or dn.ndim != 2:
+        raise ValueError(f"{path}: a thermal frame must be a 2-D uint16 array, got {dn.dtype} {dn.shape}")
+    counts = celsius_to_raw(dn / float(dn_per_kelvin) - KELVIN, info)
+    raw = np.clip(np.rint(counts), 0, 65535).astype(np.uint16)
+    lo, hi = np.percentile(raw, (1, 99))
+    grey = np.clip((raw - lo) / max(hi - lo, 1.0) * 255.0, 0, 255).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(np.dstack([grey] * 3), mode="RGB").save(buf, format="JPEG", quality=90)
+    xmp = {"AbsoluteAltitude": float(meta.absolute_altitude), "GimbalRollDegree": float(meta.gimbal_roll_deg),
+           "GimbalPitchDegree": float(meta.gimbal_pitch_deg), "GimbalYawDegree": float(meta.gimbal_yaw_deg)}
+    xmp.update(meta.extra_xmp)
+    time = meta.time.replace(tzinfo=None) if meta.time.tzinfo else meta.time
+    exif = exif_block(make=meta.make, model=meta.model, serial=meta.serial or None, time=time,
+                      utc_offset=meta.exif_offset(),
+                      gps=(meta.gps_latitude, meta.gps_longitude, meta.absolute_altitude), focal_mm=focal_mm)
+    blob = jpeg_with_flir(jpeg_with_metadata(buf.getvalue(), exif, dji_xmp_packet(xmp)), fff_file(raw, info))
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(blob)
+        os.chmod(tmp, _FILE_MODE)
+    return path
+
+
 def write_frame(path: str | Path, img: np.ndarray, meta: FrameMetadata) -> Path:
     """Write a rendered frame by its type: uint16 (H, W) -> TIFF, uint8 (H, W, 3) -> JPEG."""
     img = np.asarray(img)

@@ -47,6 +47,9 @@ class FlightSpec:
     n_gcp: int = 0  # control points
     n_check: int = 0  # check points
     modality: str = "thermal"  # "thermal" (16-bit TIFF) or "rgb" (8-bit JPEG)
+    #: image files in images mode: "" (by modality: TIFF or JPEG) or "flir-rjpeg" (FLIR radiometric JPEG
+    #: as a DJI Zenmuse XT/XT2 writes it, thermal only)
+    file_format: str = ""
     points_per_image: int = 400  # tie points per image in observations mode
     start_time: str = "2016-03-14T23:30:00+00:00"
     notes: str = ""
@@ -197,6 +200,32 @@ _register(FlightSpec(
     start_time="2003-09-02T13:00:00+00:00",
     notes="Camera truth: the in-situ calibrated focal length 100.534 mm (nominal 100.500 mm) and principal "
           "point of the paper's first sub-block.",
+))
+
+
+_register(FlightSpec(
+    name="xt2-survey",
+    description="DJI Zenmuse XT2 (FLIR Tau 2, 640x512, 17 um, 13 mm) nadir survey at 60 m over a village, "
+                "3 strips, 80/70 %, consumer GNSS (no RTK), no ground control, FLIR radiometric JPEGs as they "
+                "come off the drone (no serial number, no camera.json, no flight.json with --as-recorded)",
+    identity={"make": "DJI", "model": "XT2", "serial": "", "lens": ""},
+    camera_true=Camera.from_mm(640, 512, focal_mm=13.0, pixel_size_um=17.0).replace(
+        f=13.0 / 0.017 * 1.004, cx=323.1, cy=254.2, k1=-0.05, k2=0.03),
+    camera_nominal=Camera.from_mm(640, 512, focal_mm=13.0, pixel_size_um=17.0),
+    plan=FlightPlanConfig(height_agl_m=60.0, forward_overlap=0.80, side_overlap=0.70, speed_m_s=5.0,
+                          direction="ew", n_strips=3, images_per_strip=8, extend_images=0, turn_time_s=20.0,
+                          attitude_jitter_deg=1.0, height_jitter_m=0.5),
+    area_m=(160.0, 100.0),
+    scene=SceneSpec(cell_m=0.25, terrain_relief_m=3.0, building_density=0.25, building_height_m=(4.0, 12.0),
+                    vegetation_density=0.2, origin_e=500_000.0, origin_n=5_300_000.0, crs="EPSG:32633"),
+    sensors=SensorConfig(gnss_sigma_h_m=1.5, gnss_sigma_v_m=3.0, imu_sigma_deg=(1.0, 1.0, 2.0), tie_sigma_px=0.5,
+                         temperature=TemperatureCurve(start_c=30.0, equilibrium_c=35.0, tau_s=600.0),
+                         reference_temperature_c=30.0),
+    modality="thermal",
+    file_format="flir-rjpeg",
+    points_per_image=400,
+    start_time="2024-07-02T21:30:00+00:00",
+    notes="The XT2 records no core temperature, so the sensor temperature of this flight is not in its files.",
 ))
 
 

@@ -7,6 +7,7 @@ records (EXIF, DJI-style XMP with the *recorded* GNSS/IMU values).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 from collections.abc import Callable
 from pathlib import Path
@@ -14,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from aerocal.geometry import R_cw_to_dji_gimbal
-from aerocal.simulate.image_files import FrameMetadata, write_frame
+from aerocal.simulate.image_files import FrameMetadata, write_flir_rjpeg, write_frame, zenmuse_xt2_camera_info
 from aerocal.simulate.render import RenderConfig, render_frame
 
 #: target disc radius in ground sampling distances (a 2.5 px radius disc is located to ~0.05 px)
@@ -29,7 +30,8 @@ def target_scene(sim):
 
 def render_flight_images(sim, out_dir: str | Path, config: RenderConfig | None = None,
                          progress: Callable[[int, int], None] | None = None) -> list[Path]:
-    """Render every frame of ``sim`` into ``out_dir`` (TIFF for thermal, JPEG for RGB)."""
+    """Render every frame of ``sim`` into ``out_dir`` (TIFF for thermal, JPEG for RGB, FLIR radiometric JPEG
+    for a spec whose ``file_format`` is ``"flir-rjpeg"``: RelativeAltitude above the mean terrain in XMP)."""
     from aerocal.simulate.simulator import recorded_R_cw
 
     config = config or RenderConfig(modality=sim.spec.modality)
@@ -52,7 +54,15 @@ def render_flight_images(sim, out_dir: str | Path, config: RenderConfig | None =
             gps_latitude=im["lat"][i], gps_longitude=im["lon"][i], absolute_altitude=im["alt"][i],
             gimbal_roll_deg=roll, gimbal_pitch_deg=pitch, gimbal_yaw_deg=yaw,
         )
-        paths.append(write_frame(out / im["name"][i], img, meta))
+        if sim.spec.file_format == "flir-rjpeg":
+            info = zenmuse_xt2_camera_info(object_distance_m=sim.spec.plan.height_agl_m)
+            cam = sim.spec.camera_nominal
+            focal_mm = cam.f * cam.pixel_size_mm if cam.pixel_size_mm else None
+            meta = dataclasses.replace(meta, extra_xmp={
+                "RelativeAltitude": float(im["alt"][i] - sim.spec.scene.terrain_mean_m)})
+            paths.append(write_flir_rjpeg(out / im["name"][i], img, meta, info, config.dn_per_kelvin, focal_mm))
+        else:
+            paths.append(write_frame(out / im["name"][i], img, meta))
         if progress:
             progress(i + 1, n)
     return paths

@@ -203,7 +203,7 @@ def simulate_flight(
     opk = np.array([R_cw_to_opk(R) for R in R_rec])
     ident = spec.identity
     camera_id = "|".join(ident[k] for k in ("make", "model", "serial", "lens"))
-    ext = "tif" if spec.modality == "thermal" else "jpg"
+    ext = "jpg" if spec.modality != "thermal" or spec.file_format == "flir-rjpeg" else "tif"
     images = tables.from_columns("images", {
         "image_id": np.arange(1, N + 1, dtype=np.int32),
         "name": [f"IMG_{i + 1:04d}.{ext}" for i in range(N)],
@@ -328,8 +328,14 @@ def _write_reference_dsm(sim: SimulatedFlight, path: Path) -> None:
 
 
 def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observations",
-                 progress=None) -> Path:
-    """Write the flight folder atomically: everything goes to a temporary sibling, renamed at the end."""
+                 progress=None, as_recorded: bool = False) -> Path:
+    """Write the flight folder atomically: everything goes to a temporary sibling, renamed at the end.
+
+    ``as_recorded`` (images mode only) writes the folder as it comes off the aircraft: ``images/`` with
+    the metadata the camera records, and no sidecar file (no eo.csv, GCP files, camera.json, flight.json,
+    observations/); the truth and the reference DSM are written beside it as always."""
+    if as_recorded and mode != "images":
+        raise SimulationError("as_recorded needs mode 'images': an observations-mode flight is its sidecar files")
     if mode not in MODES:
         raise SimulationError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
     out = Path(out_dir)
@@ -338,6 +344,11 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{out.name}.", dir=out.parent))
     try:
+        if as_recorded:
+            from aerocal.simulate.rendering import render_flight_images
+
+            render_flight_images(sim, tmp / "images", progress=progress)
+            return _finish_flight(sim, tmp, out)
         obs_dir = tmp / "observations"
         tables.write(sim.images, obs_dir / "images.parquet", "images")
         if mode == "observations":
@@ -362,19 +373,24 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
             from aerocal.simulate.rendering import render_flight_images
 
             render_flight_images(sim, tmp / "images", progress=progress)
-        _write_reference_dsm(sim, tmp / "reference" / "dsm.tif")
-        tables.write(true_poses(sim), tmp / "truth" / "poses.parquet", "poses")
-        pts = sim.tie.points
-        tables.write(tables.from_columns("points", {
-            "track_id": np.arange(len(pts), dtype=np.int64), "X": pts[:, 0], "Y": pts[:, 1], "Z": pts[:, 2],
-        }, crs=sim.crs), tmp / "truth" / "points.parquet", "points")
-        write_json_atomic(tmp / "truth.json", sim.truth)
-        if out.exists():
-            out.rmdir()
-        tmp.rename(out)
+        return _finish_flight(sim, tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _finish_flight(sim: SimulatedFlight, tmp: Path, out: Path) -> Path:
+    """Write the reference DSM and the truth into ``tmp`` and rename it to ``out``."""
+    _write_reference_dsm(sim, tmp / "reference" / "dsm.tif")
+    tables.write(true_poses(sim), tmp / "truth" / "poses.parquet", "poses")
+    pts = sim.tie.points
+    tables.write(tables.from_columns("points", {
+        "track_id": np.arange(len(pts), dtype=np.int64), "X": pts[:, 0], "Y": pts[:, 1], "Z": pts[:, 2],
+    }, crs=sim.crs), tmp / "truth" / "points.parquet", "points")
+    write_json_atomic(tmp / "truth.json", sim.truth)
+    if out.exists():
+        out.rmdir()
+    tmp.rename(out)
     return out
 
 

@@ -1,0 +1,130 @@
+"""What a flight's own images say about its camera, flying height and GNSS, when sidecar files are absent.
+
+A folder straight off the drone has no ``camera.json`` and no ``flight.json``. Each function here infers
+one of their facts from the image metadata and says where it came from, so that ingest can report it
+and processing can use it; each returns ``None`` (with the reason) where the images do not tell.
+
+* :func:`infer_camera`: the nominal camera from :mod:`aerocal.ingest.camera_catalogue`.
+* :func:`certificate_identity`: the identity a certificate is stored under. A camera that records no
+  serial number is identified by make, model, lens and frame size: its serial part is
+  ``"no-serial WxH"`` (:data:`aerocal.ingest.camera_identity.NO_SERIAL`), and such a certificate may be
+  shared by several bodies of that model (the certificate store says so).
+* :func:`infer_height_agl`: the flying height above ground from DJI's XMP ``RelativeAltitude`` (height
+  above the take-off point: above ground where the take-off point is at the ground level of the area).
+* :func:`infer_gnss_sigma`: the GNSS standard deviations from DJI's RTK fields, or consumer grade for a
+  DJI position without RTK.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from aerocal.camera import Camera
+from aerocal.ingest.camera_catalogue import nominal_camera
+from aerocal.ingest.camera_identity import NO_SERIAL, CameraIdentity
+from aerocal.ingest.metadata import ImageMetadata
+
+#: GNSS standard deviations (horizontal, vertical; metres) of a DJI position without RTK: the makers
+#: state ~1.5 m horizontal hovering accuracy; AbsoluteAltitude mixes GNSS and barometer (several metres)
+CONSUMER_GNSS_SIGMA_M = (2.0, 5.0)
+#: smallest RTK sigma taken from the images (RtkStd* of 0.01 m would claim more than the block holds)
+MIN_RTK_SIGMA_M = 0.02
+#: lowest RelativeAltitude median taken as a flying height (below, the images were taken on the ground)
+MIN_HEIGHT_AGL_M = 5.0
+
+
+@dataclass(frozen=True)
+class Inferred:
+    """A value inferred from the images (``None`` where they do not tell) and one sentence on its source."""
+
+    value: object
+    source: str
+
+
+def _dominant(metas: list[ImageMetadata]) -> tuple[str | None, str | None, int, int]:
+    key = Counter((m.make, m.model, m.width, m.height) for m in metas).most_common(1)[0][0]
+    return key
+
+
+def infer_camera(metas: list[ImageMetadata]) -> tuple[Camera | None, str]:
+    """The nominal camera of the flight's most common make, model and frame size; (camera, reason)."""
+    if not metas:
+        return None, "no image was ingested"
+    make, model, w, h = _dominant(metas)
+    same = [m for m in metas if (m.make, m.model, m.width, m.height) == (make, model, w, h)]
+    focal = [float(m.extra["exif_focal_length_mm"]) for m in same if "exif_focal_length_mm" in m.extra]
+    fov = [float(m.extra["flir_field_of_view_deg"]) for m in same if "flir_field_of_view_deg" in m.extra]
+    result = nominal_camera(
+        make,
+        model,
+        w,
+        h,
+        exif_focal_mm=float(np.median(focal)) if focal else None,
+        field_of_view_deg=float(np.median(fov)) if fov else None,
+    )
+    return result.camera, result.reason
+
+
+def certificate_identity(
+    metas: list[ImageMetadata], given: CameraIdentity | None, camera: Camera | None
+) -> CameraIdentity | None:
+    """The identity the flight's certificate is stored under: ``camera.json``'s where it names make and
+    model, else the images' (most common make and model); the serial is the one the images or
+    ``camera.json`` record, else ``"no-serial WxH"``; the lens is the recorded one, else the focal length
+    in millimetres where the pixel pitch is known."""
+    ident = given if given is not None and given.is_known else None
+    if ident is None and metas:
+        make, model, w, h = _dominant(metas)
+        if not (make or model):
+            return given
+        same = [m for m in metas if (m.make, m.model) == (make, model)]
+        serials = {m.serial for m in same if m.serial}
+        lenses = {m.lens for m in same if m.lens}
+        serial = serials.pop() if len(serials) == 1 else ""
+        ident = CameraIdentity(make or "", model or "", serial, lenses.pop() if len(lenses) == 1 else "")
+    if ident is None:
+        return None
+    serial, lens = ident.serial, ident.lens
+    if not serial:
+        w, h = (camera.width, camera.height) if camera is not None else _dominant(metas)[2:]
+        serial = f"{NO_SERIAL} {w}x{h}"
+    if not lens and camera is not None and camera.pixel_size_mm:
+        lens = f"{camera.f * camera.pixel_size_mm:.1f} mm"
+    return CameraIdentity(ident.make, ident.model, serial, lens)
+
+
+def infer_height_agl(metas: list[ImageMetadata]) -> Inferred:
+    """Median DJI ``RelativeAltitude`` (m) of the images, where it is a flying height."""
+    values = [float(m.extra["dji_relative_altitude_m"]) for m in metas if "dji_relative_altitude_m" in m.extra]
+    if not values:
+        return Inferred(None, "no image records a height above ground (DJI XMP RelativeAltitude)")
+    med = float(np.median(values))
+    if med < MIN_HEIGHT_AGL_M:
+        return Inferred(None, f"DJI RelativeAltitude median {med:.1f} m: the images were not taken in flight")
+    return Inferred(
+        med,
+        f"median DJI XMP RelativeAltitude of {len(values)} images ({med:.1f} m above the take-off point; "
+        "a flying height above ground where the take-off point is at the area's ground level)",
+    )
+
+
+def infer_gnss_sigma(metas: list[ImageMetadata]) -> Inferred:
+    """(horizontal, vertical) GNSS sigmas in metres from the images' DJI records, or ``None``."""
+    dji = [m for m in metas if m.pose.source == "xmp:drone-dji" and m.pose.lat is not None]
+    if not dji:
+        return Inferred(None, "the images carry no DJI position record")
+    lon = [float(m.extra["dji_rtk_std_lon_m"]) for m in dji if "dji_rtk_std_lon_m" in m.extra]
+    lat = [float(m.extra["dji_rtk_std_lat_m"]) for m in dji if "dji_rtk_std_lat_m" in m.extra]
+    hgt = [float(m.extra["dji_rtk_std_hgt_m"]) for m in dji if "dji_rtk_std_hgt_m" in m.extra]
+    if lon and lat and hgt and len(hgt) >= len(dji) // 2:
+        h = max(float(np.median(lon)), float(np.median(lat)), MIN_RTK_SIGMA_M)
+        v = max(float(np.median(hgt)), MIN_RTK_SIGMA_M)
+        return Inferred((h, v), f"median DJI RtkStdLon/Lat/Hgt of {len(hgt)} images")
+    return Inferred(
+        CONSUMER_GNSS_SIGMA_M,
+        f"DJI positions without RTK records: consumer-grade GNSS assumed ({CONSUMER_GNSS_SIGMA_M[0]:g} m "
+        f"horizontal, {CONSUMER_GNSS_SIGMA_M[1]:g} m vertical); declare gnss_sigma_m in flight.json if better",
+    )
