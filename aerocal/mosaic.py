@@ -175,23 +175,15 @@ def block_gsd(frames: Sequence[FrameGeometry], ground_height_m: float) -> float:
 
 
 def read_frame(path: str | Path) -> np.ndarray:
-    """Read a frame's original pixels: 16-bit TIFF as stored, other formats by OpenCV (colour as RGB)."""
-    path = Path(path)
-    if path.suffix.lower() in (".tif", ".tiff"):
-        import tifffile
+    """A frame's original pixels as ingest reads them (:func:`aerocal.ingest.read_raw`): the 16-bit counts
+    of FLIR radiometric JPEGs and DJI R-JPEGs (not their 8-bit palette previews), 16-bit TIFF as stored,
+    other JPEGs as RGB. Raises ``ValueError`` naming the file."""
+    from aerocal.ingest.pixels import ImageReadError, read_raw
 
-        try:
-            return np.asarray(tifffile.imread(path))
-        except (OSError, ValueError) as exc:
-            raise ValueError(f"{path}: cannot read the frame as TIFF ({exc})") from exc
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{path}: cannot read the frame (missing or not an image)")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
-    return img
+    try:
+        return read_raw(path)
+    except ImageReadError as exc:
+        raise ValueError(str(exc)) from exc
 
 
 @dataclass(frozen=True)

@@ -74,6 +74,12 @@ def _print_steps(summary: dict[str, Any]) -> None:
 
 def _print_run(summary: dict[str, Any]) -> None:
     _print_steps(summary)
+    skipped = summary.get("images_skipped_at_ingest") or []
+    if skipped:
+        from aerocal.ingest.problems import name_list
+
+        console.print(f"[yellow]{len(skipped)} image(s) skipped at ingest[/yellow]: {name_list(skipped)} "
+                      "(`aerocal ingest FOLDER` says why)")
     console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
     acc = summary.get("accuracy") or {}
     if acc.get("rho"):

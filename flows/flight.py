@@ -179,6 +179,7 @@ def _process(
         "run_id": ctx.run_id,
         "flight": flight["name"],
         "mode": flight["mode"],
+        "images_skipped_at_ingest": flight.get("skipped_images") or [],
         "certificate_id": cert_id,
         "certificate_reason": reason,
         "steps": steps,

@@ -183,6 +183,13 @@ def mosaic_step(
     )
 
 
+def _skipped_text(names: list[str]) -> str:
+    """``"none"`` or ``"3: a.jpg, b.jpg, c.jpg (see the ingest errors)"``."""
+    from aerocal.ingest.problems import name_list
+
+    return f"{len(names)}: {name_list(names)} (see the ingest errors)" if names else "none"
+
+
 def _temperature_output(paths, counts_path: Path, work: Path, info: dict[str, Any]) -> dict[str, Any]:
     """``temperature`` (float32 degC GeoTIFF on the orthomosaic's grid) when every frame is a FLIR
     radiometric JPEG with one temperature scale; ``info["temperature"]`` says what was done and why."""
@@ -421,9 +428,12 @@ def report_step(
             "flight": flight["name"],
             "mode": flight["mode"],
             "images": flight["n_images"],
+            "images_skipped_at_ingest": _skipped_text(flight.get("skipped_images") or []),
             "crs": flight["crs"],
             "date": flight["date"],
             "temperature_c": flight.get("temperature_range"),
+            "flight_facts": "; ".join(f"{k}: {v}" for k, v in (flight.get("facts") or {}).items()) or None,
+            "temperature_raster": mos.get("temperature"),
             "certificate": f"{cert.id} (version {cert.version})",
             "certificate_review": review,
             "thermal_model": cert.thermal.kind if cert.thermal is not None else None,

@@ -303,12 +303,14 @@ def fff_file(raw: np.ndarray, info, byte_order: str = "<", payload: str = "raw",
     for name, (off, size) in CAMERA_INFO_TEXT.items():
         text = str(getattr(info, name) or "").encode("latin-1", "replace")[: size - 1]
         info_rec[off : off + len(text)] = text
-    records = [(1, raw_rec), (0x20, bytes(info_rec))]
+    # (type, subtype, record): the raw record's subtype says its coding (2 little-endian, 3 PNG), others 1
+    records = [(1, 3 if payload == "png" else 2, raw_rec), (0x20, 1, bytes(info_rec))]
     directory_at = 64
     data_at = directory_at + 32 * len(records)
     directory, blob = b"", b""
-    for k, (kind, rec) in enumerate(records):
-        directory += struct.pack(byte_order + "HHIIIIIII", kind, 0, 100, k + 1, data_at + len(blob), len(rec), 0, 0, 0)
+    for k, (kind, sub, rec) in enumerate(records):
+        offset = data_at + len(blob)
+        directory += struct.pack(byte_order + "HHIIIIIII", kind, sub, 100, k + 1, offset, len(rec), 0, 0, 0)
         blob += rec
     head = b"FFF\x00" + creator.encode("ascii")[:16].ljust(16, b"\x00")
     head += struct.pack(byte_order + "III", 100, directory_at, len(records)).ljust(44, b"\x00")
