@@ -192,7 +192,9 @@ def markdown(r: dict, title: str) -> str:
             "priors and their sigmas) made again with the simulation's noise model and adjusted the same way.",
             "",
             *_table(["statistic", "real", "twin", "z", "differs: likely cause",
-                     f"extended twin ({ext[0]} {ext[1]['jitter']:.2g})" if ext else "extended twin", "gap closed"],
+                     (f"extended twin ({ext[0]} {ext[1]['jitter']:.2g}"
+                      + ("" if ext[1].get("plausible", True) else ", beyond any lens: not the cause") + ")")
+                     if ext else "extended twin", "gap closed"],
                     twin_rows(r)),
             "",
             f"- {twin.get('summary')}",

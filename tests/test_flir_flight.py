@@ -73,10 +73,11 @@ def test_an_xt2_survey_off_the_drone_processes_with_aerocal_process_alone(tmp_pa
     assert f == pytest.approx(nominal, abs=1e-6) or abs(f - f_true) <= 3 * sigma_f, (f, sigma_f, f_true)
 
     # the flight's facts came from the images, and say so
-    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())["summary"]
     facts = " ".join(str(summary.get("flight_facts")).split())
     assert "RelativeAltitude" in facts and "catalogue" in facts and "consumer-grade" in facts, facts
-    assert run["images_skipped_at_ingest"] == []
+    assert run["images_skipped_at_ingest"] == [] and summary["images_skipped_at_ingest"] == "none"
+    assert "temperature.tif" in summary["temperature_raster"]
 
     # a counts orthomosaic and a temperature raster on the same grid, as a GIS opens them
     with rasterio.open(tmp_path / "run" / "orthomosaic.tif") as ortho, \

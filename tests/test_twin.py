@@ -42,3 +42,12 @@ def test_per_frame_focal_jitter_is_named_and_the_extended_twin_closes_the_gap():
     ext = c.extended["per-image focal jitter"]
     assert abs(ext["jitter"] - 3.83e-4) < 0.3 * 3.83e-4, f"seed {seed}: {ext}"
     assert 0.7 < ext["gap_closed"]["per_image_scale"] < 1.4, f"seed {seed}: {ext}"
+
+
+def test_an_extension_beyond_any_lens_is_not_named_as_the_cause():
+    seed = 63
+    jitter = 1e-2  # 1 % of f per frame: no lens does this; the per-image scale must come from elsewhere
+    c = compare(_block(seed, jitter), n_twins=3)
+    ext = c.extended["per-image focal jitter"]
+    assert ext["jitter"] > 2e-3 and ext["plausible"] is False, f"seed {seed}: {ext}"
+    assert "beyond any lens" in c.summary() and "not the cause" in c.summary(), f"seed {seed}: {c.summary()}"
