@@ -217,3 +217,28 @@ def test_three_independent_problems_in_one_report_and_process_stops_with_it(tmp_
     assert "cannot be processed" in out and "camera.json" in out and "IMG_2.jpg" in out and "fifty" in out
     assert "Traceback" not in res.output
     assert not db.exists() and not (tmp_path / "art").exists() and not (tmp_path / "flight-processed").exists()
+
+
+def test_strip_headings_come_from_the_rotation_not_the_gimbal_yaw():
+    """Near nadir a gimbal's yaw and roll trade against each other: the simulator's recorded yaws of a
+    nadir XT2 survey scatter over +-180 deg, the image's heading on the ground does not."""
+    from aerocal.geometry import R_cw_to_dji_gimbal
+    from aerocal.ingest.folder import image_heading
+    from aerocal.ingest.strips import angle_difference, circular_median
+    from aerocal.simulate import get_preset, simulate_flight
+    from aerocal.simulate.simulator import recorded_R_cw
+
+    seed = 3
+    sim = simulate_flight(get_preset("xt2-survey"), seed=seed)
+    strips = np.asarray(sim.trajectory.strip)
+    # the gimbal angles the rendered files record (aerocal.simulate.rendering writes these)
+    gimbal = np.array([R_cw_to_dji_gimbal(R) for R in recorded_R_cw(sim.images)])
+    head = np.array([image_heading("dji_gimbal", r, p, y) for r, p, y in gimbal])
+    yaw_spreads = []
+    for k in np.unique(strips[strips >= 0]):
+        h = head[strips == k]
+        # within the recorded attitude's noise (1-2 deg, 3 sigma)
+        assert angle_difference(h, circular_median(h)).max() < 10.0, f"seed {seed}, strip {k}: {h}"
+        yaw = gimbal[strips == k, 2]
+        yaw_spreads.append(float(angle_difference(yaw, circular_median(yaw)).max()))
+    assert max(yaw_spreads) > 45.0, f"seed {seed}: recorded yaw spreads {yaw_spreads} (the point of the test)"

@@ -35,7 +35,7 @@ import pyarrow as pa
 
 from aerocal import tables
 from aerocal.camera import Camera
-from aerocal.geometry import lonlat_to_projected, utm_crs_for
+from aerocal.geometry import CONVENTIONS, attitude_to_R_cw, lonlat_to_projected, utm_crs_for
 from aerocal.ingest.camera_identity import (
     UNKNOWN_CAMERA_ID,
     CameraIdentity,
@@ -71,7 +71,6 @@ OTHER_IMAGE_EXTENSIONS = (
 )
 EO_NAME, GCP_LIST_NAME, GCP_CSV_NAME, CAMERA_JSON_NAME = "eo.csv", "gcp_list.txt", "gcps.csv", "camera.json"
 FLIGHT_JSON_NAME = "flight.json"
-_HEADING_CONVENTIONS = ("dji_gimbal", "body_rpy")
 
 
 @dataclass
@@ -627,17 +626,27 @@ def _strips(metas, x, y, times, cfg: IngestConfig) -> np.ndarray:
     else:
         order = sorted(pos, key=lambda i: metas[i].name)
     order = np.asarray(order)
-    heading = np.array(
-        [
-            metas[i].pose.yaw
-            if metas[i].pose.convention in _HEADING_CONVENTIONS and metas[i].pose.yaw is not None
-            else np.nan
-            for i in order
-        ],
-        dtype=float,
-    )
+    heading = np.array([image_heading(metas[i].pose.convention, metas[i].pose.roll, metas[i].pose.pitch,
+                                      metas[i].pose.yaw) for i in order], dtype=float)
     strip[order] = find_strips(x[order], y[order], heading, cfg.strips)
     return strip
+
+
+def image_heading(convention: str | None, roll: float | None, pitch: float | None, yaw: float | None) -> float:
+    """Azimuth (degrees clockwise from grid north) of the image's "up" direction on the ground, from the
+    recorded attitude; NaN without one.
+
+    Taken from the rotation, not from the yaw angle: near nadir a gimbal's yaw and roll trade against each
+    other (gimbal lock), so the yaw of a camera tilted 1 degree off nadir can read anything while the image's
+    orientation on the ground is well defined. A camera looking near the horizon uses its viewing direction.
+    """
+    if convention not in CONVENTIONS or None in (roll, pitch, yaw):
+        return float("nan")
+    R = attitude_to_R_cw(convention, float(roll), float(pitch), float(yaw))  # type: ignore[arg-type]
+    v = -R[1, :]  # the camera's -y axis (image up) in the world frame (E, N, up)
+    if np.hypot(v[0], v[1]) < 0.2:
+        v = R[2, :]  # viewing direction
+    return float(np.degrees(np.arctan2(v[0], v[1])) % 360.0)
 
 
 def _images_table(metas, camera_ids, times, x, y, strip, crs) -> pa.Table:
