@@ -47,7 +47,7 @@ from aerocal.certificate import (
     Quality,
     ThermalCalibration,
 )
-from aerocal.decision import DecisionConfig, Review, review_calibration, undetermined_io
+from aerocal.decision import DecisionConfig, Review, nominal_sigma, review_calibration, undetermined_io
 from aerocal.diagnose.engine import overdispersion
 from aerocal.diagnose.model import fit_baseline
 from aerocal.eo_checks import correct_gnss_offset
@@ -98,7 +98,8 @@ class Calibration:
     * ``image_ids``: the block's images; ``subset``: how they were chosen (``reasons``, and for a proposed
       sub-block its strips, GCPs and predicted sigmas); ``transversal``: whether a transversal strip is in.
     * ``predicted``: predicted sigmas of the free parameters from the geometry (``None``: terrain unknown).
-    * ``held_at_nominal``: parameters not freed, each with the reason.
+    * ``held_at_nominal``: parameters not freed, each with the reason; ``held_sigmas``: the standard
+      deviation of each nominal value held (the certificate records it for the diagnosis).
     * ``held_out``: the k-fold comparison of each thermal slope tested, by adjustment name (``df/dT``).
     * ``review``: the verdict.
     * ``overdispersion``: how many times larger than chi-square the statistics of pure-noise hypotheses are
@@ -114,6 +115,8 @@ class Calibration:
     held_out: dict[str, HeldOutComparison]
     review: Review
     overdispersion: float = 1.0
+    #: standard deviation (px) of each nominal value held (:func:`aerocal.decision.nominal_sigma`)
+    held_sigmas: dict[str, float] = dataclasses.field(default_factory=dict)
 
     def summary(self) -> dict:
         """JSON-ready figures a user checks."""
@@ -309,7 +312,9 @@ def self_calibrate(
         review = review.merged(problems=[
             f"the flight's input has {len(input_errors)} error(s) (first: {input_errors[0]}); fix them and "
             "calibrate again"])
-    return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi)
+    held_sigmas = {n: nominal_sigma(n, camera, config.decision) for n in held if n in ("f", "cx", "cy")}
+    return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi,
+                       held_sigmas)
 
 
 def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, run_cfg: AdjustConfig,
@@ -368,7 +373,7 @@ def certificate_from_calibration(
         significance[SLOPE_NAMES.get(n, n)] = ParameterSignificance(float(t) if np.isfinite(t) else 0.0, False, why,
                                                                      **tested(n))
     for n, why in calibration.held_at_nominal.items():
-        significance[n] = ParameterSignificance(0.0, False, why)
+        significance[n] = ParameterSignificance(0.0, False, why, prior_sigma=calibration.held_sigmas.get(n))
     temps = np.array([t for t in sub_images.column("temperature_c").to_pylist() if t is not None], dtype=float)
     trange = (float(temps.min()), float(temps.max())) if temps.size else None
     thermal = None

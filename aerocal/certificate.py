@@ -160,6 +160,10 @@ class ParameterSignificance:
     held_out_gain: float | None = None  # relative gain on held-out strips (aerocal.heldout), None: not measured
     held_out_sigma: float | None = None  # its standard error
     calibrated_t: float | None = None  # t over the square root of the block's measured overdispersion
+    #: for a parameter held at its nominal value because the block could not determine it: the standard
+    #: deviation of that nominal value (units of the parameter), which the diagnosis carries as the IO's
+    #: uncertainty instead of treating the nominal as exact
+    prior_sigma: float | None = None
 
 
 @dataclass(frozen=True)
@@ -785,7 +789,7 @@ def _parse_correlation(v: Any) -> Correlation:
 def _parse_significance(v: Any) -> FrozenMap:
     def one(x: Any, path: str) -> ParameterSignificance:
         s = _object(x, path, ("t", "significant", "dropped"),
-                    optional=("held_out_gain", "held_out_sigma", "calibrated_t"))
+                    optional=("held_out_gain", "held_out_sigma", "calibrated_t", "prior_sigma"))
         return ParameterSignificance(
             t=_number(s["t"], f"{path}.t", fix="write the t statistic (value / sigma)"),
             significant=_boolean(s["significant"], f"{path}.significant"),
@@ -797,6 +801,8 @@ def _parse_significance(v: Any) -> FrozenMap:
                                    fix="write the held-out gain's standard error, or null"),
             calibrated_t=_number(s.get("calibrated_t"), f"{path}.calibrated_t", nullable=True,
                                  fix="write t over the square root of the block's overdispersion, or null"),
+            prior_sigma=_number(s.get("prior_sigma"), f"{path}.prior_sigma", nullable=True, nonneg=True,
+                                fix="write the standard deviation of the nominal value held, or null"),
         )
 
     return _name_map(v, "significance", PARAM_NAMES + THERMAL_SLOPE_NAMES, one)
@@ -1017,6 +1023,8 @@ def _significance_dict(s: ParameterSignificance) -> dict:
         out.update(held_out_gain=s.held_out_gain, held_out_sigma=s.held_out_sigma)
     if s.calibrated_t is not None:
         out["calibrated_t"] = s.calibrated_t
+    if s.prior_sigma is not None:
+        out["prior_sigma"] = s.prior_sigma
     return out
 
 

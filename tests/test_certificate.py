@@ -322,3 +322,23 @@ def test_camera_identity_key_round_trip():
 def test_correlation_rejects_a_matrix_of_the_wrong_size():
     with pytest.raises(CertificateError, match="correlation.matrix: expected 2 x 2"):
         Correlation(("f", "k1"), [[1.0, 0.2, 0.1]])
+
+
+def test_a_nominal_value_held_carries_its_prior_sigma_into_the_diagnosis():
+    """f held at the nominal because the block could not determine it: the certificate records the nominal's
+    own sigma, the JSON round trip keeps it, and the diagnosis's IO covariance includes it (uncorrelated)."""
+    from aerocal.diagnose.io_uncertainty import IOUncertainty
+
+    base = make_certificate()
+    est = tuple(n for n in base.estimated if n != "f")
+    sig = dict(base.significance)
+    sig["f"] = ParameterSignificance(0.0, False, "f not determined by this block; the nominal f is kept",
+                                     prior_sigma=17.1)
+    cert = dataclasses.replace(base, estimated=est, sigmas={n: s for n, s in base.sigmas.items() if n != "f"},
+                               correlation=Correlation(), significance=sig)
+    back = Certificate.from_json(cert.to_json())
+    assert back.significance["f"].prior_sigma == 17.1
+    io = IOUncertainty.from_certificate(back)
+    assert io.names[-1] == "f" and io.covariance[-1, -1] == pytest.approx(17.1**2)
+    assert np.all(io.covariance[-1, :-1] == 0.0)
+    assert set(io.names[:-1]) == set(est)

@@ -157,6 +157,8 @@ def test_simulated_jpeg_flight_and_explicit_arguments(tmp_path):
     assert second["attitude_convention"] == "dji_gimbal"
     missing = [p for p in r.problems if p.file == str(eo) and p.field == "image"]
     assert len(missing) == 1 and "13 ingested image(s) have no row" in missing[0].message
+    # kept, and said: processing them would mix the file's positions with the XMP's (another vertical datum)
+    assert missing[0].stops_processing and "another source and vertical reference" in missing[0].message
     assert r.gcp_observations.num_rows == 0 and r.gcps.num_rows == 2
     rgb = read_raw(first["path"])
     assert (

@@ -47,11 +47,11 @@ class IOUncertainty:
     def from_certificate(cls, cert) -> IOUncertainty | None:
         """The estimated IO of ``cert`` (:class:`aerocal.certificate.Certificate`) with its covariance from
         its sigmas and correlation matrix, inflated by the overdispersion its calibration measured
-        (squared ratio of formal to calibrated t, where recorded). None when nothing was estimated."""
+        (squared ratio of formal to calibrated t, where recorded), plus the nominal values it holds because
+        the block could not determine them, with their recorded ``prior_sigma`` (uncorrelated). None when
+        there is neither."""
         names = [n for n in cert.estimated if n in PARAM_NAMES and n in cert.sigmas
                  and np.isfinite(cert.sigmas[n]) and cert.sigmas[n] > 0]
-        if not names:
-            return None
         s = np.array([float(cert.sigmas[n]) for n in names])
         corr = np.eye(len(names))
         cnames = list(cert.correlation.names)
@@ -67,7 +67,20 @@ class IOUncertainty:
             if sig is not None and sig.calibrated_t and sig.t and np.isfinite(sig.calibrated_t):
                 phi.append((float(sig.t) / float(sig.calibrated_t)) ** 2)
         inflate = max(1.0, float(np.median(phi))) if phi else 1.0
-        return cls(tuple(names), corr * np.outer(s, s) * inflate)
+        cov = corr * np.outer(s, s) * inflate
+        # nominal values held because the block could not determine them: their own uncertainty, uncorrelated
+        held = [(n, float(sig.prior_sigma)) for n, sig in cert.significance.items()
+                if n in PARAM_NAMES and n not in names and getattr(sig, "prior_sigma", None)]
+        if held:
+            k = len(names)
+            full = np.zeros((k + len(held), k + len(held)))
+            full[:k, :k] = cov
+            for i, (_, sd) in enumerate(held):
+                full[k + i, k + i] = sd**2
+            names, cov = names + [n for n, _ in held], full
+        if not names:
+            return None
+        return cls(tuple(names), cov)
 
 
 __all__ = ["IOUncertainty"]

@@ -295,11 +295,12 @@ def ingest_folder(
     facts: dict[str, str] = {}
     if camera is not None:
         camera_source = f"{camera_json}"
+    elif camera_json is not None and any(p.file == str(camera_json) and p.severity == "error" for p in problems):
+        # the user's own file is broken: never replaced by the catalogue's guess
+        camera_source = f"{camera_json} gives no valid camera (see its error above); fix it or remove it"
     else:
         camera, camera_source = infer_camera(metas)
         facts["camera"] = camera_source
-        if camera is None and camera_json is not None:
-            camera_source = f"{camera_json} gives no valid camera, and {camera_source}"
     identity = certificate_identity(metas, identity, camera)
     height = plan.get("height_agl_m")
     facts["height_agl_m"] = f"{FLIGHT_JSON_NAME} height_agl_m"
@@ -344,8 +345,10 @@ def ingest_folder(
     if flight_crs is not None:
         gcps, gcp_obs = tables.with_crs(gcps, flight_crs), tables.with_crs(gcp_obs, flight_crs)
     _temperature_notes(metas, where, problems)
+    eo_errors = [p for p in problems if eo_path is not None and p.file == str(eo_path) and p.severity == "error"]
     check_processable(
-        problems, where, images, gcps, camera, camera_source, identity, height, inputs.sidecar_dir, skipped
+        problems, where, images, gcps, camera, camera_source, identity, height, inputs.sidecar_dir, skipped,
+        eo_errors,
     )
     return IngestResult(
         images=images,
@@ -449,9 +452,13 @@ def _apply_eo(eo: EoFile, metas: list[ImageMetadata], problems: ProblemLog) -> N
             m.temperature_c, m.temperature_source = rec.temperature_c, f"eo_csv:{eo.path.name}"
     missing = [m.name for m in metas if m.name not in covered]
     if missing and eo.records:
-        problems.warning(
+        own = [m for m in metas if m.name in set(missing) and m.pose.lat is not None]
+        why = (f"{len(own)} of them would keep their own metadata's position (another source and vertical "
+               "reference)" if own else "they would have no position")
+        problems.blocker(
             eo.path,
-            f"{len(missing)} ingested image(s) have no row: metadata kept for {name_list(missing)}",
+            f"{len(missing)} ingested image(s) have no row: {name_list(missing)}; {why}. Fix: add their rows, "
+            "or move those images out of the flight",
             "image",
         )
 

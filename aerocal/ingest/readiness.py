@@ -81,9 +81,25 @@ def check_processable(
     height_agl_m: float | None,
     sidecar_dir: Path | None,
     skipped: list[str],
+    eo_errors: list | None = None,
 ) -> None:
-    """Add a ``stops_processing`` error for everything image-mode processing cannot go past."""
+    """Add a ``stops_processing`` error for everything image-mode processing cannot go past.
+
+    ``eo_errors``: the errors found in the EO file's rows. Any one stops processing: a row whose cell was
+    not applied leaves that image with the metadata's own position (another source, another vertical
+    reference) or none, and the block would mix them silently (one bad altitude cell once moved a
+    certificate's f by 80 px and every later flight that reused it)."""
     folder = sidecar_dir or Path(where)
+    if eo_errors:
+        lines = sorted({p.line for p in eo_errors if p.line is not None})
+        at = f" (line{'s' if len(lines) > 1 else ''} {', '.join(map(str, lines[:10]))})" if lines else ""
+        problems.blocker(
+            eo_errors[0].file,
+            f"{len(eo_errors)} cell(s) of the EO file could not be applied{at}: those images would keep another "
+            "source's position and vertical reference, or none. Fix: correct the cells, or remove the rows to "
+            "use the images' own metadata for them on purpose",
+            "eo",
+        )
     n = images.num_rows
     if n < 2:
         why = f"; {len(skipped)} skipped (see the errors above)" if skipped else ""
