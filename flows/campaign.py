@@ -16,6 +16,7 @@ The folder of each flight is kept as a small JSON artifact per campaign (kind ``
 from __future__ import annotations
 
 import json
+import os
 import uuid
 from pathlib import Path
 from typing import Any
@@ -193,7 +194,7 @@ def run_campaign(
                 out,
                 "auto",
                 config,
-                where.database_url,
+                database_url,  # as given (concealed or None): sub-flow parameters are stored too
                 where.artifact_root,
                 dask_address,
                 campaign,
@@ -218,6 +219,14 @@ def register_campaign_deployments(
     from prefect.deployments.runner import EntrypointType
 
     where = resolve_storage(database_url, artifact_root)
+    # deployment parameters are stored by Prefect's server: a URL with a password goes to the environment the
+    # served runs inherit (AEROCAL_DATABASE_URL), never into the parameters
+    from sqlalchemy.engine import make_url
+
+    stored_url: str | None = where.database_url
+    if make_url(where.database_url).password:
+        os.environ["AEROCAL_DATABASE_URL"] = where.database_url
+        stored_url = None
     deployments = []
     for camp in list_campaigns(where.database_url):
         if not camp["cron"]:
@@ -228,7 +237,7 @@ def register_campaign_deployments(
             parameters={
                 "campaign": camp["name"],
                 "out_dir": out_dir,
-                "database_url": where.database_url,
+                "database_url": stored_url,
                 "artifact_root": where.artifact_root,
                 "dask_address": dask_address,
             },

@@ -46,6 +46,14 @@ def _user_errors() -> Iterator[None]:
         _fail(str(exc))
 
 
+def conceal_password(url: str | None) -> str | None:
+    """The URL with its password replaced by a reference only this process resolves: flow parameters are
+    stored by Prefect's server, a password must not be (:func:`flows.environment.conceal_password`)."""
+    from flows.environment import conceal_password as conceal
+
+    return conceal(url)
+
+
 def _prefect_ready() -> None:
     from flows.environment import quiet_prefect
 
@@ -163,7 +171,7 @@ def process(
                 out,
                 certificate,
                 None,
-                database_url,
+                conceal_password(database_url),
                 str(artifact_root) if artifact_root else None,
                 dask,
             )
@@ -268,7 +276,8 @@ def calibrate(
         cfg.calibration = dataclasses.replace(cfg.calibration, **subset_config)
         with console.status(f"calibrating from {flight_dir} ..."):
             summary = calibrate_camera(
-                flight_dir, out, cfg, database_url, str(artifact_root) if artifact_root else None, dask
+                flight_dir, out, cfg, conceal_password(database_url), str(artifact_root) if artifact_root else None,
+                dask,
             )
         cert = Certificate.from_json(Path(summary["files"]["calibration_certificate"]).read_text())
     console.print(cert.render_text(correlation_threshold=0.9))
@@ -336,7 +345,7 @@ def campaign_run(
             result = run_campaign(
                 name,
                 str(out) if out else None,
-                database_url,
+                conceal_password(database_url),
                 str(artifact_root) if artifact_root else None,
                 dask,
             )

@@ -58,6 +58,49 @@ class StorageLocation:
 _migrated: set[str] = set()
 
 
+#: passwords of database URLs given on the command line, by reference (this process only)
+_PASSWORDS: dict[str, str] = {}
+_SECRET_PREFIX = "aerocal-secret-"
+
+
+def conceal_password(url: str | None) -> str | None:
+    """``url`` with its password replaced by a reference that only this process can resolve
+    (:func:`reveal_password`). Flow parameters are recorded by Prefect's server, so a password must never be
+    one: the commands pass the concealed URL and :func:`resolve_storage` resolves it."""
+    if not url:
+        return url
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        parsed = make_url(url)
+    except ArgumentError:
+        return url  # not a URL: resolve_storage's own error names it
+    if not parsed.password or str(parsed.password).startswith(_SECRET_PREFIX):
+        return url
+    import secrets
+
+    token = _SECRET_PREFIX + secrets.token_hex(8)
+    _PASSWORDS[token] = str(parsed.password)
+    return parsed.set(password=token).render_as_string(hide_password=False)
+
+
+def reveal_password(url: str | None) -> str | None:
+    """The URL :func:`conceal_password` concealed; raises ``ValueError`` when its password is not known here."""
+    if not url or _SECRET_PREFIX not in url:
+        return url
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    token = str(parsed.password or "")
+    if token not in _PASSWORDS:
+        raise ValueError(
+            "the database URL's password was given to another process; set AEROCAL_DATABASE_URL in this "
+            "process's environment instead"
+        )
+    return parsed.set(password=_PASSWORDS[token]).render_as_string(hide_password=False)
+
+
 def resolve_storage(
     database_url: str | None = None, artifact_root: str | Path | None = None, migrate: bool = True
 ) -> StorageLocation:
@@ -67,7 +110,7 @@ def resolve_storage(
     from storage.database import database_url as default_url
     from storage.migrations import upgrade
 
-    url = database_url or default_url()
+    url = reveal_password(database_url) or default_url()
     root = str(Path(artifact_root).resolve()) if artifact_root else str(default_artifact_root())
     if migrate and url not in _migrated:
         upgrade(url)
