@@ -195,9 +195,9 @@ def ingest_step(
             tabs = {"images": res.images, "gcps": res.gcps, "gcp_observations": res.gcp_observations}
             crs, mode = res.crs, "images"
             problems = [str(p) for p in res.problems]
-            meta = {**meta, "height_agl_m": res.height_agl_m}
-            if meta.get("gnss_sigma_m") is None and res.gnss_sigma_m is not None:
-                meta["gnss_sigma_m"] = list(res.gnss_sigma_m)
+            # flight.json as ingest checked it, with what the images tell where it is silent
+            meta = {**res.plan, "height_agl_m": res.height_agl_m,
+                    "gnss_sigma_m": None if res.gnss_sigma_m is None else list(res.gnss_sigma_m)}
             out["skipped"] = res.skipped_images
         for kind, tab in tabs.items():
             out[kind] = TableOutput(tab, kind)

@@ -276,7 +276,19 @@ def _camera_info(block: bytes, default: str) -> FlirCameraInfo | None:
     return FlirCameraInfo(**values)  # type: ignore[arg-type]
 
 
-def _records(jpeg: JpegStructure) -> tuple[bytes, str, str, dict[int, _Record]] | None:
+@dataclass(frozen=True)
+class _Fff:
+    """The parts of an FFF file the readers need: the raw-frame record and its byte order, the camera
+    information (``None`` without a record), the header's byte order and creator."""
+
+    raw_block: bytes
+    raw_order: str
+    info: FlirCameraInfo | None
+    order: str
+    creator: str
+
+
+def _read_fff(jpeg: JpegStructure) -> _Fff | None:
     fff = fff_bytes(jpeg)
     if fff is None:
         return None
@@ -286,22 +298,21 @@ def _records(jpeg: JpegStructure) -> tuple[bytes, str, str, dict[int, _Record]] 
         by_kind.setdefault(r.kind, r)
     if RECORD_RAW not in by_kind:
         raise FlirFormatError("the FFF file has no raw-frame record (type 1): not a radiometric image")
-    return fff, order, creator, by_kind
+    raw = by_kind[RECORD_RAW]
+    block = fff[raw.offset : raw.offset + raw.length]
+    info_rec = by_kind.get(RECORD_CAMERA_INFO)
+    info = None if info_rec is None else _camera_info(fff[info_rec.offset : info_rec.offset + info_rec.length], order)
+    return _Fff(block, _record_order(block, order), info, order, creator)
 
 
 def flir_layout(jpeg: JpegStructure) -> tuple[int, int, FlirCameraInfo | None] | None:
     """(width, height, camera info) of the raw frame, read from the headers only; ``None`` when the JPEG
     has no FLIR segments. Raises :class:`FlirFormatError` when they are present but broken."""
-    found = _records(jpeg)
+    found = _read_fff(jpeg)
     if found is None:
         return None
-    fff, order, _creator, by_kind = found
-    raw = by_kind[RECORD_RAW]
-    block = fff[raw.offset : raw.offset + raw.length]
-    w, h = _raw_size(block, _record_order(block, order))
-    info_rec = by_kind.get(RECORD_CAMERA_INFO)
-    info = None if info_rec is None else _camera_info(fff[info_rec.offset : info_rec.offset + info_rec.length], order)
-    return w, h, info
+    w, h = _raw_size(found.raw_block, found.raw_order)
+    return w, h, found.info
 
 
 def read_flir(jpeg: JpegStructure) -> FlirThermogram | None:
@@ -309,18 +320,11 @@ def read_flir(jpeg: JpegStructure) -> FlirThermogram | None:
 
     Raises :class:`FlirFormatError` (naming what is wrong) when the segments are present but broken.
     """
-    found = _records(jpeg)
+    found = _read_fff(jpeg)
     if found is None:
         return None
-    fff, order, creator, by_kind = found
-    raw_rec = by_kind[RECORD_RAW]
-    block = fff[raw_rec.offset : raw_rec.offset + raw_rec.length]
-    raw, payload = _decode_raw(block, _record_order(block, order))
-    info_rec = by_kind.get(RECORD_CAMERA_INFO)
-    info = None
-    if info_rec is not None:
-        info = _camera_info(fff[info_rec.offset : info_rec.offset + info_rec.length], order)
-    return FlirThermogram(raw, info, payload, order, creator)
+    raw, payload = _decode_raw(found.raw_block, found.raw_order)
+    return FlirThermogram(raw, found.info, payload, found.order, found.creator)
 
 
 # ------------------------------------------------------------------------------------------ radiometry

@@ -37,7 +37,8 @@ _CAMERA_TEMPLATE = (
 
 
 def read_flight_json(path: str | Path, problems: ProblemLog) -> dict:
-    """The fields of ``flight.json``; a value that fails its check is an error naming the key, and dropped."""
+    """The fields of ``flight.json``; a value that fails its check is dropped and is an error that stops
+    processing (a wrong sigma or height must not be replaced by a default without the user knowing)."""
     path = Path(path)
     try:
         if path.stat().st_size > MAX_JSON_BYTES:
@@ -65,7 +66,9 @@ def read_flight_json(path: str | Path, problems: ProblemLog) -> dict:
         )
         if not ok:
             shape = "a list of 1-3 numbers" if kind == "list" else "a number"
-            problems.error(path, f"{key} = {value!r} must be {shape} in {lo:g}..{hi:g}; ignored", key)
+            # the user's own value is wrong: never replaced silently by a default or an inferred one
+            problems.blocker(path, f"{key} = {value!r} must be {shape} in {lo:g}..{hi:g}. Fix: correct it or "
+                             "remove the key", key)
             del out[key]
     return out
 
