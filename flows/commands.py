@@ -88,6 +88,9 @@ def _print_run(summary: dict[str, Any]) -> None:
 
         console.print(f"[yellow]{len(skipped)} image(s) skipped at ingest[/yellow]: {name_list(skipped)} "
                       "(`aerocal ingest FOLDER` says why)")
+    for key, text in (summary.get("flight_facts") or {}).items():
+        if not text.startswith(("flight.json", "/")):  # inferred from the images: say so
+            console.print(f"{key}: {text}")
     console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
     acc = summary.get("accuracy") or {}
     if acc.get("rho"):

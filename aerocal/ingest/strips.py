@@ -29,6 +29,7 @@ lawn-mower legs of ``seneca`` in both directions plus its cross strips (see ``te
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,8 +39,12 @@ import numpy as np
 class StripConfig:
     """Thresholds of the strip rule above.
 
-    * ``course_tolerance_deg`` (25): largest difference between a step's course and the strip's mean course.
-    * ``spacing_ratio`` (2.5): a step may be at most this factor longer or shorter than the strip's median.
+    * ``course_tolerance_deg`` (25): largest difference between a step's course and the strip's mean course,
+      widened to 3 standard deviations of the flight's own course noise up to ``max_course_tolerance_deg``
+      (60): noisy GNSS on short steps must not cut strips, a 90 or 180 deg turn still ends one.
+    * ``spacing_ratio`` (2.5): a step may be at most this factor longer or shorter than the strip's median,
+      widened (up to ``max_spacing_ratio``, 5) so that a step 3 robust standard deviations short of the
+      flight's median still passes where GNSS noise is a large part of the step.
     * ``min_step_fraction`` (0.3): steps shorter than this fraction of the flight's median step are turns.
     * ``min_strip_step_fraction`` (0.75): a strip's median step must be at least this fraction of the
       flight's median step (measured: 0.93-0.97 on ``seneca``'s slowest lines, 0.64 in the turn of
@@ -49,7 +54,9 @@ class StripConfig:
     """
 
     course_tolerance_deg: float = 25.0
+    max_course_tolerance_deg: float = 60.0
     spacing_ratio: float = 2.5
+    max_spacing_ratio: float = 5.0
     min_step_fraction: float = 0.3
     min_strip_step_fraction: float = 0.75
     heading_tolerance_deg: float = 45.0
@@ -111,6 +118,9 @@ def find_strips(
         return strip
     scale = float(np.median(moving))
     usable = length >= cfg.min_step_fraction * scale
+    tolerance = _course_tolerance(course, usable, cfg)
+    cfg = dataclasses.replace(cfg, course_tolerance_deg=tolerance,
+                              spacing_ratio=_spacing_ratio(length[usable], cfg))
 
     segments: list[tuple[int, int]] = []  # (first frame, last frame) inclusive
     i = 0
@@ -146,6 +156,33 @@ def find_strips(
         strip[first : last + 1] = number
         number += 1
     return strip
+
+
+def _course_tolerance(course: np.ndarray, usable: np.ndarray, cfg: StripConfig) -> float:
+    """``course_tolerance_deg``, widened to 3 standard deviations of the flight's course noise where that is
+    larger (at most ``max_course_tolerance_deg``, so that a turn stays a turn).
+
+    The noise is measured on the flight itself, from the change of course between consecutive usable steps
+    (robust: turns are outliers): consumer GNSS (1.5-3 m) on a low flight's 5-10 m steps turns single-step
+    courses by 15-30 deg, so a fixed 25 deg cut a rendered XT2 survey's strips into pieces."""
+    ok = usable[1:] & usable[:-1]
+    if ok.sum() < 4:
+        return cfg.course_tolerance_deg
+    change = angle_difference(course[1:][ok], course[:-1][ok])
+    sigma = 1.4826 * float(np.median(change)) / np.sqrt(2.0)
+    return float(np.clip(3.0 * sigma, cfg.course_tolerance_deg, cfg.max_course_tolerance_deg))
+
+
+def _spacing_ratio(steps: np.ndarray, cfg: StripConfig) -> float:
+    """``spacing_ratio``, widened where the flight's step lengths are noisy: a step 3 robust standard
+    deviations short must still pass (at most ``max_spacing_ratio``)."""
+    if steps.size < 4:
+        return cfg.spacing_ratio
+    med = float(np.median(steps))
+    rel = 1.4826 * float(np.median(np.abs(steps - med))) / med
+    if 3.0 * rel >= 1.0 - 1.0 / cfg.max_spacing_ratio:
+        return cfg.max_spacing_ratio
+    return float(np.clip(1.0 / (1.0 - 3.0 * rel), cfg.spacing_ratio, cfg.max_spacing_ratio))
 
 
 def _merge_noise_splits(
