@@ -54,6 +54,26 @@ def conceal_password(url: str | None) -> str | None:
     return conceal(url)
 
 
+@contextlib.contextmanager
+def _flow_errors(out_dir: Path) -> Iterator[None]:
+    """Around a flow run: the user's errors as one line (exit 1), Ctrl-C as one line saying what is kept and
+    how to resume (exit 130), and a defect as one line naming the run folder's traceback file (exit 1)."""
+    from flows.flight import FAILURE_LOG
+
+    try:
+        with _user_errors():
+            yield
+    except typer.Exit:
+        raise
+    except KeyboardInterrupt:
+        err_console.print("[yellow]interrupted[/yellow]: the steps completed so far are kept in the store; run "
+                          "the same command again to resume after the last of them (the run is recorded as "
+                          "cancelled)", markup=True)
+        raise typer.Exit(130) from None
+    except Exception as exc:  # a defect, not the user's input: one line here, the traceback in the run folder
+        _fail(f"{type(exc).__name__}: {exc} (the full traceback is in {out_dir / FAILURE_LOG})")
+
+
 def _prefect_ready() -> None:
     from flows.environment import quiet_prefect
 
@@ -165,7 +185,8 @@ def process(
     _require_folder(flight_dir)
     _stop_if_not_processable(flight_dir)
     _prefect_ready()
-    with _user_errors():
+    run_dir = (out or flight_dir.with_name(flight_dir.name + "-processed")).resolve()
+    with _flow_errors(run_dir):
         from flows.flight import process_flight
 
         with console.status(f"processing {flight_dir} ..."):
@@ -270,7 +291,7 @@ def calibrate(
         subset_config = _subset_config(subset)
     _require_folder(flight_dir)
     _prefect_ready()
-    with _user_errors():
+    with _flow_errors((out or flight_dir.with_name(flight_dir.name + "-processed")).resolve()):
         from aerocal.certificate import Certificate
         from flows.config import ProcessConfig
         from flows.flight import calibrate_camera

@@ -28,6 +28,11 @@ PREFECT_DEFAULTS = {
     "DASK_LOGGING__DISTRIBUTED": "warning",  # Dask's per-worker INFO lines drown the progress otherwise
     # Prefect waits 20 s for its temporary server; a busy 2-core machine has taken longer to start it
     "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "180",
+    # a failed step is one line on the console (the command's own message); the traceback goes to Prefect's
+    # API log and the run folder's aerocal-error.log, not 40-80 lines on the terminal
+    "PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL": "CRITICAL",
+    "PREFECT_LOGGING_HANDLERS_CONSOLE_FLOW_RUNS_LEVEL": "CRITICAL",
+    "PREFECT_LOGGING_HANDLERS_CONSOLE_TASK_RUNS_LEVEL": "CRITICAL",
 }
 
 

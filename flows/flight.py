@@ -243,8 +243,7 @@ def _run_flow(
         raise FlowInputError("certificate is empty; give auto, none or a certificate id")
     config = config or ProcessConfig()
     out = Path(out_dir).resolve() if out_dir else flight_dir.with_name(flight_dir.name + "-processed")
-    out.mkdir(parents=True, exist_ok=True)
-    where = resolve_storage(database_url, artifact_root)
+    where = resolve_storage(database_url, artifact_root)  # a bad URL fails here, before any folder is made
     ctx = StepContext(where.database_url, where.artifact_root, current_run_id())
     with ctx.database.session() as session:
         start_run(
@@ -260,12 +259,16 @@ def _run_flow(
             campaign=campaign,
         )
         session.commit()
+    out.mkdir(parents=True, exist_ok=True)
     try:
         summary = _process(ctx, flight_dir, out, certificate, config, dask_address, calibrate_only)
     except BaseException as exc:
+        interrupted = isinstance(exc, KeyboardInterrupt)
+        status = "cancelled" if interrupted else "failed"
         with ctx.database.session() as session:
-            finish_run(session, ctx.run_id, "failed", error=f"{type(exc).__name__}: {exc}")
+            finish_run(session, ctx.run_id, status, error=f"{type(exc).__name__}: {exc}")
             session.commit()
+        _record_failure(out, ctx.run_id, status, exc)
         raise
     with ctx.database.session() as session:
         finish_run(session, ctx.run_id, "completed")
@@ -275,6 +278,32 @@ def _run_flow(
     summary["files"]["provenance"] = str(write_json_atomic(out / "provenance.json", prov))
     summary["files"]["run"] = str(write_json_atomic(out / "run.json", summary))
     return summary
+
+
+#: the file a failed or interrupted run leaves in its run folder, beside ``run.json``
+FAILURE_LOG = "aerocal-error.log"
+
+
+def _record_failure(out: Path, run_id: str, status: str, exc: BaseException) -> None:
+    """``run.json`` saying the run failed (or was interrupted), why and how to resume, and the full traceback
+    in :data:`FAILURE_LOG`: the console shows one line, the run folder keeps the rest."""
+    import traceback
+
+    from aerocal.io import write_json_atomic
+
+    try:
+        log = out / FAILURE_LOG
+        log.write_text("".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+        write_json_atomic(out / "run.json", {
+            "run_id": run_id,
+            "status": status,
+            "error": f"{type(exc).__name__}: {exc}",
+            "log": str(log),
+            "resume": "the completed steps are kept in the store: run the same command again to resume after "
+                      "the last of them",
+        })
+    except OSError:  # the run folder itself is the problem: the database row still records the failure
+        pass
 
 
 @flow(name="process-flight", validate_parameters=False)

@@ -1,0 +1,73 @@
+"""A run that fails or is interrupted, as a user meets it at the terminal: one line, not a Prefect traceback;
+the run folder holds a run.json that says so and how to resume, the traceback in aerocal-error.log; the
+database records the run as failed or cancelled, never as running."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+AEROCAL = str(Path(sys.executable).with_name("aerocal"))
+SEED = 4
+
+
+def _flight(root: Path, n: int) -> Path:
+    from aerocal.simulate import simulate_flight, write_flight
+
+    return write_flight(simulate_flight("conte-calibration", seed=SEED, max_images=n), root, mode="observations")
+
+
+def _statuses(db: Path) -> list[str]:
+    if not db.exists():
+        return []
+    with sqlite3.connect(db) as conn:
+        try:
+            return [r[0] for r in conn.execute("SELECT status FROM runs")]
+        except sqlite3.OperationalError:  # the schema is being created
+            return []
+
+
+def test_a_failing_run_is_one_line_and_leaves_a_run_json_that_says_so(tmp_path):
+    flight = _flight(tmp_path / "flight", 6)
+    (flight / "camera.json").unlink()
+    db = tmp_path / "a.db"
+    done = subprocess.run([AEROCAL, "process", str(flight), "--database-url", f"sqlite:///{db}", "--artifacts",
+                           str(tmp_path / "art"), "--out", str(tmp_path / "run")],
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+    assert done.returncode == 1, f"seed {SEED}: {done.stdout}\n{done.stderr}"
+    assert len(lines) == 1 and "camera.json is missing" in lines[0], lines
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["status"] == "failed" and "camera.json is missing" in run["error"] and "again" in run["resume"]
+    assert "Traceback" in (tmp_path / "run" / "aerocal-error.log").read_text()
+    assert _statuses(db) == ["failed"]
+
+
+def test_ctrl_c_stops_the_run_says_how_to_resume_and_records_it_cancelled(tmp_path):
+    flight = _flight(tmp_path / "flight", 20)
+    db = tmp_path / "a.db"
+    proc = subprocess.Popen([AEROCAL, "process", str(flight), "--database-url", f"sqlite:///{db}", "--artifacts",
+                             str(tmp_path / "art"), "--out", str(tmp_path / "run")],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+                            env={**os.environ, "COLUMNS": "200"})
+    deadline = time.monotonic() + 300
+    while "running" not in _statuses(db) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert proc.poll() is None, f"the run ended before it could be interrupted: {proc.communicate()}"
+    time.sleep(2.0)  # inside a step
+    t0 = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    print(f"exited {time.monotonic() - t0:.1f} s after Ctrl-C")
+    assert proc.returncode == 130, f"{out}\n{err}"
+    assert "interrupted" in err and "run the same command again to resume" in " ".join(err.split()), err
+    assert "Traceback" not in out + err
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["status"] == "cancelled"
+    assert _statuses(db) == ["cancelled"]
