@@ -408,16 +408,21 @@ def runs_list(
 
     Example: aerocal runs list --kind process_flight --limit 10
     """
-    from storage.runs import list_runs
+    from storage.runs import list_runs, reap_dead_runs
 
     with _user_errors():
         db = _open(database_url)
         try:
             with db.session() as session:
+                # a run whose process is gone is not "running": recorded as failed, and said
+                dead = [f"run {r.id}: {r.error}" for r in reap_dead_runs(session)]
+                session.commit()
                 rows = list_runs(session, limit=limit, kind=kind)
                 flights = {row.id: row.flight.name if row.flight else "-" for row in rows}
         finally:
             db.dispose()
+    for line in dead:
+        err_console.print(line)
     if not rows:
         console.print("no runs")
         return

@@ -252,6 +252,7 @@ class Run(Base):
         configuration: the full configuration the run used (JSON).
         timings: seconds spent per step, ``{step: seconds}``.
         certificate_id, certificate_reason: the certificate the run used and why it was chosen.
+        runner: ``"host:pid:start"`` of the process running it (:func:`storage.runs.reap_dead_runs`).
     """
 
     __tablename__ = "runs"
@@ -270,6 +271,7 @@ class Run(Base):
     certificate_id: Mapped[str | None] = mapped_column(ForeignKey("certificates.id"))
     certificate_reason: Mapped[str | None] = mapped_column(Text)
     error: Mapped[str | None] = mapped_column(Text)
+    runner: Mapped[str | None] = mapped_column(String(128))
 
     flight: Mapped[Flight | None] = relationship()
     campaign: Mapped[Campaign | None] = relationship()

@@ -11,6 +11,8 @@ import enum
 import functools
 import json
 import math
+import os
+import socket
 import subprocess
 from collections.abc import Mapping
 from datetime import date, datetime
@@ -125,6 +127,7 @@ def start_run(
         config = {"value": config}
     run = session.get(Run, str(run_id))
     version = code_version or current_code_version()
+    runner = this_runner()
     if run is None:
         run = Run(
             id=str(run_id),
@@ -134,11 +137,12 @@ def start_run(
             code_version=version,
             started=started or utcnow(),
             timings={},
+            runner=runner,
         )
         session.add(run)
     else:
         run.kind, run.status, run.configuration, run.code_version = kind, "running", config, version
-        run.ended, run.error = None, None
+        run.ended, run.error, run.runner = None, None, runner
     if flight is not None:
         run.flight_id = _flight_id(session, flight)
     if campaign is not None:
@@ -184,6 +188,49 @@ def record_certificate(session: Session, run_id: str, certificate: Certificate |
     run.certificate_id = certificate.id
     run.certificate_reason = reason
     session.flush()
+
+
+def _process_start(pid: int) -> str | None:
+    """The start time of process ``pid`` in clock ticks since boot (Linux ``/proc``), or ``None``."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    return stat.rsplit(")", 1)[1].split()[19]  # field 22 of proc(5), after the command name
+
+
+def this_runner() -> str:
+    """``"host:pid:start"`` of this process."""
+    pid = os.getpid()
+    return f"{socket.gethostname()}:{pid}:{_process_start(pid) or ''}"
+
+
+def runner_alive(runner: str | None) -> bool | None:
+    """Whether the process ``runner`` names is alive: ``None`` when that cannot be told (no runner recorded,
+    or another host)."""
+    if not runner:
+        return None
+    host, _, rest = runner.partition(":")
+    pid_text, _, start = rest.partition(":")
+    if host != socket.gethostname() or not pid_text.isdigit():
+        return None
+    now = _process_start(int(pid_text))
+    if now is None:
+        return False
+    return not start or now == start  # a reused pid has another start time
+
+
+def reap_dead_runs(session: Session) -> list[Run]:
+    """Record as failed every run still marked running whose process on this host is gone (killed, crashed,
+    the machine restarted), with the reason and how to resume; returns them."""
+    dead = []
+    for run in session.scalars(sa.select(Run).where(Run.status == "running")):
+        if runner_alive(run.runner) is False:
+            finish_run(session, run.id, "failed", error=(
+                "the process running it ended without recording an end (killed or crashed); its completed "
+                "steps are kept: run the same command again to resume"))
+            dead.append(run)
+    return dead
 
 
 def list_runs(

@@ -71,3 +71,27 @@ def test_ctrl_c_stops_the_run_says_how_to_resume_and_records_it_cancelled(tmp_pa
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["status"] == "cancelled"
     assert _statuses(db) == ["cancelled"]
+
+
+def test_a_killed_run_is_not_listed_as_running(tmp_path):
+    """kill -9 leaves no chance to record anything: the next `aerocal runs list` finds the run's process gone
+    and records it as failed, with how to resume."""
+    flight = _flight(tmp_path / "flight", 20)
+    db = tmp_path / "a.db"
+    url = f"sqlite:///{db}"
+    proc = subprocess.Popen([AEROCAL, "process", str(flight), "--database-url", url, "--artifacts",
+                             str(tmp_path / "art"), "--out", str(tmp_path / "run")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)
+    deadline = time.monotonic() + 300
+    while "running" not in _statuses(db) and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    proc.kill()
+    proc.wait(timeout=60)
+    assert _statuses(db) == ["running"]  # nothing could record the end
+    listed = subprocess.run([AEROCAL, "runs", "list", "--database-url", url], capture_output=True, text=True,
+                            timeout=120, env={**os.environ, "COLUMNS": "250"})
+    assert listed.returncode == 0, listed.stderr
+    assert "ended without recording an end" in " ".join(listed.stderr.split()), listed.stderr
+    assert "running" not in listed.stdout and "failed" in listed.stdout, listed.stdout
+    assert _statuses(db) == ["failed"]

@@ -27,13 +27,13 @@ def invoke(app, *args: str):
 def test_db_commands_upgrade_show_and_downgrade(empty_database_url):
     url = ("--database-url", empty_database_url)
     result = invoke(db_app, "current", *url)
-    assert result.exit_code == 0 and "empty (head is 0002)" in result.output
+    assert result.exit_code == 0 and "empty (head is 0003)" in result.output
     result = invoke(db_app, "upgrade", *url)
     assert result.exit_code == 0, result.output
-    assert "empty -> 0002" in result.output
-    assert "0002 (head)" in invoke(db_app, "current", *url).output
+    assert "empty -> 0003" in result.output
+    assert "0003 (head)" in invoke(db_app, "current", *url).output
     result = invoke(db_app, "downgrade", "base", "--yes", *url)
-    assert result.exit_code == 0 and "0002 -> empty" in result.output
+    assert result.exit_code == 0 and "0003 -> empty" in result.output
 
 
 def test_commands_on_an_unmigrated_database_say_to_upgrade(empty_database_url):

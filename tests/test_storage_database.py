@@ -98,7 +98,7 @@ def test_plain_postgresql_urls_use_psycopg3():
 def test_migrations_upgrade_from_empty_to_head_and_back_to_base(empty_database_url):
     assert migrations.current(empty_database_url) is None
     migrations.upgrade(empty_database_url)
-    assert migrations.current(empty_database_url) == migrations.head() == "0002"
+    assert migrations.current(empty_database_url) == migrations.head() == "0003"
     engine = sa.create_engine(empty_database_url)
     try:
         assert AEROCAL_TABLES <= set(sa.inspect(engine).get_table_names())
@@ -119,7 +119,7 @@ def test_migrations_upgrade_from_empty_to_head_and_back_to_base(empty_database_u
                 ).scalar()
             assert functions == 0
         migrations.upgrade(empty_database_url)  # and up again
-        assert migrations.current(empty_database_url) == "0002"
+        assert migrations.current(empty_database_url) == "0003"
     finally:
         engine.dispose()
 
