@@ -68,9 +68,23 @@ def _user_errors(source: str | None = None) -> Iterator[None]:
 
 
 def _open(url: str | None, migrated: bool = True):  # -> storage.database.Database
-    from storage.database import connect
+    """Connect; with ``migrated``, the database must exist at the newest schema. A command that only reads
+    never creates a SQLite file (a mistyped path, or no database configured yet, is said, not made)."""
+    from sqlalchemy.engine import make_url
+
+    from storage.database import connect, database_url
+    from storage.errors import DatabaseURLError
     from storage.migrations import require_current
 
+    if migrated:
+        parsed = make_url(url or database_url())
+        path = parsed.database or ""
+        if parsed.get_backend_name() == "sqlite" and path and path != ":memory:" and not path.startswith("file:") \
+                and not Path(path).expanduser().exists():
+            raise DatabaseURLError(
+                f"no database at {path}: run `aerocal db upgrade` (or `aerocal init`) to create it, or give the "
+                "right --database-url / AEROCAL_DATABASE_URL"
+            )
     db = connect(url)
     if migrated:
         require_current(db)

@@ -146,8 +146,10 @@ def _one_line(text: str, secret: str | None) -> str:
 def connect(url: str | URL | None = None, options: DatabaseOptions | None = None) -> Database:
     """Build the engine and session factory for ``url`` (default :func:`database_url`).
 
-    A SQLite file's folder is created when missing. With ``options.check`` (default) one connection is
-    opened at once, so that a bad URL or an unreachable server raises here.
+    A SQLite file's folder is created when missing if it is the documented data folder or one new
+    folder inside an existing one (not at the filesystem root); otherwise that is an error naming it.
+    With ``options.check`` (default) one connection is opened at once, so that a bad URL or an
+    unreachable server raises here.
 
     Raises:
         DatabaseURLError: the URL cannot be parsed, names an unknown database kind, or needs a driver
@@ -164,8 +166,17 @@ def connect(url: str | URL | None = None, options: DatabaseOptions | None = None
         kwargs["connect_args"] = {"timeout": options.sqlite_busy_timeout_s}
         database = parsed.database or ""
         if database and database != ":memory:" and not database.startswith("file:"):
+            folder = Path(database).expanduser().parent
+            default = folder == default_sqlite_path().parent
+            at_root = folder.parent == Path(folder.anchor)
+            if not folder.exists() and not default and (at_root or not folder.parent.is_dir()):
+                # only the documented data folder, or one new folder inside an existing one, is created:
+                # a mistyped path must not make folders at the filesystem root
+                raise DatabaseURLError(
+                    f"database URL {masked}: folder {folder} does not exist; create it or choose another path"
+                )
             try:
-                Path(database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+                folder.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise DatabaseURLError(
                     f"database URL {masked}: cannot create folder {Path(database).parent} ({exc.strerror}); "

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 import types
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -41,6 +42,8 @@ def test_commands_on_an_unmigrated_database_say_to_upgrade(empty_database_url):
     assert result.exit_code == 1
     assert "run `aerocal db upgrade`" in result.output
     assert len(result.output.strip().splitlines()) == 1
+    if empty_database_url.startswith("sqlite:///"):  # a reading command never creates the file
+        assert not Path(empty_database_url.removeprefix("sqlite:///")).exists()
 
 
 @pytest.mark.parametrize("app_args", [(db_app, "current"), (certificates_app, "list"), (runs_app, "list")])
@@ -205,3 +208,13 @@ def test_every_command_has_help_with_an_example():
         for command in commands:
             result = invoke(app, command, "--help")
             assert result.exit_code == 0 and "Example: aerocal" in result.output, (command, result.output)
+
+
+def test_db_upgrade_does_not_make_folders_at_the_filesystem_root(tmp_path):
+    missing = Path("/") / f"aerocal-no-such-folder-{tmp_path.name}"
+    result = invoke(db_app, "upgrade", "--database-url", f"sqlite:///{missing / 'x.db'}")
+    assert result.exit_code == 1 and f"folder {missing} does not exist" in result.output, result.output
+    assert not missing.exists()
+    # one new folder inside an existing one is made, as for the documented data folder
+    result = invoke(db_app, "upgrade", "--database-url", f"sqlite:///{tmp_path / 'new' / 'x.db'}")
+    assert result.exit_code == 0 and (tmp_path / "new" / "x.db").is_file(), result.output
