@@ -5,8 +5,8 @@ is first imported (its settings are read then).
 
 * Database: ``database_url`` argument, else ``$AEROCAL_DATABASE_URL``, else the SQLite file of
   :func:`storage.database.database_url`; migrated to the newest schema on first use.
-* Artifacts: ``artifact_root`` argument, else ``$AEROCAL_ARTIFACT_ROOT``, else
-  :func:`storage.artifacts.default_artifact_root`.
+* Artifacts: ``artifact_root`` argument, else ``$AEROCAL_ARTIFACT_ROOT``, else ``artifacts/`` beside a
+  SQLite database file the user chose, else :func:`storage.artifacts.default_artifact_root`.
 * Prefect: with ``PREFECT_API_URL`` unset, the first flow run starts Prefect's temporary local server
   (SQLite under ``PREFECT_HOME``); with it set (e.g. the compose file's Prefect server backed by
   PostgreSQL), flow runs are recorded there.
@@ -116,11 +116,36 @@ def resolve_storage(
     from storage.migrations import upgrade
 
     url = reveal_password(database_url) or default_url()
-    root = str(Path(artifact_root).resolve()) if artifact_root else str(default_artifact_root())
+    if artifact_root:
+        root = str(Path(artifact_root).resolve())
+    else:
+        root = str(_artifacts_beside(url) or default_artifact_root())
     if migrate and url not in _migrated:
         upgrade(url)
         _migrated.add(url)
     return StorageLocation(url, root)
+
+
+def _artifacts_beside(url: str) -> Path | None:
+    """``artifacts/`` beside a SQLite database file the user chose (not the default one), when
+    ``$AEROCAL_ARTIFACT_ROOT`` is unset: the step cache follows the store the user named instead of going
+    to the home data folder."""
+    if os.environ.get("AEROCAL_ARTIFACT_ROOT", "").strip():
+        return None
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    from storage.database import default_sqlite_path
+
+    try:
+        parsed = make_url(url)
+    except ArgumentError:
+        return None
+    path = parsed.database or ""
+    if parsed.get_backend_name() != "sqlite" or not path or path == ":memory:" or path.startswith("file:"):
+        return None
+    folder = Path(path).expanduser().resolve().parent
+    return None if folder == default_sqlite_path().resolve().parent else folder / "artifacts"
 
 
 def demo_environment(out: str | Path) -> dict[str, str]:

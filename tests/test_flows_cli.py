@@ -98,3 +98,14 @@ def test_report_prints_a_run_folders_figures(run, tmp_path):
     assert "flight-a" in result.output and "1.02" in result.output and "report.html" in result.output
     result = run("report", str(tmp_path / "nothing"))
     assert result.exit_code == 1 and "summary.json" in result.output
+
+
+def test_the_step_cache_follows_a_sqlite_store_the_user_named(tmp_path, monkeypatch):
+    from flows.environment import resolve_storage
+
+    monkeypatch.delenv("AEROCAL_ARTIFACT_ROOT", raising=False)
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "home-data"))
+    where = resolve_storage(f"sqlite:///{tmp_path / 'store' / 'a.db'}", migrate=False)
+    assert where.artifact_root == str(tmp_path / "store" / "artifacts")
+    default = resolve_storage(None, migrate=False)  # the documented data folder keeps its own
+    assert default.artifact_root == str(tmp_path / "home-data" / "aerocal" / "artifacts")
