@@ -112,3 +112,23 @@ def test_a_flight_folder_as_it_comes_off_the_drone_passes_the_checks(tmp_path):
     assert res.exit_code == 0, res.output
     assert "0 error(s)" in text and "DJI | XT2 | no-serial 640x512 | 13.0 mm" in text, res.output
     assert "f 764.7 px" in text and "flying height" in text and "60.0 m" in text
+
+
+def test_ground_control_1000_m_off_in_one_file_stops_process(tmp_path, store):
+    """gcps.csv and gcp_list.txt disagree about G1 by 1000 m: one of them is wrong and only the user knows
+    which, so the point is never used as control (it once put check points 87 m off, exit 0)."""
+    from aerocal.geometry import lonlat_to_projected
+
+    url, listing = store
+    before = listing()
+    flight = _flight(tmp_path / "flight")
+    e, n = (float(v) for v in lonlat_to_projected(8.0, 47.0001, "EPSG:32632"))
+    (flight / "gcps.csv").write_text(
+        f"# crs: EPSG:32632\nid,X,Y,Z,role\nG1,{e + 1000.0},{n},560.0,control\nG2,{e + 5},{n + 5},561.0,control\n")
+    (flight / "gcp_list.txt").write_text(
+        f"EPSG:32632\n{e} {n} 560.0 320.5 256.5 DJI_0001_R.jpg G1\n{e + 5} {n + 5} 561.0 300.5 200.5 "
+        "DJI_0001_R.jpg G2\n")
+    text = _process(flight, url, tmp_path)
+    assert "G1 lies 1000.000 m from its coordinates" in text and "one of the two is wrong" in text, text
+    assert "G2 lies" not in text
+    assert listing() == before

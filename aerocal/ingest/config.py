@@ -33,6 +33,8 @@ class IngestConfig:
       planimetric-only control instead.
     * ``gcp_coordinate_tolerance_m`` (0.05 m): largest disagreement tolerated between the coordinates a
       GCP gets in ``gcps.csv`` and in ``gcp_list.txt`` before it is reported.
+    * ``gcp_conflict_stop_m`` (1.0 m): beyond this the two files contradict each other (a blunder in one,
+      e.g. a point 1000 m off that was once used as control): an error that stops processing.
 
     Metadata:
 
@@ -60,6 +62,7 @@ class IngestConfig:
     gcp_label_conflict: str = "drop"
     unknown_height_sigma_z_m: float | None = None
     gcp_coordinate_tolerance_m: float = 0.05
+    gcp_conflict_stop_m: float = 1.0
     dji_app4_temperature: int | None = None
     eo_default_attitude: str = "body_rpy"
     temperature_range_c: tuple[float, float] = (-60.0, 120.0)

@@ -9,7 +9,8 @@ Checks, each reported by file and line:
 * heights that are all 0.0: unknown, not sea level; kept with a warning (``unknown_height_sigma_z_m``
   turns them into planimetric control);
 * labels of ``gcp_list.txt`` missing from the coordinate list ``gcps.csv``, and coordinates that disagree
-  between the two by more than ``gcp_coordinate_tolerance_m``;
+  between the two by more than ``gcp_coordinate_tolerance_m`` (beyond ``gcp_conflict_stop_m`` this stops
+  processing: one of the files is wrong);
 * pixels outside the image, images not in the folder, coordinates that cannot be transformed.
 
 Coordinates are transformed to the flight CRS with pyproj (horizontal only: heights pass unchanged).
@@ -32,7 +33,7 @@ from aerocal.ingest.delimited import read_text_lines
 from aerocal.ingest.gcp_csv import looks_like_gcp_csv, read_gcp_csv
 from aerocal.ingest.gcp_odm import read_odm_gcp_list
 from aerocal.ingest.gcp_records import GcpCoordinate, GcpFile, GcpMeasurement
-from aerocal.ingest.problems import ProblemLog, name_list
+from aerocal.ingest.problems import Problem, ProblemLog, name_list
 
 
 @dataclass(frozen=True)
@@ -110,7 +111,15 @@ def build_gcp_tables(
             continue
         other = _to_flight(point, f.crs, flight_crs)
         d = float(np.linalg.norm(other - flight_xyz[point.gcp_id]))
-        if not np.isfinite(d) or d > cfg.gcp_coordinate_tolerance_m:
+        if not np.isfinite(d) or d > cfg.gcp_conflict_stop_m:
+            # two files disagree by more than any survey: one of them is wrong, and only the user knows which
+            problems.add(Problem(
+                str(f.path), point.line, "X/Y/Z",
+                f"{point.gcp_id} lies {d:.3f} m from its coordinates in {ref_file.path.name} line "
+                f"{ref_point.line}: one of the two is wrong. Fix: correct it, or remove the point from one "
+                "file",
+                "error", stops_processing=True))
+        elif d > cfg.gcp_coordinate_tolerance_m:
             problems.warning(
                 f.path,
                 f"{point.gcp_id} lies {d:.3f} m from its coordinates in {ref_file.path.name} line "
