@@ -59,10 +59,15 @@ class DecisionConfig:
     * ``held_out_sigmas`` (2.0): a thermal slope needs a held-out gain beyond this many standard errors.
     * ``nominal_focal_tolerance`` (0.01), ``nominal_principal_point_tolerance`` (0.01): the standard deviation
       of a nominal f (fraction of f) and of a nominal principal point (fraction of the image side) when the
-      block cannot determine them and they are held: a data sheet's focal length is good to about 1 %
-      (the simulated XT2's true f is 0.4 % off its 13 mm / 17 um), its principal point is the frame centre.
+      block cannot determine them and they are held. Both are assumptions, not measurements: a nominal
+      focal length taken as good to about 1 % (the simulated XT2's true f is set 0.4 % off its
+      13 mm / 17 um), the principal point as within 1 % of the image side of the frame centre.
       The certificate records them and the diagnosis carries them, so that the nominal's error is not
       named as an effect (the XT2 survey named a 2.7 px per-strip cx with f held 3 px off).
+    * ``nominal_corner_distortion`` (0.02): a nominal camera has no distortion; the block that uses one as it
+      is (no certificate, or its calibration rejected) carries an unknown radial distortion of this size at
+      the corners (an assumption). Without it the real H20T flight's diagnosis named ``radial_k3 = -6.1``
+      on the nominal camera: its lens's own distortion, not an effect.
     """
 
     determined_focal: float = 0.005
@@ -78,6 +83,7 @@ class DecisionConfig:
     held_out_sigmas: float = 2.0
     nominal_focal_tolerance: float = 0.01
     nominal_principal_point_tolerance: float = 0.01
+    nominal_corner_distortion: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -156,12 +162,24 @@ def undetermined_io(predicted: dict[str, float], camera: Camera, config: Decisio
 
 
 def nominal_sigma(name: str, camera: Camera, config: DecisionConfig | None = None) -> float:
-    """Standard deviation (pixels) of the nominal ``f``, ``cx`` or ``cy`` of ``camera`` when it is held."""
+    """Standard deviation of a nominal IO value of ``camera`` held as it is: ``f``, ``cx``, ``cy`` in pixels;
+    ``k1``, ``k2`` (a nominal camera has no distortion: its lens's unknown radial distortion, sized so that
+    either term alone moves the image corners by ``nominal_corner_distortion`` of their radius)."""
     config = config or DecisionConfig()
     if name == "f":
         return config.nominal_focal_tolerance * camera.f
-    side = camera.width if name == "cx" else camera.height
-    return config.nominal_principal_point_tolerance * side
+    if name in ("cx", "cy"):
+        side = camera.width if name == "cx" else camera.height
+        return config.nominal_principal_point_tolerance * side
+    if name in ("k1", "k2"):
+        r2 = (camera.width / 2.0) ** 2 + (camera.height / 2.0) ** 2
+        r2 /= camera.f**2  # squared corner radius in normalised image coordinates
+        return config.nominal_corner_distortion / (r2 if name == "k1" else r2**2)
+    raise ValueError(f"nominal_sigma: no tolerance for {name!r}; give f, cx, cy, k1 or k2")
+
+
+#: the nominal IO values a camera taken as it is (no calibration) is uncertain in
+NOMINAL_PARAMETERS = ("f", "cx", "cy", "k1", "k2")
 
 
 def corner_distortion(camera: Camera) -> float:

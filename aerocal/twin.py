@@ -52,9 +52,10 @@ CAUSES = {
 EXTENSION_ROUNDS = 3
 #: iterations of a twin's adjustment (it starts at its truth)
 TWIN_ITERATIONS = 8
-#: largest per-frame focal jitter (relative standard deviation) a real camera shows: 0.2 % of f covers the
-#: focus breathing of consumer autofocus lenses; fixed-focus survey and thermal lenses hold far less. An
-#: extension that needs more is not the cause of the gap, whatever it closes
+#: largest per-frame focal jitter (relative standard deviation) taken as physically possible: 0.2 % of f, the
+#: same bound as the largest thermal drift per degC (DecisionConfig.max_thermal_slope). It is an assumption,
+#: not a measurement; fixed-focus survey and thermal lenses are expected to hold far less. An extension that
+#: needs more is not the cause of the gap, whatever it closes
 PLAUSIBLE_FOCAL_JITTER = 2e-3
 #: grid of image cells for ``image_field_px`` (columns, rows)
 FIELD_GRID = (4, 3)
@@ -89,9 +90,9 @@ class TwinComparison:
                 parts.append(f"twin extended with {name} ({ext['jitter']:.2g}): gap closed {closed}")
             else:
                 parts.append(
-                    f"a {name} would need {100 * ext['jitter']:.2g} % of f per frame, beyond any lens "
-                    f"(<= {100 * PLAUSIBLE_FOCAL_JITTER:.1g} %): it is not the cause, and the per-image scale "
-                    f"errors stay unexplained (twin so extended: gap closed {closed})")
+                    f"a {name} would need {100 * ext['jitter']:.2g} % of f per frame, beyond any lens (taken as "
+                    f"at most {100 * PLAUSIBLE_FOCAL_JITTER:.1g} %, an assumption): it is not the cause, and the "
+                    f"per-image scale errors stay unexplained (twin so extended: gap closed {closed})")
         return "; ".join(parts)
 
 

@@ -112,6 +112,9 @@ def _print_run(summary: dict[str, Any]) -> None:
         if not text.startswith(("flight.json", "/")):  # inferred from the images: say so
             console.print(f"{key}: {text}")
     console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
+    if summary.get("adjustment_converged") is False:
+        console.print(f"[yellow]the block adjustment did not converge[/yellow] ({summary.get('adjustment_iterations')} "
+                      "iterations): its sigma0, residuals, products and diagnosis describe an unfinished solution")
     acc = summary.get("accuracy") or {}
     if acc.get("rho"):
         rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)

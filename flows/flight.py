@@ -219,6 +219,8 @@ def _process(
         summary["recorded_eo_corrections"] = (adjustment.get("recorded_eo_corrections") or {}).get("notes")
         summary["twin"] = (diag.get("twin") or {}).get("summary")
         summary["accuracy"] = assess.get("check_points")
+        summary["adjustment_converged"] = bool(adjustment.get("converged", True))
+        summary["adjustment_iterations"] = adjustment.get("iterations")
     return summary
 
 

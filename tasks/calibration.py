@@ -22,8 +22,8 @@ from prefect import task
 from aerocal.adjust import AdjustConfig
 from aerocal.calibration import CalibrationConfig, certificate_from_calibration, self_calibrate
 from aerocal.camera import Camera
-from aerocal.certificate import CameraIdentity, Certificate, Provenance
-from aerocal.decision import Review, review_camera
+from aerocal.certificate import CameraIdentity, Certificate, ParameterSignificance, Provenance
+from aerocal.decision import NOMINAL_PARAMETERS, Review, nominal_sigma, review_camera
 from storage.certificates import get_certificate, issue_certificate, select_certificate
 from storage.errors import NoCertificateError, NotFoundError
 from storage.runs import record_certificate
@@ -92,9 +92,14 @@ def _store_document(ctx: StepContext, session, document: dict) -> str:
 def _nominal_document(ctx: StepContext, cam_doc: dict, why: str) -> dict:
     """A certificate document of the flight's nominal camera (nothing estimated), for the block adjustment of
     a flight whose own calibration was rejected or not made; kept as an artifact, never issued to the store."""
-    cert = Certificate(identity=identity_of(cam_doc), camera=Camera.from_dict(cam_doc["camera"]),
+    camera = Camera.from_dict(cam_doc["camera"])
+    source = cam_doc.get("source") or "camera.json"
+    # nothing estimated, and nothing exact: the nominal values' own uncertainty goes to the diagnosis
+    held = {n: ParameterSignificance(0.0, False, "nominal value, not calibrated", prior_sigma=nominal_sigma(n, camera))
+            for n in NOMINAL_PARAMETERS}
+    cert = Certificate(identity=identity_of(cam_doc), camera=camera, significance=held,
                        provenance=Provenance(flow_run=ctx.run_id),
-                       review=Review(notes=(f"the nominal camera of the flight (camera.json): {why}",)))
+                       review=Review(notes=(f"the nominal camera of the flight ({source}): {why}",)))
     return cert.to_dict()
 
 

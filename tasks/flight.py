@@ -160,9 +160,11 @@ def ingest_step(
 
     def compute(inp: StepInputs) -> dict:
         meta_path, cam_path = folder / "flight.json", folder / "camera.json"
-        meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
         out: dict[str, Any] = {}
+        skipped: list[str] = []
+        facts: dict[str, str] | None = None
         if observations_mode(folder):
+            meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
             tabs = {}
             for kind in OBSERVATION_TABLES:
                 path = folder / "observations" / f"{kind}.parquet"
@@ -198,16 +200,15 @@ def ingest_step(
             # flight.json as ingest checked it, with what the images tell where it is silent
             meta = {**res.plan, "height_agl_m": res.height_agl_m,
                     "gnss_sigma_m": None if res.gnss_sigma_m is None else list(res.gnss_sigma_m)}
-            out["skipped"] = res.skipped_images
+            skipped, facts = res.skipped_images, res.flight_facts
         for kind, tab in tabs.items():
             out[kind] = TableOutput(tab, kind)
         out["camera"] = JsonOutput(cam_doc, "camera")
-        skipped = out.pop("skipped", [])
         summary = _flight_summary(tabs["images"], meta, crs, name, mode, folder)
         summary["problems"] = problems
         summary["skipped_images"] = skipped
-        if mode == "images":
-            summary["facts"] = res.flight_facts
+        if facts is not None:
+            summary["facts"] = facts
         out["flight"] = JsonOutput(summary, "flight")
         return out
 

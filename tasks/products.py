@@ -437,6 +437,9 @@ def report_step(
             "certificate": f"{cert.id} (version {cert.version})",
             "certificate_review": review,
             "thermal_model": cert.thermal.kind if cert.thermal is not None else None,
+            "adjustment": "converged" if adj.get("converged", True) else (
+                f"NOT converged in {adj.get('iterations')} iterations: sigma0, residuals and products describe an "
+                "unfinished solution"),
             "sigma0": adj["sigma0"],
             "reprojection_rms_px": adj["reprojection_rms_px"],
             "check_rmse_m": adj.get("check_rmse_m"),

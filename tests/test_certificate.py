@@ -342,3 +342,21 @@ def test_a_nominal_value_held_carries_its_prior_sigma_into_the_diagnosis():
     assert io.names[-1] == "f" and io.covariance[-1, -1] == pytest.approx(17.1**2)
     assert np.all(io.covariance[-1, :-1] == 0.0)
     assert set(io.names[:-1]) == set(est)
+
+
+def test_a_nominal_camera_taken_as_it_is_is_uncertain_in_f_principal_point_and_distortion():
+    """The certificate a block uses when no calibration is accepted holds the nominal camera with nothing
+    estimated: its f, cx, cy and its unknown radial distortion carry their tolerances into the diagnosis."""
+    from aerocal.decision import NOMINAL_PARAMETERS, nominal_sigma
+    from aerocal.diagnose.io_uncertainty import IOUncertainty
+
+    camera = Camera(width=640, height=512, f=1125.0, cx=320.0, cy=256.0)
+    held = {n: ParameterSignificance(0.0, False, "nominal value, not calibrated",
+                                     prior_sigma=nominal_sigma(n, camera)) for n in NOMINAL_PARAMETERS}
+    cert = Certificate(identity=CameraIdentity("DJI", "ZH20T", "1", "13.5 mm"), camera=camera, significance=held)
+    io = IOUncertainty.from_certificate(Certificate.from_json(cert.to_json()))
+    sd = dict(zip(io.names, np.sqrt(np.diag(io.covariance)), strict=True))
+    corner2 = (320.0**2 + 256.0**2) / 1125.0**2
+    assert sd["f"] == pytest.approx(11.25) and sd["cx"] == pytest.approx(6.4) and sd["cy"] == pytest.approx(5.12)
+    # either term alone moves the corner by 2 % of its radius
+    assert sd["k1"] * corner2 == pytest.approx(0.02) and sd["k2"] * corner2**2 == pytest.approx(0.02)

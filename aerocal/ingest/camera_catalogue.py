@@ -2,9 +2,11 @@
 
 A flight straight off the drone carries the make, the model, often the focal length (EXIF FocalLength)
 and the frame size, but never the pixel pitch, which turns millimetres into pixels. This table holds
-what the manufacturers' data sheets state (sensor size in pixels, pixel pitch, the fixed lens's focal
-length or the lenses offered, the readout); :func:`nominal_camera` builds the nominal
-:class:`~aerocal.camera.Camera` from it and says which value came from where. Nothing here is a
+the manufacturers' published specifications (sensor size in pixels, pixel pitch, the fixed lens's focal
+length or the lenses offered, the readout), entered from their product pages and not checked against a
+data sheet kept in this repository: each nominal camera says so, and a ``camera.json`` overrides it.
+:func:`nominal_camera` builds the nominal :class:`~aerocal.camera.Camera` from it and says which value
+came from where. Nothing here is a
 calibration: it is the starting point a self-calibration or a certificate improves on, checked the same
 way as a hand-written ``camera.json``.
 
@@ -42,7 +44,7 @@ class CatalogueCamera:
     focal_mm: float | None  # the fixed lens; None when lenses are interchangeable
     lenses_mm: tuple[float, ...] = ()  # lenses on offer (interchangeable lenses)
     readout: str = "microbolometer"
-    source: str = "manufacturer's data sheet"
+    source: str = "published specification, not checked against a data sheet here"
 
     def __post_init__(self) -> None:
         if self.readout not in READOUTS:

@@ -395,7 +395,8 @@ def common_camera_info(paths) -> tuple[FlirCameraInfo | None, str]:
         except (OSError, JpegFormatError, FlirFormatError) as exc:
             return None, f"{p}: not a readable FLIR radiometric JPEG ({exc})"
         if layout is None or layout[2] is None:
-            return None, f"{p}: no FLIR camera information (not a FLIR radiometric JPEG)"
+            return None, (f"{p}: not a FLIR radiometric JPEG with camera information (DJI R-JPEG counts have no "
+                          "documented conversion to temperature)")
         info = layout[2]
         if info.problems():
             return None, f"{p}: camera information unusable for temperatures ({'; '.join(info.problems())})"

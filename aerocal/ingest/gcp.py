@@ -33,7 +33,7 @@ from aerocal.ingest.delimited import read_text_lines
 from aerocal.ingest.gcp_csv import looks_like_gcp_csv, read_gcp_csv
 from aerocal.ingest.gcp_odm import read_odm_gcp_list
 from aerocal.ingest.gcp_records import GcpCoordinate, GcpFile, GcpMeasurement
-from aerocal.ingest.problems import Problem, ProblemLog, name_list
+from aerocal.ingest.problems import ProblemLog, name_list
 
 
 @dataclass(frozen=True)
@@ -113,12 +113,14 @@ def build_gcp_tables(
         d = float(np.linalg.norm(other - flight_xyz[point.gcp_id]))
         if not np.isfinite(d) or d > cfg.gcp_conflict_stop_m:
             # two files disagree by more than any survey: one of them is wrong, and only the user knows which
-            problems.add(Problem(
-                str(f.path), point.line, "X/Y/Z",
+            problems.blocker(
+                f.path,
                 f"{point.gcp_id} lies {d:.3f} m from its coordinates in {ref_file.path.name} line "
                 f"{ref_point.line}: one of the two is wrong. Fix: correct it, or remove the point from one "
                 "file",
-                "error", stops_processing=True))
+                "X/Y/Z",
+                point.line,
+            )
         elif d > cfg.gcp_coordinate_tolerance_m:
             problems.warning(
                 f.path,

@@ -156,8 +156,8 @@ def _read_jpeg(data, path, digest, cfg, error, warn):
         jpeg = parse_jpeg(data)
     except JpegFormatError as exc:
         return error(f"not a readable JPEG: {exc}; skipped")
-    raw_in_app = has_flir(jpeg) or raw_thermal_layout(jpeg) is not None
-    if not jpeg.has_eoi and not raw_in_app:
+    flir_present, layout = has_flir(jpeg), raw_thermal_layout(jpeg)
+    if not jpeg.has_eoi and not (flir_present or layout is not None):
         return error("truncated JPEG: no end-of-image marker after the image data; skipped")
     if not jpeg.has_eoi:
         warn(
@@ -181,7 +181,7 @@ def _read_jpeg(data, path, digest, cfg, error, warn):
             packet = packet_from_app1(payload)
             if packet is not None and not xmp:
                 xmp = _xmp_from(packet, warn)
-    if has_flir(jpeg):
+    if flir_present:
         try:
             flir = flir_layout(jpeg)
         except FlirFormatError as exc:
@@ -197,7 +197,6 @@ def _read_jpeg(data, path, digest, cfg, error, warn):
         meta.raw_format = "flir-fff"
         _flir_extra(meta, info, warn)
         return meta, exif, xmp
-    layout = raw_thermal_layout(jpeg)
     if layout is not None:
         meta.width, meta.height = layout
         meta.bit_depth = 16

@@ -54,9 +54,9 @@ class ProblemLog:
     ) -> None:
         self.add(Problem(str(file), line, field, message, "error"))
 
-    def blocker(self, file: str | Path, message: str, field: str | None = None) -> None:
+    def blocker(self, file: str | Path, message: str, field: str | None = None, line: int | None = None) -> None:
         """An error that ``aerocal process`` cannot go past; ``message`` names the fix."""
-        self.add(Problem(str(file), None, field, message, "error", stops_processing=True))
+        self.add(Problem(str(file), line, field, message, "error", stops_processing=True))
 
     def warning(
         self, file: str | Path, message: str, field: str | None = None, line: int | None = None

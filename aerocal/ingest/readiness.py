@@ -37,8 +37,8 @@ _CAMERA_TEMPLATE = (
 
 
 def read_flight_json(path: str | Path, problems: ProblemLog) -> dict:
-    """The fields of ``flight.json``; a value that fails its check is dropped and is an error that stops
-    processing (a wrong sigma or height must not be replaced by a default without the user knowing)."""
+    """The fields of ``flight.json``; an unreadable file, or a value that fails its check, is an error that
+    stops processing (a wrong sigma or height must not be replaced by a default without the user knowing)."""
     path = Path(path)
     try:
         if path.stat().st_size > MAX_JSON_BYTES:
@@ -46,13 +46,15 @@ def read_flight_json(path: str | Path, problems: ProblemLog) -> dict:
             return {}
         obj = json.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
-        problems.error(path, f"cannot be read ({exc.strerror or exc}); ignored")
+        problems.blocker(path, f"cannot be read ({exc.strerror or exc}). Fix: make it readable or remove it")
         return {}
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        problems.error(path, f"is not valid JSON ({exc}); ignored", None, getattr(exc, "lineno", None))
+        problems.blocker(path, f"is not valid JSON ({exc}). Fix: correct it or remove it", None,
+                         getattr(exc, "lineno", None))
         return {}
     if not isinstance(obj, dict):
-        problems.error(path, "must hold a JSON object (height_agl_m, gnss_sigma_m, ...); ignored")
+        problems.blocker(path, "must hold a JSON object (height_agl_m, gnss_sigma_m, ...). Fix: correct it or "
+                         "remove it")
         return {}
     out = dict(obj)
     for key, (kind, lo, hi) in FLIGHT_FIELDS.items():
@@ -66,9 +68,8 @@ def read_flight_json(path: str | Path, problems: ProblemLog) -> dict:
         )
         if not ok:
             shape = "a list of 1-3 numbers" if kind == "list" else "a number"
-            # the user's own value is wrong: never replaced silently by a default or an inferred one
             problems.blocker(path, f"{key} = {value!r} must be {shape} in {lo:g}..{hi:g}. Fix: correct it or "
-                             "remove the key", key)
+                             "remove the key", key)  # never replaced silently by a default or inferred value
             del out[key]
     return out
 
