@@ -22,6 +22,7 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal import tables
+from aerocal.adjust.control import ControlScreeningConfig, intersect_gcp, misfit_covariance, screen_points
 from aerocal.camera import Camera
 from aerocal.geometry import (
     R_cw_to_opk,
@@ -238,36 +239,48 @@ def orient_incremental(
 
 
 def georeference(poses: pa.Table, camera: Camera, gcps: pa.Table, gcp_observations: pa.Table,
-                 crs: str | None = None) -> tuple[pa.Table, Similarity]:
-    """Move a reconstruction into the flight CRS by a similarity on the triangulated control points."""
+                 crs: str | None = None, screening: ControlScreeningConfig | None = None,
+                 ) -> tuple[pa.Table, Similarity]:
+    """Move a reconstruction into the flight CRS by a similarity on the intersected control points.
+
+    The similarity is fitted on the points that pass the data snooping of
+    :func:`aerocal.adjust.control.screen_points` (each point against the similarity of the others): a
+    control point with wrong coordinates or a wrong label would otherwise tilt and shift the whole block.
+    """
+    config = screening or ControlScreeningConfig()
     ids, R, C = poses_arrays(poses)
     index = {int(k): i for i, k in enumerate(ids)}
     g = gcps.to_pydict()
-    surveyed = {gid: np.array([g["X"][k], g["Y"][k], g["Z"][k]]) for k, gid in enumerate(g["gcp_id"])
-                if g["role"][k] == "control"}
     go = gcp_observations.to_pydict()
-    model, world = [], []
-    for gid in surveyed:
-        rows = [k for k, (name, iid) in enumerate(zip(go["gcp_id"], go["image_id"], strict=True))
-                if name == gid and int(iid) in index]
+    go_gid = np.asarray(go["gcp_id"], dtype=object)
+    go_img = np.asarray(go["image_id"], dtype=np.int64)
+    hits, world, survey = [], [], []
+    for k, gid in enumerate(g["gcp_id"]):
+        if g["role"][k] != "control":
+            continue
+        rows = np.flatnonzero((go_gid == gid) & np.isin(go_img, list(index)))
         if len(rows) < 2:
             continue
-        A, b = np.zeros((3, 3)), np.zeros(3)
-        for k in rows:
-            i = index[int(go["image_id"][k])]
-            xy = camera.unproject(np.array([[go["x"][k], go["y"][k]]]))[0]
-            d = R[i].T @ np.array([xy[0], xy[1], 1.0])
-            d /= np.linalg.norm(d)
-            P = np.eye(3) - np.outer(d, d)
-            A += P
-            b += P @ C[i]
-        model.append(np.linalg.solve(A, b))
-        world.append(surveyed[gid])
-    if len(model) < 3:
+        pk = np.array([index[int(i)] for i in go_img[rows]])
+        uv = np.column_stack([np.asarray(go["x"])[rows], np.asarray(go["y"])[rows]])
+        hit = intersect_gcp(camera, R[pk], C[pk], uv, np.asarray(go["sigma"], float)[rows], go_img[rows],
+                            config.measurement_limit_px)
+        if hit is None:
+            continue
+        hits.append(hit)
+        world.append([g["X"][k], g["Y"][k], g["Z"][k]])
+        survey.append([g["sigma_x"][k], g["sigma_y"][k], g["sigma_z"][k]])
+    if len(hits) < 3:
         raise OrientationError(
-            f"georeferencing needs at least 3 control points seen in 2 oriented images, found {len(model)}; "
+            f"georeferencing needs at least 3 control points seen in 2 oriented images, found {len(hits)}; "
             "add ground control or GNSS")
-    sim = estimate_similarity(np.asarray(model), np.asarray(world))
+    model, world = np.stack([h.xyz for h in hits]), np.asarray(world)
+    first = estimate_similarity(model, world)
+    cov = misfit_covariance(hits, np.asarray(survey), camera.f, config, scale=first.scale)
+    keep = screen_points(world, first.apply(model), cov, "similarity", config)[0]
+    if keep.sum() < 3:
+        keep[:] = True
+    sim = estimate_similarity(model[keep], world[keep])
     C_w = sim.apply(C)
     R_w = np.einsum("nij,jk->nik", R, sim.R.T)  # R_cw' = R_cw S^T: p_cam = R (S^T (X - t) / s - ...)
     return poses_table(ids, R_w, C_w, crs or tables.crs_of(gcps)), sim

@@ -111,6 +111,12 @@ def _print_run(summary: dict[str, Any]) -> None:
     for key, text in (summary.get("flight_facts") or {}).items():
         if not text.startswith(("flight.json", "/")):  # inferred from the images: say so
             console.print(f"{key}: {text}")
+    control = summary.get("ground_control") or {}
+    if control.get("demoted"):
+        console.print(f"[yellow]ground control demoted[/yellow] (neither control nor check point): "
+                      f"{', '.join(control['demoted'])}")
+    for line in control.get("lines") or []:
+        console.print(f"ground control: {line}")
     console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
     if summary.get("adjustment_converged") is False:
         console.print(f"[yellow]the block adjustment did not converge[/yellow] ({summary.get('adjustment_iterations')} "

@@ -9,6 +9,7 @@ from typing import Any
 from aerocal.adjust import AdjustConfig, ThinningConfig
 from tasks.block import BlockStepConfig
 from tasks.calibration import CalibrationStepConfig
+from tasks.control import ControlStepConfig
 from tasks.flight import IngestStepConfig, MatchStepConfig, OrientStepConfig
 from tasks.products import MosaicStepConfig, ReportStepConfig
 from tasks.resume import configuration_json
@@ -45,6 +46,7 @@ class ProcessConfig:
     ingest: IngestStepConfig = field(default_factory=IngestStepConfig)
     match: MatchStepConfig = field(default_factory=MatchStepConfig)
     orient: OrientStepConfig = field(default_factory=OrientStepConfig)
+    control: ControlStepConfig = field(default_factory=ControlStepConfig)
     calibration: CalibrationStepConfig = field(default_factory=CalibrationStepConfig)
     block: BlockStepConfig = field(default_factory=BlockStepConfig)
     mosaic: MosaicStepConfig = field(default_factory=MosaicStepConfig)

@@ -32,6 +32,7 @@ from storage.provenance import provenance
 from storage.runs import finish_run, get_run, start_run
 from tasks.block import adjust_task
 from tasks.calibration import calibrate_task, issue_task, select_task
+from tasks.control import control_task
 from tasks.flight import ingest_task, manifest_task, match_task, observations_mode, orient_task
 from tasks.products import assess_task, diagnose_task, export_file, mosaic_task, report_task
 from tasks.resume import StepContext, StepResult, configuration_json, skip_step
@@ -49,6 +50,7 @@ EXPORTS = {
     "diagnosis": "diagnosis.json",
     "assessment": "assessment.json",
     "adjustment": "adjustment.json",
+    "ground_control": "ground_control.json",
 }
 
 
@@ -160,6 +162,13 @@ def _process(
         blk_cfg = dataclasses.replace(blk_cfg, gnss_sigma_m=None, attitude_sigma_deg=None)
         _record_configuration(ctx, config, certificate, flight_dir, out_dir, dask_address, cal_cfg, blk_cfg)
 
+    ctl = control_task(ctx, ing, observations, ori, blk_cfg, config.control)
+    steps["control"] = _step_info(ctl)
+    # every later step sees the screened ground control: a demoted point is neither control nor check
+    ing = dataclasses.replace(ing, outputs={**ing.outputs, "gcps": ctl["gcps"],
+                                            "gcp_observations": ctl["gcp_observations"],
+                                            "control_screening": ctl["screening"]})
+
     chosen: tuple[str | None, str | None, str] = (None, None, "self-calibration asked for")
     if certificate == "auto" and not calibrate_only:
         chosen = select_task(ctx, ing, None, config.max_certificate_age_days)
@@ -183,10 +192,12 @@ def _process(
         "flight_facts": flight.get("facts") or {},
         "certificate_id": cert_id,
         "certificate_reason": reason,
+        "ground_control": {"datum": ctl.extra.get("datum"), "demoted": ctl.extra.get("demoted", []),
+                           "lines": ctl.extra.get("lines", [])},
         "steps": steps,
         "out_dir": str(out_dir),
     }
-    outputs: dict[str, str] = {"certificate": cert_sha}
+    outputs: dict[str, str] = {"certificate": cert_sha, "ground_control": ctl["screening"]}
     if calibration is not None:
         outputs["calibration"] = calibration["calibration"]
         outputs["calibration_certificate"] = calibration["certificate"]

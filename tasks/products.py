@@ -370,6 +370,18 @@ def _check_point_block(poses, adj: dict, gcps):
     return block_figure(centres, points_en=en, residuals=errs, ids=ids)
 
 
+def _screening_text(screening: dict) -> str:
+    """One line of what the ground-control screening found (:mod:`aerocal.adjust.control`)."""
+    if screening.get("datum") == "none":
+        return "; ".join(screening.get("notes") or []) or "none"
+    verdicts = screening.get("verdicts") or []
+    kept = sum(v["status"] == "kept" for v in verdicts)
+    untested = sum(v["status"] == "not tested" for v in verdicts)
+    head = f"{kept} point(s) consistent with the block, {len(screening.get('demoted') or [])} demoted, " \
+           f"{untested} not testable"
+    return "; ".join([head] + list(screening.get("lines") or []))
+
+
 def report_step(
     ctx: StepContext,
     ingest: StepResult,
@@ -400,6 +412,8 @@ def report_step(
         "diagnosis": diagnosis["diagnosis"],
         "gcps": ingest["gcps"],
     }
+    if "control_screening" in ingest.outputs:
+        inputs["control_screening"] = ingest["control_screening"]
     with ctx.database.session() as session:
         flight_doc = json.loads(ctx.store.read_bytes(ctx.store.get(session, ingest["flight"])))
         reference = reference_dsm_path(flight_doc)
@@ -452,6 +466,8 @@ def report_step(
             "twin": (diag.get("twin") or {}).get("summary", "not made"),
             "gsd_m": mos.get("gsd_m"),
             "mosaic_frames": mos.get("frames"),
+            "ground_control": _screening_text(inp.json("control_screening"))
+                              if inp.has("control_screening") else "not screened",
         }
         figs = [_check_point_block(inp.table("poses"), adj, inp.table("gcps"))]
         notes: list[str] = []
