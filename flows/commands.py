@@ -100,6 +100,10 @@ def _print_steps(summary: dict[str, Any]) -> None:
     console.print(table)
 
 
+#: ingest problems the run summary prints (errors first); `aerocal ingest` lists them all
+INGEST_LINES = 10
+
+
 def _print_run(summary: dict[str, Any]) -> None:
     _print_steps(summary)
     skipped = summary.get("images_skipped_at_ingest") or []
@@ -108,6 +112,17 @@ def _print_run(summary: dict[str, Any]) -> None:
 
         console.print(f"[yellow]{len(skipped)} image(s) skipped at ingest[/yellow]: {name_list(skipped)} "
                       "(`aerocal ingest FOLDER` says why)")
+    problems = summary.get("ingest_problems") or []
+    errors = [p for p in problems if p.endswith("[error]")]
+    warnings = [p for p in problems if p.endswith("[warning]")]
+    shown = errors[:INGEST_LINES] + warnings[: max(0, INGEST_LINES - len(errors))]
+    if shown:
+        console.print(f"[yellow]ingest found {len(errors)} error(s) and {len(warnings)} warning(s)[/yellow] that did "
+                      "not stop processing (a certificate from input with errors is stored as rejected):")
+        for line in shown:
+            console.print(f"  {line}", markup=False, highlight=False)
+        if len(problems) > len(shown):
+            console.print(f"  ... and {len(problems) - len(shown)} more: `aerocal ingest FOLDER` lists them all")
     for key, text in (summary.get("flight_facts") or {}).items():
         if not text.startswith(("flight.json", "/")):  # inferred from the images: say so
             console.print(f"{key}: {text}")

@@ -189,6 +189,7 @@ def _process(
         "flight": flight["name"],
         "mode": flight["mode"],
         "images_skipped_at_ingest": flight.get("skipped_images") or [],
+        "ingest_problems": flight.get("problems") or [],
         "flight_facts": flight.get("facts") or {},
         "certificate_id": cert_id,
         "certificate_reason": reason,

@@ -105,6 +105,23 @@ def read_eo_csv(
             angle_names = names
     c_ang = None if angle_names is None else [header.index(n) for n in angle_names]
     c_temp = find_column(header, TEMPERATURE_COLUMNS)
+    for names in (("roll", "pitch", "yaw"), ("omega", "phi", "kappa")):
+        present = [n for n in names if n in header]
+        if present and len(present) < 3 and angle_names is None:
+            missing = [n for n in names if n not in header]
+            problems.blocker(
+                path,
+                f"header has {', '.join(present)} but no {', '.join(missing)}: angles come in threes, so no "
+                "attitude is read from this file (the images' own attitude, if any, would be used instead). "
+                f"Fix: name the columns {','.join(names)}",
+                "header",
+                header_line,
+            )
+    known = set(IMAGE_COLUMNS + LAT_COLUMNS + LON_COLUMNS + X_COLUMNS + Y_COLUMNS + HEIGHT_COLUMNS
+                + TEMPERATURE_COLUMNS + ("roll", "pitch", "yaw", "omega", "phi", "kappa"))
+    unknown = [f"{k + 1} ({name!r})" for k, name in enumerate(header) if name not in known]
+    if unknown:
+        problems.warning(path, f"column(s) {', '.join(unknown)} not known; ignored", "header", header_line)
 
     # CRS of the coordinates
     src_crs: str | None = None

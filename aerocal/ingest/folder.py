@@ -282,7 +282,7 @@ def ingest_folder(
         sources["eo"] = str(eo_path)
         eo = _guarded(problems, eo_path, read_eo_csv, eo_path, problems, user_crs, cfg.eo_default_attitude)
         if eo is not None:
-            _apply_eo(eo, metas, problems)
+            _apply_eo(eo, metas, problems, set(skipped))
     gcp_files: list[GcpFile] = []
     for p in gcp_paths:
         f = _guarded(problems, p, read_gcp_file, p, problems, cfg, user_crs)
@@ -345,7 +345,8 @@ def ingest_folder(
     if flight_crs is not None:
         gcps, gcp_obs = tables.with_crs(gcps, flight_crs), tables.with_crs(gcp_obs, flight_crs)
     _temperature_notes(metas, where, problems)
-    eo_errors = [p for p in problems if eo_path is not None and p.file == str(eo_path) and p.severity == "error"]
+    eo_errors = [p for p in problems if eo_path is not None and p.file == str(eo_path) and p.severity == "error"
+                 and not p.stops_processing]
     check_processable(
         problems, where, images, gcps, camera, camera_source, identity, height, inputs.sidecar_dir, skipped,
         eo_errors,
@@ -423,7 +424,9 @@ def _drop_duplicates(
     return out
 
 
-def _apply_eo(eo: EoFile, metas: list[ImageMetadata], problems: ProblemLog) -> None:
+def _apply_eo(eo: EoFile, metas: list[ImageMetadata], problems: ProblemLog, skipped: set[str] = frozenset()) -> None:
+    """Put the EO file's positions, attitudes and temperatures on the images. A row of an image that was
+    skipped (its own error says why) is a warning, not a second error: its image is gone, not the row wrong."""
     exact = {m.name: m for m in metas}
     lower = {m.name.lower(): m for m in metas}
     stem = {Path(m.name).stem.lower(): m for m in metas}
@@ -431,9 +434,13 @@ def _apply_eo(eo: EoFile, metas: list[ImageMetadata], problems: ProblemLog) -> N
     for name, rec in eo.records.items():
         m = exact.get(name) or lower.get(name.lower()) or stem.get(Path(name).stem.lower())
         if m is None:
-            problems.error(
-                eo.path, f"image {name} is not among the ingested images; row ignored", "image", rec.line
-            )
+            if name in skipped or Path(name).name in skipped:
+                problems.warning(eo.path, f"image {name} was skipped (see its error); its row is not used", "image",
+                                 rec.line)
+            else:
+                problems.error(
+                    eo.path, f"image {name} is not among the ingested images; row ignored", "image", rec.line
+                )
             continue
         covered.add(m.name)
         pose = m.pose

@@ -215,14 +215,12 @@ def _check_measurements(
                 continue  # its coordinates were reported
             frame = images.get(m.image)
             if frame is None:
-                why = (
-                    "could not be ingested (see its error)"
-                    if m.image in folder_files
-                    else "is not in the image folder"
-                )
-                problems.error(
-                    m.file, f"image {m.image} {why}; measurement of {m.gcp_id} ignored", "image", m.line
-                )
+                if m.image in folder_files:  # the image's own error says why: one error, not one per line
+                    problems.warning(m.file, f"image {m.image} could not be ingested (see its error); measurement "
+                                     f"of {m.gcp_id} ignored", "image", m.line)
+                else:
+                    problems.error(m.file, f"image {m.image} is not in the image folder; measurement of {m.gcp_id} "
+                                   "ignored", "image", m.line)
                 continue
             if not (0.0 <= m.x <= frame.width and 0.0 <= m.y <= frame.height):
                 problems.error(

@@ -356,9 +356,10 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
         tables.write(sim.gcps, obs_dir / "gcps.parquet", "gcps")
         tables.write(sim.gcp_observations, obs_dir / "gcp_observations.parquet", "gcp_observations")
         (tmp / "eo.csv").write_text(_eo_csv(sim))
-        gcsv, odm = _gcp_files(sim)
-        (tmp / "gcps.csv").write_text(gcsv)
-        (tmp / "gcp_list.txt").write_text(odm)
+        if sim.gcps.num_rows:  # a flight without ground control has no GCP files (an empty one is an error)
+            gcsv, odm = _gcp_files(sim)
+            (tmp / "gcps.csv").write_text(gcsv)
+            (tmp / "gcp_list.txt").write_text(odm)
         write_json_atomic(tmp / "camera.json", {"identity": sim.spec.identity,
                                                 "camera": sim.spec.camera_nominal.to_dict()})
         write_json_atomic(tmp / "flight.json", {
