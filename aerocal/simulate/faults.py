@@ -270,7 +270,7 @@ def camera_json(folder: Path, rng: np.random.Generator) -> AppliedFault:
         path.write_text(path.read_text()[: int(rng.integers(5, 60))])
         return AppliedFault("camera-json", "camera.json", "stop", ("camera.json",), "cut short")
     changes = [None, ("f", -cam["f"]), ("f", 1e308), ("k1", 1e300), ("width", cam["width"] + 1),
-               ("f", float("nan")), ("cx", None)][what]
+               ("f", float("nan")), ("cx", None), ("f", "1668 px")][what]
     key, value = changes
     if value is None:
         del cam[key]

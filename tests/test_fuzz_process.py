@@ -1,0 +1,59 @@
+"""A fast subset of the fault corpus through `aerocal process` (the whole corpus: benchmarks/fuzz_process_bench.py).
+
+One simulated flight (conte-calibration, 12 rendered frames, eo.csv, GCP files, camera.json, flight.json);
+each case is a copy with one fault of :mod:`aerocal.simulate.faults`, processed by the CLI against one
+shared store. What a user checks: no traceback, exit code 2 for input that must stop, the file (or the GCP)
+named, and nothing stored or changed by a run that did not succeed. One case kills `aerocal process` with
+SIGKILL midway: the store stays whole, `aerocal runs list` does not show the dead run as running, and a
+re-run succeeds.
+"""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from benchmarks.fuzz_process_bench import make_base, run_case, run_kill
+
+SEED = 7
+#: (kind, seed): the preflight stops are fast; one image fault and one displaced GCP run the whole flight
+CASES = [
+    ("eo-cell", 1006),
+    ("eo-header", 1010),
+    ("eo-truncated", 1009),
+    ("eo-row-missing", 1007),
+    ("gcp-conflict", 1013),
+    ("camera-json", 1016),
+    ("camera-json", 1018),
+    ("flight-json", 1017),
+    ("flight-json", 1020),
+    ("image-truncated", 1000),
+    ("gcp-displaced", 1012),
+]
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory):
+    from prefect.settings import PREFECT_API_URL
+    from prefect_harness import prefect_harness
+
+    root = tmp_path_factory.mktemp("fuzz")
+    with prefect_harness():
+        env = {**os.environ, "PREFECT_API_URL": PREFECT_API_URL.value(), "COLUMNS": "250"}
+        base = make_base(root, SEED, env)
+        yield base, root / "cases", root / "aerocal.db", root / "artifacts", env
+
+
+@pytest.mark.parametrize("kind,seed", CASES)
+def test_a_fault_is_stopped_or_said_and_changes_nothing(kind, seed, corpus):
+    base, work, db, artifacts, env = corpus
+    out = run_case(base, kind, seed, work, db, artifacts, env)
+    assert not out.problems, (f"fault seed {seed}, flight seed {SEED}: {out.fault.detail}: {out.problems}\n"
+                              f"{out.output[-3000:]}")
+
+
+def test_sigkill_midway_leaves_the_store_whole_and_a_rerun_succeeds(corpus):
+    base, work, db, artifacts, env = corpus
+    out = run_kill(base, 4, work, db, artifacts, env)
+    assert not out.problems, f"seed 4, flight seed {SEED}: {out.fault.detail}: {out.problems}\n{out.output[-3000:]}"
