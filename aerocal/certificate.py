@@ -636,7 +636,10 @@ def _number(v: Any, path: str, *, positive: bool = False, nonneg: bool = False, 
         what += " or null"
     if isinstance(v, bool) or not isinstance(v, int | float):
         raise _fail(path, what, v, fix)
-    x = float(v)
+    try:
+        x = float(v)
+    except OverflowError:  # an integer written out with hundreds of digits
+        raise _fail(path, what, v, fix) from None
     if not math.isfinite(x) or (positive and x <= 0) or (nonneg and x < 0):
         raise _fail(path, what, v, fix)
     return x

@@ -26,6 +26,10 @@ _ART_HELP = "Artifact store folder (default: $AEROCAL_ARTIFACT_ROOT, else ~/.loc
 _DASK_HELP = "Address of a Dask scheduler (e.g. tcp://scheduler:8786); default: a local cluster per step."
 
 
+#: exit code of a command refused because of its input (1: it failed; 130: interrupted)
+BAD_INPUT = 2
+
+
 def _fail(message: str, code: int = 1) -> NoReturn:
     err_console.print(f"[red]error:[/red] {' '.join(str(message).split())}", markup=True, soft_wrap=True)
     raise typer.Exit(code)
@@ -33,16 +37,21 @@ def _fail(message: str, code: int = 1) -> NoReturn:
 
 @contextlib.contextmanager
 def _user_errors() -> Iterator[None]:
-    """Turn the errors a user can cause into one line and exit code 1."""
+    """Turn the errors a user can cause into one line: exit code 2 for bad input (a flight folder, file or
+    argument that is wrong or missing), 1 for what failed (the database, an adjustment that cannot go on)."""
+    from flows.flight import FlowInputError
     from storage.errors import StorageError
+    from tasks.flight import FlightInputError
 
     try:
         yield
     except StorageError as exc:
         _fail(str(exc))
+    except (FlowInputError, FlightInputError) as exc:
+        _fail(str(exc), BAD_INPUT)
     except OSError as exc:
-        _fail(f"{exc.filename or ''}: {exc.strerror or exc}; check the path")
-    except (ValueError, LookupError) as exc:  # FlowInputError, FlightInputError, CertificateError, ...
+        _fail(f"{exc.filename or ''}: {exc.strerror or exc}; check the path", BAD_INPUT)
+    except (ValueError, LookupError) as exc:  # CertificateError, AdjustmentError, ...
         _fail(str(exc))
 
 
@@ -83,7 +92,7 @@ def _prefect_ready() -> None:
 def _require_folder(folder: Path, what: str = "a flight folder (images/ or observations/)") -> None:
     """Fail before any server starts when the folder does not exist."""
     if not folder.is_dir():
-        _fail(f"{folder} is not a folder; give {what}")
+        _fail(f"{folder} is not a folder; give {what}", BAD_INPUT)
 
 
 def _print_steps(summary: dict[str, Any]) -> None:
@@ -266,11 +275,13 @@ calibrate_app = typer.Typer(help="Calibrate a camera from a flight and store the
 
 
 def _subset_config(subset: str) -> dict[str, Any]:
+    from flows.flight import FlowInputError
+
     if subset == "auto":
         return {}
     path = Path(subset)
     if not path.is_file():
-        raise ValueError(
+        raise FlowInputError(
             f"--subset {subset}: no such file; give auto or a file of image names or ids, one per line"
         )
     items = []
@@ -279,12 +290,12 @@ def _subset_config(subset: str) -> dict[str, Any]:
         if text:
             items.append((n, text))
     if not items:
-        raise ValueError(f"{path}: no image names or ids; write one per line")
+        raise FlowInputError(f"{path}: no image names or ids; write one per line")
     if all(t.isdigit() for _, t in items):
         return {"subset_images": tuple(int(t) for _, t in items)}
     bad = [(n, t) for n, t in items if t.isdigit()]
     if bad:
-        raise ValueError(
+        raise FlowInputError(
             f"{path}:{bad[0][0]}: {bad[0][1]!r} is an id among image names; use names or ids, not both"
         )
     return {"subset_names": tuple(t for _, t in items)}
@@ -484,7 +495,7 @@ def ingest(
     from aerocal.ingest import ingest_folder, summary_rows, write_ingest
 
     if not folder.exists():
-        _fail(f"{folder}: no such folder; give a flight folder or a folder of images")
+        _fail(f"{folder}: no such folder; give a flight folder or a folder of images", BAD_INPUT)
     with _user_errors():
         with console.status(f"ingesting {folder} ..."):
             result = ingest_folder(folder, gcp_file=list(gcp) or None, eo_file=eo, crs=crs)
@@ -531,7 +542,7 @@ def match(
     from aerocal.ingest import ingest_folder
 
     if not folder.is_dir():
-        _fail(f"{folder}: no such folder; give a flight folder with images/")
+        _fail(f"{folder}: no such folder; give a flight folder with images/", BAD_INPUT)
     with _user_errors():
         from tasks.flight import FlightInputError, MatchStepConfig, match_images
 
@@ -584,11 +595,11 @@ def report(
     """
     path = run_dir / "summary.json"
     if not path.is_file():
-        _fail(f"{path}: no such file; give a run folder written by `aerocal process` (or re-run it)")
+        _fail(f"{path}: no such file; give a run folder written by `aerocal process` (or re-run it)", BAD_INPUT)
     try:
         doc = json.loads(path.read_text())
     except json.JSONDecodeError as exc:
-        _fail(f"{path}:{exc.lineno}: not valid JSON ({exc.msg}); re-run `aerocal process` to rewrite it")
+        _fail(f"{path}:{exc.lineno}: not valid JSON ({exc.msg}); re-run `aerocal process` to rewrite it", BAD_INPUT)
     if as_json:
         console.print_json(json.dumps(doc))
         return

@@ -42,6 +42,10 @@ class ExportFormat(StrEnum):
     metashape = "metashape"
 
 
+#: exit code of a command refused because of its input (1: it failed)
+BAD_INPUT = 2
+
+
 def _fail(message: str, code: int = 1) -> NoReturn:
     err_console.print(f"[red]error:[/red] {' '.join(str(message).split())}", markup=True, soft_wrap=True)
     raise typer.Exit(code)
@@ -49,7 +53,8 @@ def _fail(message: str, code: int = 1) -> NoReturn:
 
 @contextlib.contextmanager
 def _user_errors(source: str | None = None) -> Iterator[None]:
-    """Turn the errors a user can cause into one line and exit code 1."""
+    """Turn the errors a user can cause into one line: exit code 2 for bad input (the file ``source``, an
+    argument), 1 for what failed (the database)."""
     from storage.errors import StorageError
 
     where = f"{source}: " if source else ""
@@ -58,13 +63,14 @@ def _user_errors(source: str | None = None) -> Iterator[None]:
     except StorageError as exc:
         _fail(f"{where}{exc}" if source and source not in str(exc) else str(exc))
     except json.JSONDecodeError as exc:
-        _fail(f"{where}line {exc.lineno} column {exc.colno}: not valid JSON ({exc.msg}); fix the file there")
+        _fail(f"{where}line {exc.lineno} column {exc.colno}: not valid JSON ({exc.msg}); fix the file there",
+              BAD_INPUT)
     except OSError as exc:
         name = exc.filename or source or ""
-        _fail(f"{name}: {exc.strerror or exc}; check the path")
+        _fail(f"{name}: {exc.strerror or exc}; check the path", BAD_INPUT)
     except ValueError as exc:  # includes aerocal's FormatError and CertificateError
         message = str(exc)
-        _fail(message if source is None or source in message else f"{where}{message}")
+        _fail(message if source is None or source in message else f"{where}{message}", BAD_INPUT)
 
 
 def _open(url: str | None, migrated: bool = True):  # -> storage.database.Database
@@ -398,7 +404,7 @@ def certificates_import(
 
     identity = {k: v for k, v in (("make", make), ("model", model), ("serial", serial), ("lens", lens)) if v}
     if not file.is_file():
-        _fail(f"{file}: no such file; check the path")
+        _fail(f"{file}: no such file; check the path", BAD_INPUT)
     with _user_errors(str(file)):
         doc = _read_document(file, fmt.value if fmt else None, identity)
         db = _open(database_url)

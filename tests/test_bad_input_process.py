@@ -132,3 +132,24 @@ def test_ground_control_1000_m_off_in_one_file_stops_process(tmp_path, store):
     assert "G1 lies 1000.000 m from its coordinates" in text and "one of the two is wrong" in text, text
     assert "G2 lies" not in text
     assert listing() == before
+
+
+@pytest.mark.parametrize("name,text", [
+    ("cameras.txt", "1 PINHOLE 640 1" + "0" * 400 + " 764.7 764.7 320 256\n"),
+    ("cameras.txt", "1 PINHOLE 640 512 1e308 1e308 320 256\n"),
+    ("cameras.json", '{"v2 x 640 512 brown 0.85": {"projection_type": "brown", "width": 640, "height": '
+                     '-1' + "0" * 400 + ', "focal_x": 1.2, "focal_y": 1.2, "c_x": 0, "c_y": 0, "k1": 0, "k2": 0, '
+                     '"p1": 0, "p2": 0, "k3": 0}}'),
+    ("calibration.xml", '<?xml version="1.0" encoding="UTFabc"?><calibration><projection>frame</projection>'
+                        "<width>640</width><height>512</height><f>764</f></calibration>"),
+])
+def test_a_hostile_certificate_file_is_refused_and_changes_nothing(name, text, tmp_path, store):
+    url, listing = store
+    before = listing()
+    path = tmp_path / name
+    path.write_text(text)
+    res = CliRunner().invoke(app, ["certificates", "import", str(path), "--make", "NEC", "--model", "TS9260",
+                                   "--serial", "1", "--database-url", url])
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output and name in " ".join(res.output.split()), res.output
+    assert listing() == before

@@ -49,7 +49,7 @@ def test_top_level_help_lists_the_platform_commands(run):
 def test_process_of_a_missing_folder_is_one_line_naming_it(run, tmp_path):
     missing = tmp_path / "no-such-flight"
     result = run("process", str(missing), "--database-url", f"sqlite:///{tmp_path / 'a.db'}")
-    assert result.exit_code == 1
+    assert result.exit_code == 2
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert len(lines) == 1 and "no-such-flight" in lines[0] and "give a flight folder" in lines[0], (
         result.output
@@ -64,7 +64,7 @@ def test_calibrate_subset_file_errors_name_the_file_and_line(run, tmp_path):
     result = run(
         "calibrate", str(flight), "--subset", str(subset), "--database-url", f"sqlite:///{tmp_path / 'a.db'}"
     )
-    assert result.exit_code == 1
+    assert result.exit_code == 2
     assert f"{subset}:2" in " ".join(result.output.split()), result.output
 
 
@@ -85,7 +85,7 @@ def test_campaign_list_and_bad_cron(run, tmp_path):
     flight = tmp_path / "flight"
     flight.mkdir()
     result = run("campaign", "add", "c1", str(flight), "--cron", "every night", "--database-url", url)
-    assert result.exit_code == 1
+    assert result.exit_code == 2
     assert "cron 'every night'" in result.output and "five fields" in result.output, result.output
 
 
@@ -97,7 +97,7 @@ def test_report_prints_a_run_folders_figures(run, tmp_path):
     assert result.exit_code == 0, result.output
     assert "flight-a" in result.output and "1.02" in result.output and "report.html" in result.output
     result = run("report", str(tmp_path / "nothing"))
-    assert result.exit_code == 1 and "summary.json" in result.output
+    assert result.exit_code == 2 and "summary.json" in result.output
 
 
 def test_the_step_cache_follows_a_sqlite_store_the_user_named(tmp_path, monkeypatch):

@@ -361,7 +361,7 @@ MALFORMED_FILES = [
     ("colmap", "b.txt", "1 OPENCV_FISHEYE 640 512 1100 1100 320 256 0 0 0 0\n",
      "b.txt: line 1, field MODEL: camera model OPENCV_FISHEYE cannot be held"),
     ("colmap", "c.txt", "1 PINHOLE 640 -512 1100 1100 320 256\n",
-     "c.txt: line 1, field HEIGHT: expected a positive integer, got '-512'"),
+     "c.txt: line 1, field HEIGHT: expected a positive integer of at most 200000, got '-512'"),
     ("colmap", "d.txt", "1 PINHOLE 640 512 1100 1100 320 256\n2 PINHOLE 640 512 900 900 320 256\n",
      "d.txt: field CAMERA_ID: 2 cameras ([1, 2]); pass camera_id= to choose one"),
     ("colmap", "e.txt", "1 FULL_OPENCV 640 512 1100 1100 320 256 0 0 0 0 0 0.1 0 0\n",
@@ -451,3 +451,35 @@ def test_opensfm_import_of_perspective_and_reconstruction_json(tmp_path):
         {"k": {"projection_type": "perspective", "width": 640, "height": 480, "focal": 0.9, "k1": -0.1}}))
     cam = import_certificate(persp).camera
     assert (cam.f, cam.cx, cam.cy, cam.k1, cam.b1) == (576.0, 320.0, 240.0, -0.1, 0.0)
+
+
+#: what a hand edit, a script or an attacker puts where a number belongs
+HOSTILE_NUMBERS = ["1" + "0" * 400, "-1" + "0" * 400, "1e400", "-1e400", "nan", "inf", "-5", "0", "1e-320", "abc",
+                   "", "4294967297", "9" * 25]
+FUZZ_SEED = 20261125
+
+
+def test_hostile_numbers_in_every_format_are_format_errors(tmp_path):
+    """750 seeded mutations (each number of an exported file replaced by a hostile token): every import either
+    succeeds or raises FormatError naming the file; never OverflowError, TypeError or another crash."""
+    import re
+
+    rng = np.random.default_rng(FUZZ_SEED)
+    for fmt, name in FILE_NAMES.items():
+        path = tmp_path / name
+        export_certificate(certificate_of(distorted_camera(0.3 if fmt in ("metashape", "certificate") else 0.0)),
+                           fmt, path)
+        text = path.read_text()
+        numbers = list(re.finditer(r"-?\d+(\.\d+)?([eE][-+]?\d+)?", text))
+        for k in range(150):
+            m = numbers[int(rng.integers(len(numbers)))]
+            token = HOSTILE_NUMBERS[int(rng.integers(len(HOSTILE_NUMBERS)))]
+            bad = tmp_path / f"bad-{name}"
+            bad.write_text(text[: m.start()] + token + text[m.end():])
+            try:
+                import_certificate(bad, fmt)
+            except FormatError as exc:
+                assert str(exc).startswith(str(bad)) and "\n" not in str(exc), f"seed {FUZZ_SEED} case {k}: {exc}"
+            except Exception as exc:  # the assertion: nothing else is raised
+                pytest.fail(f"seed {FUZZ_SEED}, {fmt} case {k}: {m.group(0)!r} -> {token[:20]!r}: "
+                            f"{type(exc).__name__}: {exc}")

@@ -29,8 +29,9 @@ def _moved(gcps: pa.Table, index: int, axis: str, metres: float) -> pa.Table:
 @pytest.mark.parametrize("preset", ["conte-calibration", "daakir-uav"])
 def test_clean_control_is_kept_and_blunders_are_demoted(preset):
     """Over 3 seeds: no clean point demoted; a point moved 1000 m across, or in height by 6 % of the flying
-    height (51 m at 850 m, 20 m at 70 m: 9 GSD vertical sigma is the floor), is the one demoted (the nominal camera is 1 % off in f on conte-calibration and 31 px off in cx on daakir-uav:
-    the reference block is deformed by metres, and the test still holds)."""
+    height (51 m at 850 m, 20 m at 70 m: 9 GSD vertical sigma is the floor), is the one demoted. The nominal
+    camera is 1 % off in f on conte-calibration and 31 px off in cx on daakir-uav: the reference block is
+    deformed by metres, and the test still holds."""
     cfg = AdjustConfig()
     for seed in range(3):
         sim = simulate_flight(preset, seed=seed, max_images=24)

@@ -41,7 +41,7 @@ def test_a_failing_run_is_one_line_and_leaves_a_run_json_that_says_so(tmp_path):
                            str(tmp_path / "art"), "--out", str(tmp_path / "run")],
                           capture_output=True, text=True, timeout=600, cwd=tmp_path)
     lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
-    assert done.returncode == 1, f"seed {SEED}: {done.stdout}\n{done.stderr}"
+    assert done.returncode == 2, f"seed {SEED}: {done.stdout}\n{done.stderr}"  # bad input
     assert len(lines) == 1 and "camera.json is missing" in lines[0], lines
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["status"] == "failed" and "camera.json is missing" in run["error"] and "again" in run["resume"]

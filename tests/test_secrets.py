@@ -41,7 +41,7 @@ def test_a_database_password_is_never_a_flow_parameter(prefect_server, tmp_path,
 
     res = CliRunner().invoke(app, ["process", str(flight), "--database-url", url_text, "--artifacts",
                                    str(tmp_path / "art"), "--out", str(tmp_path / "run")])
-    assert res.exit_code == 1 and "camera.json is missing" in " ".join(res.output.split()), res.output
+    assert res.exit_code == 2 and "camera.json is missing" in " ".join(res.output.split()), res.output
     assert PASSWORD not in res.output
 
     from prefect.client.orchestration import get_client

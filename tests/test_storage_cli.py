@@ -118,7 +118,7 @@ def test_foreign_formats_go_through_aerocal_formats(
     yaml_file.write_text("%YAML:1.0\n")
     # a foreign file without camera identity is refused: a certificate must name its camera
     refused = invoke(certificates_app, "import", str(yaml_file), *url)
-    assert refused.exit_code == 1
+    assert refused.exit_code == 2
     expected = "the file does not name the camera's make, model, serial; pass --make, --model, --serial"
     assert f"{yaml_file}: {expected}" in refused.output
     result = invoke(
@@ -151,14 +151,14 @@ def test_user_errors_are_one_line_with_the_file_and_the_fix(make_certificate, st
     broken = tmp_path / "broken.json"
     broken.write_text('{\n  "schema": "aerocal.certificate/1",\n  "id": oops\n}\n')
     result = invoke(certificates_app, "import", str(broken), *url)
-    assert result.exit_code == 1
+    assert result.exit_code == 2
     assert f"{broken}: line 3 column" in result.output and "not valid JSON" in result.output
     no_serial = make_certificate(f"x-{unique}")
     del no_serial["camera"]["serial"]
     path = tmp_path / "no_serial.json"
     path.write_text(json.dumps(no_serial))
     result = invoke(certificates_app, "import", str(path), *url)
-    assert result.exit_code == 1 and f"{path}: the file does not name the camera's serial; pass --serial" in (
+    assert result.exit_code == 2 and f"{path}: the file does not name the camera's serial; pass --serial" in (
         result.output
     )
     assert len(result.output.strip().splitlines()) == 1, result.output
@@ -171,7 +171,7 @@ def test_user_errors_are_one_line_with_the_file_and_the_fix(make_certificate, st
     result = invoke(runs_app, "show", f"nothing-{unique}", *url)
     assert result.exit_code == 1 and "not found" in result.output
     result = invoke(certificates_app, "import", str(tmp_path / "absent.json"), *url)
-    assert result.exit_code == 1 and "absent.json: no such file" in result.output
+    assert result.exit_code == 2 and "absent.json: no such file" in result.output
 
 
 def test_runs_list_and_show_provenance(make_certificate, storage_url, unique):

@@ -13,7 +13,7 @@ import math
 from pathlib import Path
 
 from aerocal.camera import from_pycolmap, to_pycolmap
-from aerocal.certificate import CameraIdentity, Certificate
+from aerocal.certificate import MAX_IMAGE_SIDE_PX, CameraIdentity, Certificate
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import decode_text, format_error, read_bytes
 from aerocal.io import write_text_atomic
@@ -76,8 +76,10 @@ def read_colmap_cameras(
                 value = int(token)
             except ValueError:
                 value = 0
-            if value <= 0:
-                problem = f"expected a positive integer, got {token!r}"
+            limit = MAX_IMAGE_SIDE_PX if name != "CAMERA_ID" else 2**31 - 1
+            if not 0 < value <= limit:
+                problem = f"expected a positive integer of at most {limit}, got {token[:40]!r}" + (
+                    "..." if len(token) > 40 else "")
                 raise format_error(path, f"{where}, field {name}", problem, f"write {name} as a whole number")
             ints.append(value)
         cid, width, height = ints

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from aerocal.camera import PARAM_NAMES, Camera
-from aerocal.certificate import CameraIdentity, Certificate, sigmas_and_correlation
+from aerocal.certificate import MAX_IMAGE_SIDE_PX, CameraIdentity, Certificate, sigmas_and_correlation
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import FormatError, format_error, parse_xml, read_bytes
 from aerocal.io import write_text_atomic
@@ -153,8 +153,10 @@ def _size(path: Path, calib: ET.Element, sensor_el: ET.Element | None) -> tuple[
             w, h = (int(a) for a in attrs)
         except (TypeError, ValueError):
             w = h = 0
-        if w <= 0 or h <= 0:
-            raise format_error(path, where, f"image size must be two positive integers, got {attrs}",
+        if not (0 < w <= MAX_IMAGE_SIDE_PX and 0 < h <= MAX_IMAGE_SIDE_PX):
+            shown = tuple(a if a is None or len(a) <= 20 else a[:17] + "..." for a in attrs)
+            raise format_error(path, where, f"image size must be two positive integers of at most "
+                               f"{MAX_IMAGE_SIDE_PX}, got {shown}",
                                "write the width and height in pixels")
         return w, h
     raise format_error(path, "<width>", "missing image size", "add <width> and <height> (pixels)")

@@ -35,6 +35,7 @@ from aerocal.certificate import CameraIdentity, Certificate
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import (
     decode_text,
+    finite_float,
     format_error,
     load_yaml_mapping,
     parse_xml,
@@ -181,7 +182,7 @@ def _camera_from_fields(
     rms = None
     if "avg_reprojection_error" in fields:
         rms = fields["avg_reprojection_error"]
-        if isinstance(rms, bool) or not isinstance(rms, int | float) or not np.isfinite(rms) or rms < 0:
+        if finite_float(rms) is None or rms < 0:
             raise format_error(path, _where(lines, "avg_reprojection_error"),
                                f"expected a number >= 0, got {rms!r}",
                                "write the RMS reprojection error in pixels, or remove the field")

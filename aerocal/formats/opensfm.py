@@ -21,15 +21,21 @@ and ``simple_radial`` projection types, and the ``cameras`` of the first reconst
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 from aerocal.camera import Camera
-from aerocal.certificate import CameraIdentity, Certificate
+from aerocal.certificate import MAX_IMAGE_SIDE_PX, CameraIdentity, Certificate
 from aerocal.formats.imported import imported_certificate
-from aerocal.formats.safe_parsing import FormatError, decode_text, format_error, read_bytes
+from aerocal.formats.safe_parsing import (
+    FormatError,
+    decode_text,
+    finite_float,
+    format_error,
+    read_bytes,
+    short_repr,
+)
 from aerocal.io import write_text_atomic
 
 #: Projection types the importer reads and their parameters (beyond width/height).
@@ -92,8 +98,9 @@ def from_opensfm(obj: Mapping[str, Any], where: str = "camera") -> Camera:
         v = obj.get(k)
         if isinstance(v, float) and v.is_integer():
             v = int(v)
-        if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-            raise ValueError(f"{where}.{k}: expected a positive integer, got {v!r}; "
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 < v <= MAX_IMAGE_SIDE_PX:
+            raise ValueError(f"{where}.{k}: expected a positive integer of at most {MAX_IMAGE_SIDE_PX}, got "
+                             f"{short_repr(v)}; "
                              f"write the image {k} in pixels")
         size_wh.append(v)
     w, h = size_wh
@@ -102,7 +109,7 @@ def from_opensfm(obj: Mapping[str, Any], where: str = "camera") -> Camera:
         if k not in obj and k in _REQUIRED[ptype]:
             raise ValueError(f"{where}.{k}: missing; add the normalised focal length")
         v = obj.get(k, 0.0)
-        if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        if finite_float(v) is None:
             raise ValueError(f"{where}.{k}: expected a finite number, got {v!r}; write a JSON number")
         vals[k] = float(v)
     size = float(max(w, h))

@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
@@ -85,6 +86,9 @@ def parse_xml(path: str | Path, data: bytes) -> ET.Element:
         msg = str(e).split(":")[0]
         raise format_error(path, f"line {line}, column {col + 1}", f"malformed XML ({msg})",
                            "fix the XML syntax there") from None
+    except (LookupError, ValueError) as e:  # an unknown encoding in the XML declaration, bytes it cannot decode
+        raise format_error(path, "<?xml ...?>", f"cannot decode the XML ({short_repr(str(e), 80)})",
+                           "write the file as UTF-8 with encoding=\"UTF-8\" in its declaration") from None
 
 
 # --------------------------------------------------------------------------------------------- YAML
@@ -114,11 +118,12 @@ def _construct_opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> np.nda
     problem = None
     rows, cols, dtype, data = m.get("rows"), m.get("cols"), m.get("dt"), m.get("data")
     if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (rows, cols)):
-        problem = f"!!opencv-matrix needs positive integer rows and cols, got rows={rows!r}, cols={cols!r}"
+        problem = (f"!!opencv-matrix needs positive integer rows and cols, got rows={short_repr(rows)}, "
+                   f"cols={short_repr(cols)}")
     elif dtype not in ("d", "f", "i", "u", "s", "c", "w"):
         problem = f"!!opencv-matrix dt {dtype!r} is not a single-channel numeric type"
     elif not isinstance(data, list) or len(data) != rows * cols or not all(
-        isinstance(v, int | float) and not isinstance(v, bool) for v in data
+        finite_float(v) is not None for v in data
     ):
         problem = f"!!opencv-matrix data must be {rows * cols} numbers (rows x cols)"
     if problem:
@@ -206,3 +211,21 @@ def _yaml_error(path: str | Path, e: yaml.YAMLError, field: str | None) -> Forma
         where.append(f"field {field}")
     problem = getattr(e, "problem", None) or str(e).split("\n")[0]
     return format_error(path, ", ".join(where) or None, f"invalid YAML ({problem})", "fix the YAML there")
+
+
+def finite_float(v: object) -> float | None:
+    """``v`` as a finite float when it is a JSON/YAML number (not a bool), else None. An integer too large
+    for a float (10^400 written out) is None, not an OverflowError."""
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        return None
+    try:
+        x = float(v)
+    except OverflowError:
+        return None
+    return x if math.isfinite(x) else None
+
+
+def short_repr(value: object, limit: int = 24) -> str:
+    """``repr(value)`` cut to ``limit`` characters (a number written with 400 digits is echoed as its start)."""
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
