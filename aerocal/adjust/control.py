@@ -276,7 +276,8 @@ def screen_points(surveyed: np.ndarray, measured: np.ndarray, covariance: np.nda
                 var_fit = 1.0 / info
             r = T.apply(measured[i:i + 1])[0] - surveyed[i]
             r_round[i], c_round[i] = r, covariance[i] + np.diag(var_fit)
-        factor = np.ones(3)
+        # the scatter of a round never drops below an earlier round's: demoting points must not make the
+        # others' a-priori sigmas small again (a cascade that demoted 6 of 8 copr points before this rule)
         if len(idx) >= config.min_points_for_scatter:
             # the points scatter more than the a-priori sigmas say (the reference block's own errors, e.g.
             # the nominal camera's): per axis, the tests use their robust scatter, never less than the
@@ -286,7 +287,7 @@ def screen_points(surveyed: np.ndarray, measured: np.ndarray, covariance: np.nda
             best = min(inside, key=lambda i: float(np.median(inside[i])))
             m = len(inside[best])
             dof = m / max(m - (7.0 if kind == "similarity" else 3.0) / 3.0, 1.0)
-            factor = np.maximum(1.0, dof * np.median(inside[best], axis=0) / chi2.ppf(0.5, 1))
+            factor = np.maximum(factor, dof * np.median(inside[best], axis=0) / chi2.ppf(0.5, 1))
         scale = np.sqrt(factor)
         c_scaled = c_round * scale[None, :, None] * scale[None, None, :]
         t_round = np.full(n, np.nan)
