@@ -7,7 +7,6 @@ says why it is not.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 
 from prefect import task
@@ -79,7 +78,7 @@ def control_step(
                                   "lines": result.lines()}, "extra"),
         }
 
-    params = {"config": config, "adjust": dataclasses.replace(adjust_config), "sfm": oriented_by_sfm}
+    params = {"config": config, "adjust": adjust_config, "sfm": oriented_by_sfm}
     return run_step(ctx, "control", inputs, params, compute)
 
 

@@ -155,13 +155,10 @@ def _rays(camera: Camera, R: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def _intersect(C: np.ndarray, d: np.ndarray, sig_m: np.ndarray | None = None) -> np.ndarray:
-    """Least-squares intersection of rays (origins C, unit directions d), each weighted by 1 / sig_m^2."""
-    w = np.ones(len(C)) if sig_m is None else 1.0 / sig_m**2
+def _intersect(C: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Least-squares intersection (metres) of rays with origins C (n, 3) and unit directions d (n, 3)."""
     P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    A = np.einsum("n,nij->ij", w, P)
-    b = np.einsum("n,nij,nj->i", w, P, C)
-    return np.linalg.lstsq(A, b, rcond=None)[0]
+    return np.linalg.lstsq(P.sum(axis=0), np.einsum("nij,nj->i", P, C), rcond=None)[0]
 
 
 def _project(camera: Camera, R: np.ndarray, C: np.ndarray, X: np.ndarray) -> np.ndarray:
