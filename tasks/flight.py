@@ -149,6 +149,26 @@ def blocking_report(result) -> str:
     return "\n".join(lines)
 
 
+def _with_shared_identity(cam_doc: dict) -> dict:
+    """An observations-mode ``camera.json`` whose identity records no serial gets the serial-less identity an
+    image-mode flight of that camera gets (``no-serial WxH``, :func:`aerocal.ingest.inferred.certificate_identity`):
+    a thermal camera that writes no serial into its files must still be processable, and its certificate
+    found again."""
+    from aerocal.ingest.camera_identity import identity_of
+    from aerocal.ingest.inferred import certificate_identity
+
+    ident = cam_doc.get("identity") or {}
+    serial = str(ident.get("serial") or "") if isinstance(ident, dict) else ""
+    if not isinstance(ident, dict) or serial.strip().lower() not in ("", "unknown") \
+            or not isinstance(cam_doc.get("camera"), dict):
+        return cam_doc
+    given = identity_of(ident.get("make"), ident.get("model"), "", ident.get("lens"))
+    shared = certificate_identity([], given, Camera.from_dict(cam_doc["camera"]))
+    if shared is None:
+        return cam_doc
+    return {**cam_doc, "identity": {k: getattr(shared, k) for k in ("make", "model", "serial", "lens")}}
+
+
 def ingest_step(
     ctx: StepContext, flight_dir: str | Path, manifest: str, config: IngestStepConfig | None = None
 ) -> StepResult:
@@ -178,7 +198,7 @@ def ingest_step(
                 raise FlightInputError(
                     f"{cam_path} is missing; write the camera identity and nominal model there"
                 )
-            cam_doc = json.loads(cam_path.read_text())
+            cam_doc = _with_shared_identity(json.loads(cam_path.read_text()))
             crs = (tabs["images"].schema.metadata or {}).get(b"aerocal.crs", b"").decode() or meta.get("crs")
             problems: list[str] = []
             mode = "observations"
