@@ -139,12 +139,14 @@ def run_case(base: Path, kind: str, seed: int, work: Path, db: Path, artifacts: 
     return Outcome(fault, seed, done.returncode, seconds, problems, output)
 
 
-def run_kill(base: Path, seed: int, work: Path, db: Path, artifacts: Path, env: dict) -> Outcome:
-    """SIGKILL `aerocal process` after a random delay; the store must stay whole and a re-run succeed."""
+def run_kill(base: Path, seed: int, work: Path, env: dict) -> Outcome:
+    """SIGKILL `aerocal process` after a random delay, on a store of its own (so no step is cached and the
+    kill lands mid-run); the store must stay whole, the dead run not be listed as running, a re-run succeed."""
     rng = np.random.default_rng(seed)
     delay = float(rng.uniform(1.0, 25.0))
     case = work / f"kill-{seed}"
     shutil.rmtree(case, ignore_errors=True)
+    db, artifacts = case / "aerocal.db", case / "artifacts"
     shutil.copytree(base, case / "flight", ignore=shutil.ignore_patterns("truth*", "reference"))
     fault = AppliedFault("kill", "-", "quiet", (), f"SIGKILL after {delay:.1f} s")
     args = [AEROCAL, "process", "flight", "--out", "run", "--database-url", f"sqlite:///{db}", "--artifacts",
@@ -212,7 +214,7 @@ def main(n_cases: int | None = None) -> None:
         outcomes = []
         t0 = time.perf_counter()
         for i, (kind, seed) in enumerate(corpus(n_cases, 1000)):
-            out = run_kill(base, seed, work, db, artifacts, env) if kind == "kill" else \
+            out = run_kill(base, seed, work, env) if kind == "kill" else \
                 run_case(base, kind, seed, work, db, artifacts, env)
             outcomes.append(out)
             print(f"[{i + 1}/{n_cases}] {out.line()}", flush=True)

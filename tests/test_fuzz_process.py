@@ -55,5 +55,5 @@ def test_a_fault_is_stopped_or_said_and_changes_nothing(kind, seed, corpus):
 
 def test_sigkill_midway_leaves_the_store_whole_and_a_rerun_succeeds(corpus):
     base, work, db, artifacts, env = corpus
-    out = run_kill(base, 4, work, db, artifacts, env)
+    out = run_kill(base, 4, work, env)
     assert not out.problems, f"seed 4, flight seed {SEED}: {out.fault.detail}: {out.problems}\n{out.output[-3000:]}"
