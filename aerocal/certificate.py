@@ -731,6 +731,18 @@ MAX_DISTORTION_COEFFICIENT = 100.0
 MAX_PIXEL_SIZE_MM = 1.0
 
 
+def validate_camera(camera: Camera) -> None:
+    """Raise :class:`CertificateError` naming the field when ``camera`` holds a value no real frame camera
+    has (non-finite, or outside the bounds above): a nominal camera from ``camera.json`` gets the checks
+    a certificate gets."""
+    params = {n: float(getattr(camera, n)) for n in PARAM_NAMES}
+    for n, x in params.items():
+        if not math.isfinite(x) or (n == "f" and x <= 0):
+            raise _fail(f"model.params.{n}", "a positive number" if n == "f" else "a finite number", x,
+                        f"write {n} as a finite number")
+    _sane_model(int(camera.width), int(camera.height), camera.pixel_size_mm, params)
+
+
 def _sane_model(width: int, height: int, pix: float | None, params: dict[str, float]) -> None:
     side = max(width, height)
     for name, size in (("width", width), ("height", height)):

@@ -39,6 +39,7 @@ def _fail(message: str, code: int = 1) -> NoReturn:
 def _user_errors() -> Iterator[None]:
     """Turn the errors a user can cause into one line: exit code 2 for bad input (a flight folder, file or
     argument that is wrong or missing), 1 for what failed (the database, an adjustment that cannot go on)."""
+    _prefect_ready()  # the error classes live in modules that import Prefect: its environment first
     from flows.flight import FlowInputError
     from storage.errors import StorageError
     from tasks.flight import FlightInputError

@@ -149,6 +149,20 @@ def blocking_report(result) -> str:
     return "\n".join(lines)
 
 
+def _camera_document(path: Path) -> dict:
+    """An observations-mode ``camera.json``, checked as a certificate's camera is (finite, plausible values)."""
+    from aerocal.certificate import validate_camera
+
+    try:
+        doc = json.loads(path.read_text())
+        validate_camera(Camera.from_dict(doc["camera"]))
+    except json.JSONDecodeError as exc:
+        raise FlightInputError(f"{path}:{exc.lineno}: not valid JSON ({exc.msg}); fix the file there") from None
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise FlightInputError(f"{path}: 'camera' is not a valid camera ({exc}); fix the file") from None
+    return doc
+
+
 def _with_shared_identity(cam_doc: dict) -> dict:
     """An observations-mode ``camera.json`` whose identity records no serial gets the serial-less identity an
     image-mode flight of that camera gets (``no-serial WxH``, :func:`aerocal.ingest.inferred.certificate_identity`):
@@ -198,7 +212,7 @@ def ingest_step(
                 raise FlightInputError(
                     f"{cam_path} is missing; write the camera identity and nominal model there"
                 )
-            cam_doc = _with_shared_identity(json.loads(cam_path.read_text()))
+            cam_doc = _with_shared_identity(_camera_document(cam_path))
             crs = (tabs["images"].schema.metadata or {}).get(b"aerocal.crs", b"").decode() or meta.get("crs")
             problems: list[str] = []
             mode = "observations"
@@ -355,14 +369,22 @@ def match_step(
     inputs = {k: ingest[k] for k in ("images", "camera", "flight", "gcps")}
 
     def compute(inp: StepInputs) -> dict:
-        kp, matches, obs, n_pairs = match_images(
-            inp.table("images"),
-            Camera.from_dict(inp.json("camera")["camera"]),
-            inp.table("gcps"),
-            inp.json("flight"),
-            config,
-            dask_address,
-        )
+        from aerocal.ingest.pixels import ImageReadError
+
+        try:
+            kp, matches, obs, n_pairs = match_images(
+                inp.table("images"),
+                Camera.from_dict(inp.json("camera")["camera"]),
+                inp.table("gcps"),
+                inp.json("flight"),
+                config,
+                dask_address,
+            )
+        except ImageReadError as exc:
+            # its header read at ingest, its pixels not: bad input, named, not a failure of the run
+            raise FlightInputError(f"{exc}; the pixels of this image cannot be decoded although its header was "
+                                   "read. Fix: replace the file, or move it out of images/ to process the others"
+                                   ) from None
         return {
             "keypoints": TableOutput(kp, "keypoints"),
             "matches": TableOutput(matches, "matches"),

@@ -28,6 +28,8 @@ CASES = [
     ("camera-json", 1018),
     ("flight-json", 1017),
     ("flight-json", 1020),
+    ("camera-json", 1106),  # f = 1e308: was a traceback from the control step's SVD
+    ("flight-json", 1161),  # crs = EPSG:999999: was ignored (the images' UTM zone used)
     ("image-truncated", 1000),
     ("gcp-displaced", 1012),
 ]
@@ -57,3 +59,14 @@ def test_sigkill_midway_leaves_the_store_whole_and_a_rerun_succeeds(corpus):
     base, work, db, artifacts, env = corpus
     out = run_kill(base, 4, work, env)
     assert not out.problems, f"seed 4, flight seed {SEED}: {out.fault.detail}: {out.problems}\n{out.output[-3000:]}"
+
+
+def test_undecodable_pixels_stop_with_one_line_without_a_prefect_server(corpus):
+    """As a user runs it, with no Prefect server configured (a temporary one starts): an image whose header
+    reads but whose pixels do not is bad input named in one line, exit 2, no Prefect log or traceback."""
+    base, work, db, artifacts, env = corpus
+    env = {k: v for k, v in env.items() if k != "PREFECT_API_URL"}
+    out = run_case(base, "image-header-bitflip", 1093, work, db, artifacts, env)
+    lines = [line for line in out.output.splitlines() if line.strip()]
+    assert out.exit_code == 2 and not out.problems, f"flight seed {SEED}: {out.problems}\n{out.output[-3000:]}"
+    assert len(lines) == 1 and "IMG_0011.tif" in lines[0] and "Fix:" in lines[0], out.output

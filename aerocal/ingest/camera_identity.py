@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from aerocal.camera import Camera
+from aerocal.certificate import validate_camera
 from aerocal.ingest.problems import ProblemLog
 
 UNKNOWN_CAMERA_ID = "unknown|unknown||"
@@ -86,8 +87,10 @@ def read_camera_json(path: str | Path, problems: ProblemLog) -> tuple[CameraIden
     cam = obj.get("camera")
     if isinstance(cam, dict):
         try:
-            camera = Camera.from_dict(cam)
-        except (TypeError, ValueError) as exc:
+            parsed = Camera.from_dict(cam)
+            validate_camera(parsed)
+            camera = parsed
+        except (TypeError, ValueError, OverflowError) as exc:
             problems.error(path, f"'camera' is not a valid Camera: {exc}; ignored", "camera")
     elif cam is not None:
         problems.warning(path, "'camera' is not an object; ignored", "camera")

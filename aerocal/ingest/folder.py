@@ -278,6 +278,8 @@ def ingest_folder(
     if flight_json is not None:
         plan = _guarded(problems, flight_json, read_flight_json, flight_json, problems) or {}
         sources["flight_json"] = str(flight_json)
+        if user_crs is None and plan.get("crs"):
+            user_crs = plan["crs"]  # the flight's own CRS, checked by read_flight_json
     if eo_path is not None:
         sources["eo"] = str(eo_path)
         eo = _guarded(problems, eo_path, read_eo_csv, eo_path, problems, user_crs, cfg.eo_default_attitude)

@@ -18,6 +18,7 @@ import pyarrow as pa
 
 from aerocal.camera import Camera
 from aerocal.ingest.camera_identity import CameraIdentity
+from aerocal.ingest.crs_strings import CrsTextError, crs_kind, normalise_crs
 from aerocal.ingest.problems import ProblemLog
 from aerocal.orient import has_priors
 
@@ -71,6 +72,16 @@ def read_flight_json(path: str | Path, problems: ProblemLog) -> dict:
             problems.blocker(path, f"{key} = {value!r} must be {shape} in {lo:g}..{hi:g}. Fix: correct it or "
                              "remove the key", key)  # never replaced silently by a default or inferred value
             del out[key]
+    if obj.get("crs") is not None:
+        try:
+            norm = normalise_crs(str(obj["crs"]))
+            if crs_kind(norm) != "projected":
+                raise CrsTextError(f"{obj['crs']!r} is not a projected CRS in metres")
+            out["crs"] = norm
+        except CrsTextError as exc:
+            problems.blocker(path, f"{exc}. Fix: write a projected CRS in metres (e.g. \"EPSG:32632\") or "
+                             "remove the key (the UTM zone of the images is then chosen)", "crs")
+            del out["crs"]
     return out
 
 
