@@ -110,7 +110,10 @@ def read_gcp_csv(path: str | Path, problems: ProblemLog, crs: str | None = None)
         point = GcpCoordinate(gcp_id, x, y, z, path, line)  # type: ignore[arg-type]
         ok = True
         for col, attr in ((c_sxy, "sigma_xy"), (c_sz, "sigma_z")):
-            if col is None or not fields[col]:
+            if col is None:
+                continue
+            if not fields[col].strip():
+                problems.warning(path, f"{gcp_id}: {attr} empty; the default sigma is used", attr, line)
                 continue
             value = to_float(fields[col])
             if value is None or value <= 0:
@@ -119,7 +122,9 @@ def read_gcp_csv(path: str | Path, problems: ProblemLog, crs: str | None = None)
                 ok = False
                 break
             setattr(point, attr, value)
-        if ok and c_role is not None and fields[c_role]:
+        if ok and c_role is not None and not fields[c_role].strip():
+            problems.warning(path, f"{gcp_id}: role empty; the default role is used", "role", line)
+        if ok and c_role is not None and fields[c_role].strip():
             role = fields[c_role].strip().lower()
             if role not in GCP_ROLES:
                 problems.error(
