@@ -53,7 +53,24 @@ def adjust_fixed_io(
     With ``thermal`` the tie-point and GCP measurements are corrected to T0 before adjusting (Daakir 2019).
     """
     config = dataclasses.replace(config or AdjustConfig(), free=(), thermal=(), adaptive=False)
-    return adjust(images, observations, camera, config, gcps, gcp_observations, thermal_correction=thermal)
+    result = adjust(images, observations, camera, config, gcps, gcp_observations, thermal_correction=thermal)
+    if result.converged:
+        return result
+    # a weakly determined direction (real h20t_forest: two opposite strips, consumer GNSS, no attitude
+    # records, no GCPs) can leave Levenberg-Marquardt in a slow tail: 50 iterations unconverged, 156 to
+    # converge with sigma0 the same to 5e-6; adjust again with a longer budget rather than report a
+    # solution as unfinished
+    longer = dataclasses.replace(config, max_iterations=SLOW_TAIL_FACTOR * config.max_iterations)
+    again = adjust(images, observations, camera, longer, gcps, gcp_observations, thermal_correction=thermal)
+    again.selection = again.selection + [
+        f"the adjustment stopped after {result.iterations} iterations without converging; adjusted again with up "
+        f"to {longer.max_iterations}: {'converged' if again.converged else 'did not converge either'} in "
+        f"{again.iterations}"]
+    return again
+
+
+#: the longer budget (times AdjustConfig.max_iterations) of a fixed-IO adjustment that did not converge
+SLOW_TAIL_FACTOR = 4
 
 
 def run_strategy(
