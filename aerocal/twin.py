@@ -184,8 +184,13 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
     twins = [block_statistics(make_twin(base, seed + k)) for k in range(n_twins)]
     mean, sd = _spread(twins)
     z, differs = {}, {}
+    n_tie = max(int(np.sum(base.block.obs_is_tie)), 1)
     for k, v in real.items():
         floor = 0.05 * abs(mean[k]) + 1e-12  # the twins' spread can be tiny for precise statistics
+        if k == "tail_fraction":
+            # a count: its Poisson spread, at least that of 3 events (4 of 8,000 observations beyond the
+            # 99.9 % point against twins with none had been named "mismatches beyond the blunder screening")
+            floor = max(floor, float(np.sqrt(max(mean[k] * n_tie, 3.0))) / n_tie)
         z[k] = float((v - mean[k]) / max(sd[k], floor)) if np.isfinite(v) and np.isfinite(mean[k]) else float("nan")
         if np.isfinite(z[k]) and z[k] > z_limit:
             differs[k] = CAUSES[k]
