@@ -60,7 +60,9 @@ def control_step(
                     "screening": JsonOutput(doc, "screening"),
                     "_extra": JsonOutput({"datum": datum, "demoted": [], "lines": []}, "extra")}
         if oriented_by_sfm or adjust_config.gnss_sigma_m is None:
-            datum, reference = "control", "the orientation georeferenced on the control it kept"
+            datum = "control"
+            reference = ("the orientation georeferenced on the control it kept" if oriented_by_sfm else
+                         "the recorded poses (no GNSS sigma configured: a similarity is allowed)")
         else:
             datum = "gnss"
             try:
