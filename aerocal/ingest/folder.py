@@ -407,10 +407,15 @@ def _guarded(problems: ProblemLog, path: Path, fn, *args):
 def _drop_duplicates(
     metas: list[ImageMetadata], problems: ProblemLog, skipped: list[str]
 ) -> list[ImageMetadata]:
+    """Of files with the same content, the one with the shortest name is kept (``IMG_0006.tif`` over its
+    copy ``IMG_0006 (1).tif``: the sidecars name the original; keeping the copy lost its EO row and GCP
+    measurements); the order of the others is kept."""
     by_hash: dict[str, ImageMetadata] = {}
     by_name: dict[str, ImageMetadata] = {}
     out = []
-    for m in metas:
+    rank = {id(m): k for k, m in enumerate(metas)}
+    preferred = sorted(metas, key=lambda m: (len(Path(m.name).stem), rank[id(m)]))
+    for m in preferred:
         if m.sha256 in by_hash:
             problems.error(
                 m.path, f"has the same content as {by_hash[m.sha256].path}; duplicate skipped", "sha256"
@@ -423,7 +428,7 @@ def _drop_duplicates(
             continue
         by_hash[m.sha256] = by_name[m.name] = m
         out.append(m)
-    return out
+    return sorted(out, key=lambda m: rank[id(m)])
 
 
 def _apply_eo(eo: EoFile, metas: list[ImageMetadata], problems: ProblemLog, skipped: set[str] = frozenset()) -> None:
