@@ -22,7 +22,14 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal import tables
-from aerocal.adjust.control import ControlScreeningConfig, intersect_gcp, misfit_covariance, screen_points
+from aerocal.adjust.control import (
+    ControlScreeningConfig,
+    heights_unknown,
+    intersect_gcp,
+    misfit_covariance,
+    plan_only,
+    screen_points,
+)
 from aerocal.camera import Camera
 from aerocal.geometry import (
     R_cw_to_opk,
@@ -276,8 +283,10 @@ def georeference(poses: pa.Table, camera: Camera, gcps: pa.Table, gcp_observatio
             "add ground control or GNSS")
     model, world = np.stack([h.xyz for h in hits]), np.asarray(world)
     first = estimate_similarity(model, world)
-    cov = misfit_covariance(hits, np.asarray(survey), camera.f, config, scale=first.scale)
-    keep = screen_points(world, first.apply(model), cov, "similarity", config)[0]
+    cov = misfit_covariance(hits, np.asarray(survey), camera.f, config, scale=first.scale,
+                            heights_unknown=heights_unknown(world))
+    tested = plan_only(first.apply(model), world) if heights_unknown(world) else first.apply(model)
+    keep = screen_points(world, tested, cov, "similarity", config)[0]
     if keep.sum() < 3:
         keep[:] = True
     sim = estimate_similarity(model[keep], world[keep])

@@ -119,3 +119,24 @@ def test_process_demotes_a_control_point_1000_m_off(tmp_path, prefect_server):
     assert "gnss_bias" not in [e["name"] for e in diagnosis.get("effects", [])], diagnosis.get("summary")
     report = (out / "report.html").read_text()
     assert gid in report and "demoted" in report
+
+
+def test_unknown_heights_are_tested_in_plan_only():
+    """GCP heights that are all 0.0 are unknown (ingest's rule): a point whose block height differs by 10 m
+    is kept, one 15 m off in plan is still demoted."""
+    from aerocal.adjust.control import _Intersection, heights_unknown, misfit_covariance, plan_only
+    from aerocal.geometry import estimate_similarity
+
+    rng = np.random.default_rng(8)
+    surveyed = np.column_stack([rng.uniform(0, 300, (7, 2)), np.zeros(7)])
+    measured = surveyed + rng.normal(0, 0.05, surveyed.shape)
+    measured[:, 2] += rng.normal(0, 3.0, 7)  # the terrain the 0.0 heights do not describe
+    measured[2, 2] += 10.0
+    measured[5, :2] += [12.0, 9.0]
+    hits = [_Intersection(m, np.eye(3) * 0.01, 3, [], 100.0) for m in measured]
+    assert heights_unknown(surveyed)
+    cov = misfit_covariance(hits, np.full((7, 3), 0.02), 2000.0, ControlScreeningConfig(), heights_unknown=True)
+    first = estimate_similarity(measured, surveyed)
+    tested = plan_only(first.apply(measured), surveyed)
+    keep = screen_points(surveyed, tested, cov, "similarity", ControlScreeningConfig())[0]
+    assert keep.tolist() == [True, True, True, True, True, False, True], keep

@@ -27,6 +27,7 @@ Method (data snooping, one point at a time, on a reference the control did not s
    (``floor_gsd`` ground sampling distances across, ``floor_vertical`` times that in height: the
    nominal camera's focal error and the GNSS noise). The point with the largest ``T_i`` above the
    chi-square(3) quantile ``1 - alpha`` is demoted and the test repeated on the others.
+   Surveyed heights that are all 0.0 are unknown (ingest's rule): the points are then tested in plan only.
 
 A demoted point is removed from control *and* from the check points (its coordinates are what is in
 doubt, so it would only inflate the check-point error); the report lists it with its misfit. Points with
@@ -50,8 +51,12 @@ import pyarrow.compute as pc
 from scipy.stats import chi2
 
 from aerocal import tables
+from aerocal.adjust.triangulate import triangulate_linear
 from aerocal.camera import Camera
 from aerocal.geometry import Similarity, estimate_similarity, matrix_from_quat_wxyz
+
+#: the height sigma (metres) a point whose height is unknown gets in the test: its height then never decides
+UNKNOWN_HEIGHT_SIGMA_M = 1.0e4
 
 
 @dataclass(frozen=True)
@@ -150,15 +155,13 @@ class _Intersection:
 
 
 def _rays(camera: Camera, R: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    xy = camera.unproject(uv)
-    d = np.einsum("nji,nj->ni", R, np.column_stack([xy, np.ones(len(xy))]))  # R^T (x, y, 1)
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    """Unit viewing rays in the world frame (n, 3) of pixels uv seen by frames R_cw (n, 3, 3)."""
+    return np.einsum("nji,nj->ni", R, camera.rays(uv))  # R^T d_cam
 
 
 def _intersect(C: np.ndarray, d: np.ndarray) -> np.ndarray:
     """Least-squares intersection (metres) of rays with origins C (n, 3) and unit directions d (n, 3)."""
-    P = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
-    return np.linalg.lstsq(P.sum(axis=0), np.einsum("nij,nj->i", P, C), rcond=None)[0]
+    return triangulate_linear(np.zeros(len(C), dtype=np.intp), 1, C, d)[0][0]
 
 
 def _project(camera: Camera, R: np.ndarray, C: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -199,16 +202,34 @@ def intersect_gcp(camera: Camera, R: np.ndarray, C: np.ndarray, uv: np.ndarray, 
     return _Intersection(X, np.linalg.inv(A), len(idx), dropped, float(np.median(depth)))
 
 
+def heights_unknown(surveyed: np.ndarray) -> bool:
+    """Ingest's rule (:mod:`aerocal.ingest.gcp`): surveyed heights that are all 0.0 are unknown, not sea
+    level (copr: gcp01 had been demoted on its 3.9 m "height" misfit)."""
+    return bool(len(surveyed)) and bool(np.all(np.asarray(surveyed)[:, 2] == 0.0))
+
+
+def plan_only(measured: np.ndarray, surveyed: np.ndarray) -> np.ndarray:
+    """``measured`` with the surveyed heights: where those are unknown, the block's heights must neither
+    tilt the datum transformation nor count in the test."""
+    out = np.array(measured, dtype=float)
+    out[:, 2] = np.asarray(surveyed)[:, 2]
+    return out
+
+
 def misfit_covariance(hits: list[_Intersection], survey_sigma: np.ndarray, f: float,
-                      config: ControlScreeningConfig, scale: float = 1.0) -> np.ndarray:
+                      config: ControlScreeningConfig, scale: float = 1.0, heights_unknown: bool = False,
+                      ) -> np.ndarray:
     """Covariance (n, 3, 3), world metres, of intersected minus surveyed: the intersection's (scaled by
     ``scale`` when it was made in a model frame), the survey's (``survey_sigma`` (n, 3)) and the floor of
-    what the reference block gets wrong (see :class:`ControlScreeningConfig`)."""
+    what the reference block gets wrong (see :class:`ControlScreeningConfig`); with ``heights_unknown``
+    the height gets :data:`UNKNOWN_HEIGHT_SIGMA_M`, so the points are tested in plan only."""
     depth = np.array([h.depth for h in hits]) * scale
     floor = config.floor_gsd * depth / f
     diag = survey_sigma**2 + np.column_stack([floor**2, floor**2, (config.floor_vertical * floor) ** 2])
     if len(hits) < config.min_points_for_scatter:
         diag = diag + (config.camera_tolerance * depth[:, None]) ** 2
+    if heights_unknown:
+        diag[:, 2] += UNKNOWN_HEIGHT_SIGMA_M**2
     cov = np.stack([h.cov for h in hits]) * scale**2
     return cov + np.einsum("ni,ij->nij", diag, np.eye(3))
 
@@ -378,7 +399,10 @@ def screen_control(
         hits = [inter[g["gcp_id"][k]] for k in tested]
         measured = np.stack([h.xyz for h in hits])
         survey = np.column_stack([g["sigma_x"], g["sigma_y"], g["sigma_z"]])[tested]
-        cov = misfit_covariance(hits, survey, camera.f, config)
+        cov = misfit_covariance(hits, survey, camera.f, config, heights_unknown=heights_unknown(surveyed))
+        if heights_unknown(surveyed):
+            notes.append("every GCP height is 0.0 (unknown): the points are tested in plan only")
+            measured = plan_only(measured, surveyed)
         prior = None
         if kind == "translation" and gnss_sigma_m is not None:
             depth = float(np.median([h.depth for h in hits]))
