@@ -126,23 +126,30 @@ def recorded_eo_rows(r: dict) -> list[list[str]]:
 
 
 def twin_rows(r: dict) -> list[list[str]]:
-    """Real statistic | twin mean +- sd | z | cause if it differs | extended twin | gap closed."""
+    """Real statistic | twin mean +- sd | z | cause if it differs | per extension tried: its twins' mean
+    (gap closed)."""
     twin = r["diagnosis"].get("twin") or {}
     if not twin:
         return []
-    ext = next(iter(twin.get("extended", {}).values()), None)
     rows = []
     for k, real in twin["real"].items():
         if real is None or not np.isfinite(real):
             continue
-        extended = gap = "-"
-        if ext is not None:
-            extended = f"{ext['twin_mean'].get(k, float('nan')):.4g}"
+        row = [k, f"{real:.4g}", f"{twin['twin_mean'][k]:.4g} +- {twin['twin_sd'][k]:.2g}", f"{twin['z'][k]:.1f}",
+               twin.get("differs", {}).get(k, "")]
+        for ext in twin.get("extended", {}).values():
+            cell = f"{ext['twin_mean'].get(k, float('nan')):.4g}"
             if k in ext.get("gap_closed", {}):
-                gap = f"{100 * ext['gap_closed'][k]:.0f} %"
-        rows.append([k, f"{real:.4g}", f"{twin['twin_mean'][k]:.4g} +- {twin['twin_sd'][k]:.2g}",
-                     f"{twin['z'][k]:.1f}", twin.get("differs", {}).get(k, ""), extended, gap])
+                cell += f" ({100 * ext['gap_closed'][k]:.0f} %)"
+            row.append(cell)
+        rows.append(row)
     return rows
+
+
+def _extension_header(name: str, ext: dict) -> str:
+    """A twin extension's column title: its name, the size it needed and whether that is physically possible."""
+    verdict = "" if ext.get("plausible", True) else ", beyond what is physically possible: not the cause"
+    return f"twin + {name} ({ext['physical']:.2g} {ext['unit']}{verdict}): mean (gap closed)"
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -154,7 +161,6 @@ def markdown(r: dict, title: str) -> str:
     cert, cal, d = r["calibration_certificate"], r["calibration"], r["diagnosis"]
     review = cert.review.to_dict() if cert.review is not None else {}
     twin = d.get("twin") or {}
-    ext = next(iter(twin.get("extended", {}).items()), None)
     lines = [
         f"# {title}",
         "",
@@ -192,9 +198,7 @@ def markdown(r: dict, title: str) -> str:
             "priors and their sigmas) made again with the simulation's noise model and adjusted the same way.",
             "",
             *_table(["statistic", "real", "twin", "z", "differs: likely cause",
-                     (f"extended twin ({ext[0]} {ext[1]['jitter']:.2g}"
-                      + ("" if ext[1].get("plausible", True) else ", beyond any lens: not the cause") + ")")
-                     if ext else "extended twin", "gap closed"],
+                     *[_extension_header(n, e) for n, e in twin.get("extended", {}).items()]],
                     twin_rows(r)),
             "",
             f"- {twin.get('summary')}",
@@ -223,9 +227,9 @@ def twin_figure(r: dict, path: Path) -> Path | None:
     y = np.arange(len(rows))
     ax.errorbar(np.ones(len(rows)), y, xerr=2 * sd, fmt="o", color="0.5", label="twin (mean +- 2 sd)")
     ax.plot(real, y, "s", color="C3", label="real block")
-    for name, ext in twin.get("extended", {}).items():
+    for n, (name, ext) in enumerate(twin.get("extended", {}).items()):
         e = np.array([ext["twin_mean"].get(k, np.nan) for k in rows]) / mean
-        ax.plot(e, y, "^", color="C0", label=f"extended twin ({name})")
+        ax.plot(e, y + 0.15 * (n + 1), "^v<>"[n % 4], color=f"C{n}", label=f"twin + {name}")
     ax.set_yticks(y, rows)
     ax.set_xscale("log")
     ax.set_xlabel("statistic / twin mean")

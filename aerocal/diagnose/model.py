@@ -110,6 +110,13 @@ def fit_baseline(images: pa.Table, observations: pa.Table, camera: Camera, confi
     return Baseline(block, covariates_from_images(images, block), config, sol, camera)
 
 
+#: 99.9 % point of chi-square with 2 dof: a tie observation beyond it (times the block's robust scale) is in the tail
+#: of its residuals (:mod:`aerocal.twin`)
+TAIL_CHI2 = 13.8
+#: median of chi-square with 2 dof (2 ln 2): the robust scale of a block's normalised squared tie residuals
+CHI2_2_MEDIAN = 1.386
+
+
 def refit(base: Baseline, block: Block) -> Baseline:
     """Re-adjust corrected measurements of the same block, starting from the previous solution."""
     sol = solve(Problem(block, base.config, 0.0), base.state.copy())
