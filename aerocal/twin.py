@@ -169,6 +169,8 @@ EXTENSION_FIELD_GRID = (8, 6)
 NAMED_CLOSENESS = 0.5
 #: closeness at which a named extension has reproduced its target: later candidates are not tried on it
 REPRODUCED_CLOSENESS = 0.8
+#: fewest twins of the block-wide causes named, whose spread decides which per-image statistics still differ
+BACKGROUND_TWINS = 6
 #: a sizing round stops once the extended twins' target is this close to the real value (share of the gap)
 SIZING_TOLERANCE = 0.1
 
@@ -456,13 +458,17 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
     bg_mean = mean
     per_frame_stage = False
     reproduced: set[str] = set()
+    bg: list[dict] = []
     for n_ext, ext in enumerate(EXTENSIONS):
         if ext.target in PER_IMAGE and not per_frame_stage:
             # the per-frame candidates share one background, and are tried only for the per-image statistics
             # that still differ beyond its twins' spread (the mismatches' random placement alone moves them)
             per_frame_stage, frame_mean = True, bg_mean
             if background:
-                bg = [block_statistics(make_twin(base, seed + 8000 + k, background, measured)) for k in range(n_twins)]
+                # at least BACKGROUND_TWINS: with mismatches in the background the per-image statistics scatter
+                # from twin to twin, and 3 twins' spread decided by chance whether a per-frame cause was tried
+                bg = [block_statistics(make_twin(base, seed + 9000 + k, background, measured))
+                      for k in range(max(n_twins, BACKGROUND_TWINS))]
                 frame_mean, frame_sd = _spread(bg)
                 _, still = _differs(base, real, frame_mean, frame_sd, z_limit)
                 reproduced.update(k for k in PER_IMAGE if k in differs and k not in still)
@@ -497,8 +503,11 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
     out.cause.update(_per_frame_cause(out, [k for k in PER_IMAGE if k in differs and k not in reproduced]))
     named = _named(out)
     if named:
-        both = [block_statistics(make_twin(base, seed + 9000 + k, {n: sizes[n] for n in named}, measured))
-                for k in range(n_twins)]
+        if named == list(background) and bg:  # no per-frame cause: the per-frame stage's background twins are it
+            both = bg
+        else:
+            both = [block_statistics(make_twin(base, seed + 9000 + k, {n: sizes[n] for n in named}, measured))
+                    for k in range(n_twins)]
         both_mean, both_sd = _spread(both)
         z_both, still = _differs(base, real, both_mean, both_sd, z_limit)
         out.combined = {"extensions": {n: sizes[n] for n in named}, "twin_mean": both_mean, "twin_sd": both_sd,
