@@ -546,7 +546,11 @@ def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
 def warm_start(block: Block, start: State, poses: pa.Table, points: pa.Table) -> State:
     """``start`` with the poses and tie points of an earlier adjustment of the same images (``poses`` and
     ``points`` tables, world coordinates) where they have them; IO, the recorded observations and their
-    weights are unchanged."""
+    weights are unchanged. A tie point the ``points`` table lacks is intersected again from the poses so set
+    (where its rays meet in front of the cameras): left where the recorded GNSS/IMU put it, it is metres off
+    the adjusted poses. On real seneca 1251 of 66,601 tracks were missing from the block adjustment's points;
+    from the records they gave the least-squares re-adjustment of the diagnosis a start at sigma0 87, and
+    2.5 % of its tie observations, 80 % of two images', stayed beyond the 99.9 % point in its end state."""
     st = start.copy()
     where = {int(k): n for n, k in enumerate(block.image_ids.tolist())}
     pid = poses.column("image_id").to_numpy()
@@ -565,6 +569,16 @@ def warm_start(block: Block, start: State, poses: pa.Table, points: pa.Table) ->
         pos = np.clip(np.searchsorted(ids, tid), 0, len(ids) - 1)
         found = (ids[pos] == tid) & np.isfinite(X).all(axis=1)
         st.X[order[pos[found]]] = X[found] - block.origin
+        missing = np.ones(block.n_tie, dtype=bool)
+        missing[order[pos[found]]] = False
+        if missing.any():
+            i, j = block.obs_image, block.obs_point
+            sel = block.obs_is_tie & missing[np.minimum(j, block.n_tie - 1)] & (j < block.n_tie)
+            if sel.any():
+                rays = pixels_to_rays(st.io, st.slopes, np.zeros(int(sel.sum())), st.R[i[sel]], block.obs_uv[sel])
+                Xn, ok = _intersect_in_front(j[sel], block.n_tie, st.R[i[sel]], st.C[i[sel]], rays)
+                redo = missing & ok
+                st.X[: block.n_tie][redo] = Xn[redo]
     return st
 
 
