@@ -443,7 +443,7 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
     real seneca, mismatches and a tie-point noise sized each on its own both took the tie variance factor, and
     together gave six times its gap); a statistic a named candidate reproduces is not given to a later one. The
     per-frame candidates are then tried, as alternatives, on top of every block-wide cause named, for the
-    per-image statistics still unexplained (:func:`_causes`)."""
+    per-image statistics still differing from the twins of the block-wide causes (:func:`_per_frame_cause`)."""
     real = block_statistics(base)
     twins = [block_statistics(make_twin(base, seed + k)) for k in range(n_twins)]
     mean, sd = _spread(twins)

@@ -29,6 +29,10 @@ the diagnosis. Figure: ``benchmarks/output/seneca_tie_points.png`` (tie points p
 order, sensor temperature on a twin axis); the per-image numbers in ``seneca_per_image.csv`` beside it.
 
 Run: ``python -m benchmarks.seneca_bench`` (``--quick``: strips 0, 2 and 4 only, ~30 images).
+``--work DIR --rediagnose`` times the diagnosis (with the flight's twin) again on the run kept in ``DIR``:
+the diagnose step's own engine call on the step's own inputs (the observations the block adjustment kept, its
+poses and points, the certificate it used), so that a change of the diagnosis is measured without matching
+and calibrating again (the step cache keys on inputs and configuration, not code).
 """
 
 from __future__ import annotations
@@ -171,13 +175,84 @@ def tie_point_figure(names: list[str], per_image: np.ndarray, used: np.ndarray, 
     return path
 
 
+def rediagnose(work: Path) -> list[str]:
+    """The diagnose step of the run kept in ``work`` done again by this code, timed: result lines."""
+    import dataclasses
+
+    import pyarrow as pa
+
+    from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
+    from aerocal.certificate import Certificate
+    from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+    from aerocal.diagnose.io_uncertainty import IOUncertainty
+    from tasks.resume import StepContext
+
+    measured_path = work / "measured.json"
+    if not measured_path.is_file():
+        raise SystemExit(f"{measured_path} not found: run the benchmark with --work {work} first")
+    summary = json.loads(measured_path.read_text())["summary"]
+    steps = summary["steps"]
+    cert = Certificate.from_dict(json.loads((Path(summary["out_dir"]) / "certificate.json").read_text()))
+    ctx = StepContext(f"sqlite:///{work / 'aerocal.db'}", str(work / "artifacts"), "benchmark")
+    with ctx.database.session() as session:
+        def art(sha):
+            return ctx.store.get(session, sha)
+
+        ing, adj = steps["ingest"]["outputs"], steps["adjust"]["outputs"]
+        images = ctx.store.read_table(art(ing["images"]), "images")
+        gcps = ctx.store.read_table(art(ing["gcps"]), "gcps")
+        gcp_obs = ctx.store.read_table(art(ing["gcp_observations"]), "gcp_observations")
+        obs = ctx.store.read_table(art(steps["match"]["outputs"]["observations"]), "observations")
+        weight = np.load(io.BytesIO(ctx.store.read_bytes(art(adj["obs_weight"]))))
+        residuals = np.load(io.BytesIO(ctx.store.read_bytes(art(adj["residuals"]))))
+        adjustment = json.loads(ctx.store.read_bytes(art(adj["adjustment"])))
+        poses = ctx.store.read_table(art(adj["poses"]), "poses")
+        points = ctx.store.read_table(art(adj["points"]), "points")
+    flight = json.loads((work / "seneca" / "flight.json").read_text())
+    h, v = flight["gnss_sigma_m"]
+    config = AdjustConfig(free=(), gnss_sigma_m=(h, h, v), attitude_sigma_deg=tuple(flight["imu_sigma_deg"]))
+    # as tasks.products.diagnose_step: the block adjustment's screening and tie-point sigma, least squares
+    scale = float(adjustment.get("tie_sigma_scale", 1.0))
+    keep = screened_rows(obs, residuals, weight, scale, config.reject_chi2)
+    obs = scale_tie_sigma(obs.take(pa.array(keep, pa.int64())), scale)
+    config = dataclasses.replace(config, robust_loss="none", adaptive=False)
+    dcfg = DiagnoseConfig()
+    t0 = time.perf_counter()
+    result = diagnose(images, obs, cert.camera, config, gcps, gcp_obs, dcfg, IOUncertainty.from_certificate(cert),
+                      (poses, points))
+    seconds = time.perf_counter() - t0
+    twin = result.twin
+    lines = [
+        f"- the diagnose step's engine call on the kept run's inputs: {obs.num_rows} tie observations, "
+        f"{images.num_rows} images, certificate {cert.camera.f:.2f} px, {dcfg.twins} twins (seed {dcfg.seed})",
+        f"- time {seconds:.1f} s; peak memory of this process {peak_rss_mb():.0f} MB "
+        f"(target of the city-scale work: 60 s)",
+        f"- baseline sigma0 {result.sigma0_before:.3f}; named: {result.summary()}",
+        f"- twin: {twin.get('summary')}",
+    ]
+    if twin.get("extended"):
+        lines += ["", "| extension | size | bound | plausible | gaps closed |", "|---|---|---|---|---|"]
+        for name, ext in twin["extended"].items():
+            closed = ", ".join(f"{k} {100 * g:.0f} %" for k, g in ext["gap_closed"].items())
+            lines.append(f"| {name} | {ext['physical']:.3g} {ext['unit']} | {ext['bound']:.3g} | "
+                         f"{ext['plausible']} | {closed} |")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help=f"strips {QUICK_STRIPS} only")
     ap.add_argument("--work", type=Path, default=None,
                     help="keep the flight folder, store and run output here (default: a temporary folder, "
                     "removed at the end); given again, the measured run found there is reported again")
+    ap.add_argument("--rediagnose", action="store_true",
+                    help="time the diagnosis again on the run kept in --work (see the module docstring)")
     args = ap.parse_args(argv)
+    if args.rediagnose:
+        if args.work is None:
+            raise SystemExit("--rediagnose needs --work DIR, the folder of a kept run")
+        record("seneca (real), diagnosis with the flight's twin", rediagnose(args.work.resolve()))
+        return
     if not IMAGES.is_dir():
         raise SystemExit(f"{IMAGES} not found: the seneca images are needed")
     from flows.environment import quiet_prefect
