@@ -26,34 +26,35 @@ show what white, independent noise cannot produce:
 
 A statistic whose real value lies beyond ``z_limit`` twin standard deviations of the twins' mean is what the
 simulation gets wrong (:func:`compare`). The simulation is then extended by each candidate cause of what
-differs (:data:`EXTENSIONS`): the twins are made again with the candidate at the size that reproduces its own
-statistic (its target), and the gap it closes on every statistic that differs is its gain. A candidate whose
-size is beyond its physical bound is not the cause, whatever it closes; of the others, the one that closes the
-most of the per-image gaps is named their likely cause, and every other candidate that reproduces its own
-target is named for it. Finally the twins are made with every named candidate at once (the extended
-simulation): the gap that closes is the gain of the extension, and what still differs from the extended twins
-is what the simulation still gets wrong.
+differs (:data:`EXTENSIONS`): the twins are made again with the candidate at the size that reproduces the
+statistic it targets, and the share of each gap it closes is its gain. A candidate whose size is beyond its
+physical bound is never named, whatever it closes. The block-wide candidates are tried in the order below, each
+on top of those named before it, and named for their target when they close at least half its gap; the
+per-frame ones are then tried as alternatives on top of every block-wide cause named, for the per-image
+statistics that still differ from that background's twins, and the one that explains the most of them is named.
+Finally the twins are made with every named candidate at once (the extended simulation): the gap that closes is
+the gain of the extension, and what still differs from those twins is what the simulation still gets wrong.
 
-* per-frame focal jitter (target ``per_image_scale``): each frame's measurements scaled about the principal
-  point (bound :data:`PLAUSIBLE_FOCAL_JITTER`);
-* per-frame readout motion (``per_image_row_field``): each frame's rows displaced in proportion to their read
-  time by a 2-vector drawn per frame, the image motion of a camera turning while a rolling shutter reads it
-  out (its size is the camera's turn during the readout of a whole frame, bound
-  :data:`PLAUSIBLE_READOUT_TURN_RAD`);
-* image-plane field (``image_field_px``): the real block's own mean residual field (an 8 x 6 grid over the
-  image, interpolated) added to every frame, the lens distortion the certificate's model leaves (bound
-  :data:`PLAUSIBLE_FIELD_PX`);
 * mismatches (``tail_fraction``): a share of the tie measurements given one of the real block's own tail
   residuals (drawn with replacement, in units of their sigma, divided by the mean redundancy number: the error
   that leaves such a residual), adjusted by least squares as the real block is (bound
   :data:`PLAUSIBLE_MISMATCH_FRACTION`);
+* image-plane field (``image_field_px``): the real block's own mean residual field (an 8 x 6 grid over the
+  image, interpolated) added to every frame, the lens distortion the certificate's model leaves (bound
+  :data:`PLAUSIBLE_FIELD_PX`);
 * tie-point noise (``variance_tie``): the tie measurements' white noise scaled (bound
   :data:`PLAUSIBLE_TIE_SIGMA_PX`);
 * attitude noise (``variance_attitude``): the recorded attitudes' noise scaled (bound
   :data:`PLAUSIBLE_ATTITUDE_SIGMA_DEG`);
 * time-correlated GNSS (``gnss_lag1``): the recorded positions' noise drawn as a first-order autoregressive
   process over the images in time order, the same sigma (its size is the correlation from one image to the
-  next).
+  next);
+* per-frame focal jitter (target ``per_image_scale``): each frame's measurements scaled about the principal
+  point (bound :data:`PLAUSIBLE_FOCAL_JITTER`);
+* per-frame readout motion (``per_image_row_field``): each frame's rows displaced in proportion to their read
+  time by a 2-vector drawn per frame, the image motion of a camera turning while a rolling shutter reads it
+  out (its size is the camera's turn during the readout of a whole frame, bound
+  :data:`PLAUSIBLE_READOUT_TURN_RAD`).
 
 The twin never imports the simulator: like the diagnosis, it works from the measurements and the adjustment.
 """
