@@ -3,7 +3,10 @@
 Every step of a flow run goes through :func:`run_step`:
 
 1. its **cache key** is the SHA-256 of the step name, the SHA-256 of each input artifact (by input name)
-   and the step's configuration as JSON (:func:`cache_key`), plus :data:`STEP_FORMAT`;
+   and the step's configuration as JSON (:func:`cache_key`), plus :data:`STEP_FORMAT` and the version of
+   the code that computes steps (:func:`code_version`: a step computed by other code is computed again, since
+   the cache cannot tell whether the change matters; a diagnosis cached before a fix had been reused
+   silently);
 2. the database is asked for a **step record** registered for (step name, cache key): a small JSON
    artifact of kind ``"step"`` whose ``schema_name`` is ``aerocal.step/<step>/<cache key>`` and whose
    content lists the step's output artifacts (name -> SHA-256) and the run that computed them;
@@ -177,10 +180,29 @@ def configuration_json(config: Any) -> Any:
     return to_json(config)
 
 
+#: the packages whose code computes step outputs (the engine and the step wrappers), for :func:`code_version`
+CODE_PACKAGES = ("aerocal", "tasks")
+
+
+@functools.cache
+def code_version() -> str:
+    """SHA-256 (hex) of the source of :data:`CODE_PACKAGES`: every ``.py`` file's path (relative to the project
+    root) and bytes, in path order. Read once per process (about 200 files, a few milliseconds)."""
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for package in CODE_PACKAGES:
+        for path in sorted((root / package).rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode() + b"\0")
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
 def cache_key(step: str, inputs: Mapping[str, str], config: Any = None) -> str:
-    """SHA-256 (hex) of the step name, its inputs' SHA-256 by name and its configuration as JSON."""
+    """SHA-256 (hex) of the step name, its inputs' SHA-256 by name, its configuration as JSON and the code
+    version (:func:`code_version`)."""
     doc = {
         "format": STEP_FORMAT,
+        "code": code_version(),
         "step": step,
         "inputs": dict(sorted(inputs.items())),
         "config": configuration_json(config),

@@ -260,9 +260,10 @@ def test_crashed_run_resumes_after_the_last_completed_step(prefect_server, fligh
     db.dispose()
 
 
-def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path):
+def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, monkeypatch):
     """Rendered frames (no observations given): ingest reads them, enhance + match run tile-parallel SIFT on
-    a local Dask cluster, and the tracks tie every frame; a second call reuses the stored step."""
+    a local Dask cluster, and the tracks tie every frame; a second call reuses the stored step, and a call by
+    other code computes it again."""
     import numpy as np
 
     from aerocal.simulate import simulate_flight, write_flight
@@ -293,6 +294,11 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path):
     assert track_len[track_len > 0].min() >= 2
     again = match_step(ctx, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
     assert again.reused and again.outputs == matched.outputs
+    from tasks import resume
+
+    monkeypatch.setattr(resume, "code_version", lambda: "another version of the code")
+    other = match_step(ctx, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
+    assert not other.reused, "a step cached by other code was reused"
 
 
 def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
