@@ -69,9 +69,10 @@ def _flow_errors(out_dir: Path) -> Iterator[None]:
     """Around a flow run: the user's errors as one line (exit 1), Ctrl-C as one line saying what is kept and
     how to resume (exit 130), and a defect as one line naming the run folder's traceback file (exit 1)."""
     from flows.flight import FAILURE_LOG
+    from tasks.resume import interrupts_noted
 
     try:
-        with _user_errors():
+        with _user_errors(), interrupts_noted():
             yield
     except typer.Exit:
         raise
