@@ -552,8 +552,12 @@ def _differs(base: Baseline, real: dict, mean: dict, sd: dict, z_limit: float) -
     """Each statistic's z against twins of ``mean`` +- ``sd``, and those beyond ``z_limit`` with their cause."""
     z, differs = {}, {}
     n_tie = max(int(np.sum(base.block.obs_is_tie)), 1)
+    floors = _sampling_floors(base)
     for k, v in real.items():
-        floor = 0.05 * abs(mean[k]) + 1e-12  # the twins' spread can be tiny for precise statistics
+        # the twins' spread can be tiny for precise statistics, and a spread from 3 twins can be far too small:
+        # it is taken at least as the statistic's own sampling spread (12 effect-free simulated blocks against
+        # 3 twins each had 4 differ by chance, one with a cause named; see _sampling_floors)
+        floor = max(0.05 * abs(mean[k]), floors.get(k, 0.0) * (1.0 if k == "gnss_lag1" else abs(mean[k]))) + 1e-12
         if k == "tail_fraction":
             # a count: its Poisson spread, at least that of 3 events (4 of 8,000 observations beyond the
             # 99.9 % point against twins with none had been named "mismatches beyond the blunder screening")
@@ -562,6 +566,21 @@ def _differs(base: Baseline, real: dict, mean: dict, sd: dict, z_limit: float) -
         if np.isfinite(z[k]) and z[k] > z_limit:
             differs[k] = CAUSES[k]
     return z, differs
+
+
+def _sampling_floors(base: Baseline) -> dict[str, float]:
+    """The sampling spread of each statistic under the twins' own model, relative to its mean (absolute for
+    ``gnss_lag1``): an RMS over n values spreads by 1/sqrt(2n), a mean of n squared normal values by
+    sqrt(2/n), a lag-1 correlation of n values by 1/sqrt(n)."""
+    b = base.block
+    n_img = max(b.n_images, 1)
+    out = {k: 1.0 / np.sqrt(2.0 * n_img) for k in PER_IMAGE}
+    out["image_field_px"] = 1.0 / np.sqrt(2.0 * FIELD_GRID[0] * FIELD_GRID[1])
+    out["variance_gnss"] = out["variance_attitude"] = float(np.sqrt(2.0 / (3 * n_img)))
+    out["gnss_lag1"] = 1.0 / np.sqrt(3.0 * n_img)
+    if len(b.control_ids):
+        out["variance_gcp"] = float(np.sqrt(2.0 / (3 * len(b.control_ids))))
+    return out
 
 
 def _closed(ext_mean: dict, real: dict, mean: dict, differs: dict) -> dict[str, float]:
