@@ -298,6 +298,7 @@ def interrupts_noted() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = previous_hook
+        _INTERRUPTED.clear()  # a later run in this process (a served flow) starts without it
 
 
 def check_interrupted() -> None:
