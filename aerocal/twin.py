@@ -236,36 +236,22 @@ class TwinComparison:
 def block_statistics(base: Baseline) -> dict[str, float]:
     """The statistics of an adjusted block (see the module docstring); NaN where a group is absent."""
     b, st, cfg = base.block, base.state, base.config
-    prob = Problem(b, cfg, base.solution.t0)
-    _, res_px, _ = prob.residuals(st, jac=False)
-    tie = b.obs_is_tie
-    z = res_px[tie] / b.obs_sigma[tie, None]
-    s = np.sum(z * z, axis=1)
+    ties = _tie_residuals(base)
+    s = ties.s
     out = {k: float("nan") for k in CAUSES}
     if len(s):
         out["variance_tie"] = float(np.mean(s) / 2.0)
-        # the tails are judged against the block's own robust scale (its median), never below the sigma it
-        # assumes: an overall sigma misfit is variance_tie's, not the tails'. The fields below are fitted on the
-        # core only: a few mismatches at an image's edge would otherwise pass for a per-frame field
-        limit = TAIL_CHI2 * max(float(np.median(s)) / CHI2_2_MEDIAN, 1.0)
-        core = s <= limit
-        out["tail_fraction"] = float(np.mean(~core))
-        img = b.obs_image[tie][core]
-        res_core = res_px[tie][core]
-        uv = b.obs_uv[tie][core]
+        out["tail_fraction"] = float(np.mean(~ties.core))
+        img = b.obs_image[b.obs_is_tie][ties.core]
+        res_core, uv = ties.res_px[ties.core], ties.uv[ties.core]
         out["per_image_scale"] = float(np.sqrt(np.mean(_image_scales(base, res_core, img, uv) ** 2)))
         A, ok = _image_affine(base, res_core, img, uv)
         if np.any(ok):
             out["per_image_column_field"] = float(np.sqrt(np.mean(np.sum(A[ok][:, :, 0] ** 2, axis=1))))
             out["per_image_row_field"] = float(np.sqrt(np.mean(np.sum(A[ok][:, :, 1] ** 2, axis=1))))
-        cx = np.clip((uv[:, 0] / base.template.width * FIELD_GRID[0]).astype(int), 0, FIELD_GRID[0] - 1)
-        cy = np.clip((uv[:, 1] / base.template.height * FIELD_GRID[1]).astype(int), 0, FIELD_GRID[1] - 1)
-        cell = cy * FIELD_GRID[0] + cx
-        k = FIELD_GRID[0] * FIELD_GRID[1]
-        cnt = np.bincount(cell, minlength=k)
-        field_mean = np.stack([np.bincount(cell, weights=res_core[:, d], minlength=k) for d in (0, 1)], axis=1)
+        means, cnt = _cell_means(base, uv, res_core, FIELD_GRID)
         ok = cnt > 0
-        out["image_field_px"] = float(np.sqrt(np.mean(np.sum((field_mean[ok] / cnt[ok, None]) ** 2, axis=1))))
+        out["image_field_px"] = float(np.sqrt(np.mean(np.sum(means[ok] ** 2, axis=1))))
     if cfg.gnss_sigma_m is not None:
         r = (st.C - b.gnss) / np.asarray(cfg.gnss_sigma_m, dtype=float)
         out["variance_gnss"] = float(np.mean(r * r))
@@ -340,22 +326,48 @@ def measure(base: Baseline, redundancy: float = 1.0) -> Measured:
     in :func:`block_statistics`, divided by the tie measurements' mean ``redundancy`` number: a blunder of size
     e leaves a residual of about r e in a least-squares fit, so the tails as residuals would size a share of
     mismatches too large (4.4 % found for 2 % injected on conte-calibration; 2.2 % so corrected)."""
+    ties = _tie_residuals(base)
+    means, _ = _cell_means(base, ties.uv[ties.core], ties.res_px[ties.core], EXTENSION_FIELD_GRID)
+    gx, gy = EXTENSION_FIELD_GRID
+    return Measured(means.reshape(gy, gx, 2), ties.z[~ties.core] / float(np.clip(redundancy, 0.1, 1.0)))
+
+
+@dataclass
+class _TieResiduals:
+    """A block's tie residuals (px), their measurements, normalised residuals ``z`` and squared sums ``s``, and
+    the core: not in the tail. The tails are judged against the block's own robust scale (its median), never
+    below the sigma it assumes: an overall sigma misfit is variance_tie's, not the tails'. The image-plane
+    statistics are fitted on the core only: a few mismatches at an image's edge would otherwise pass for a
+    per-frame field."""
+
+    res_px: np.ndarray
+    uv: np.ndarray
+    z: np.ndarray
+    s: np.ndarray
+    core: np.ndarray
+
+
+def _tie_residuals(base: Baseline) -> _TieResiduals:
     b = base.block
-    prob = Problem(b, base.config, base.solution.t0)
-    _, res_px, _ = prob.residuals(base.state, jac=False)
+    _, res_px, _ = Problem(b, base.config, base.solution.t0).residuals(base.state, jac=False)
     tie = b.obs_is_tie
     z = res_px[tie] / b.obs_sigma[tie, None]
     s = np.sum(z * z, axis=1)
     core = s <= TAIL_CHI2 * max(float(np.median(s)) / CHI2_2_MEDIAN, 1.0) if len(s) else s > 0
-    uv, res = b.obs_uv[tie][core], res_px[tie][core]
-    gx, gy = EXTENSION_FIELD_GRID
+    return _TieResiduals(res_px[tie], b.obs_uv[tie], z, s, core)
+
+
+def _cell_means(base: Baseline, uv: np.ndarray, res_px: np.ndarray,
+                grid: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of ``res_px`` per cell of a (columns, rows) ``grid`` over the image, row-major (k, 2; 0 where a cell
+    is empty), and the count per cell."""
+    gx, gy = grid
     cx = np.clip((uv[:, 0] / base.template.width * gx).astype(int), 0, gx - 1)
     cy = np.clip((uv[:, 1] / base.template.height * gy).astype(int), 0, gy - 1)
     cell = cy * gx + cx
     cnt = np.bincount(cell, minlength=gx * gy)
-    out = np.stack([np.bincount(cell, weights=res[:, d], minlength=gx * gy) for d in (0, 1)], axis=1)
-    out = np.where(cnt[:, None] > 0, out / np.maximum(cnt[:, None], 1), 0.0)
-    return Measured(out.reshape(gy, gx, 2), z[~core] / float(np.clip(redundancy, 0.1, 1.0)))
+    sums = np.stack([np.bincount(cell, weights=res_px[:, d], minlength=gx * gy) for d in (0, 1)], axis=1)
+    return np.where(cnt[:, None] > 0, sums / np.maximum(cnt[:, None], 1), 0.0), cnt
 
 
 def _field_at(field_px: np.ndarray, uv: np.ndarray, width: int, height: int) -> np.ndarray:
