@@ -36,9 +36,11 @@ degrees Celsius; thermal slopes in pixels per degree Celsius; ``pixel_size_mm`` 
 Values that a certificate imported from a foreign format cannot know (date, image counts, quality
 figures) are ``null``.
 
-:meth:`Certificate.from_dict` validates strictly: every malformed document raises
-:class:`CertificateError` with one line naming the field path (``model.params.f``), what was expected,
-what was found and how to fix it.
+The document's schema is :class:`aerocal.certificate_schema.CertificateDocument`, the one definition the
+engine, the certificate store and the exchange formats validate with. :meth:`Certificate.from_dict` validates
+strictly: every malformed document raises :class:`CertificateError` with one line naming the field path
+(``model.params.f``), what was expected, what was found and how to fix it. The camera identity is
+:class:`aerocal.camera_identity.CameraIdentity` (re-exported here).
 """
 
 from __future__ import annotations
@@ -48,7 +50,6 @@ import datetime as dt
 import hashlib
 import json
 import math
-import re
 import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -65,25 +66,27 @@ from aerocal.camera import (
     ThermalModel,
     thermal_model_from_dict,
 )
-from aerocal.decision import ACCEPTED, REJECTED, STATUSES, Review
-
-#: The schema identifier written into, and required from, every certificate document.
-SCHEMA = "aerocal.certificate/1"
-
-#: Names of the slopes of :class:`aerocal.camera.LinearThermalModel` (pixels per degree Celsius).
-THERMAL_SLOPE_NAMES: tuple[str, ...] = ("df_dt", "dcx_dt", "dcy_dt")
+from aerocal.camera_identity import CameraIdentity
+from aerocal.certificate_schema import MAX_DISTORTION_COEFFICIENT as MAX_DISTORTION_COEFFICIENT  # re-exported
+from aerocal.certificate_schema import MAX_FOCAL_IN_SIDES as MAX_FOCAL_IN_SIDES  # re-exported
+from aerocal.certificate_schema import MAX_IMAGE_SIDE_PX as MAX_IMAGE_SIDE_PX  # re-exported
+from aerocal.certificate_schema import MAX_PIXEL_SIZE_MM as MAX_PIXEL_SIZE_MM  # re-exported
+from aerocal.certificate_schema import (
+    SCHEMA,
+    THERMAL_SLOPE_NAMES,
+    CertificateDocument,
+    CertificateError,
+    LinearThermalSection,
+    SimilarityThermalSection,
+    camera_problem,
+    parse_json,
+    problem,
+    validate_document,
+)
+from aerocal.decision import ACCEPTED, Review
 
 #: Fields left out of :meth:`Certificate.content_hash`: they identify an issue, not the calibration.
 HASH_EXCLUDED_FIELDS: tuple[str, ...] = ("id", "issued", "version", "supersedes")
-
-_HEX32 = re.compile(r"^[0-9a-f]{32}$")
-_SHA256 = re.compile(r"^[0-9a-f]{64}$")
-_DATE = re.compile(r"^\d{4}-\d{2}-\d{2}$")
-_CORRELATION_TOL = 1e-9
-
-
-class CertificateError(ValueError):
-    """A certificate document or object is malformed; the message names the field path and the fix."""
 
 
 # =============================================================================== immutable containers
@@ -114,36 +117,8 @@ def _freeze_seq(s: Iterable | None) -> tuple:
     return tuple(s) if s is not None else ()
 
 
+
 # =============================================================================== parts of a certificate
-@dataclass(frozen=True)
-class CameraIdentity:
-    """Which physical camera a certificate belongs to. Empty or unknown parts are ``"unknown"``."""
-
-    make: str = "unknown"
-    model: str = "unknown"
-    serial: str = "unknown"
-    lens: str = "unknown"
-
-    @property
-    def key(self) -> str:
-        """``"make|model|serial|lens"``: the key the certificate store groups certificates by."""
-        return "|".join((self.make, self.model, self.serial, self.lens))
-
-    @classmethod
-    def unknown(cls) -> CameraIdentity:
-        return cls()
-
-    @classmethod
-    def from_key(cls, key: str) -> CameraIdentity:
-        """Inverse of :attr:`key`."""
-        parts = key.split("|")
-        if len(parts) != 4:
-            raise CertificateError(
-                f"camera key {key!r}: expected 4 parts 'make|model|serial|lens', got {len(parts)}; "
-                "write the key as make|model|serial|lens (use 'unknown' for a missing part)"
-            )
-        return cls(*parts)
-
 
 @dataclass(frozen=True)
 class ParameterSignificance:
@@ -397,7 +372,7 @@ class Certificate:
         object.__setattr__(self, "significance", _freeze_map(self.significance))
         # Validate (and normalise: numpy scalars and numbers to float, containers to immutable)
         # through the document.
-        for name, value in _parse_document(_plain(self.to_dict())).items():
+        for name, value in _fields_of(validate_document(_plain(self.to_dict()))).items():
             object.__setattr__(self, name, value)
 
     # ----------------------------------------------------------------- serialisation
@@ -412,7 +387,7 @@ class Certificate:
         return {
             "schema": SCHEMA,
             "id": self.id,
-            "camera": dataclasses.asdict(self.identity),
+            "camera": self.identity.as_dict(),
             "version": self.version,
             "supersedes": self.supersedes,
             "issued": issued_text,
@@ -441,7 +416,16 @@ class Certificate:
     @classmethod
     def from_dict(cls, doc: Any) -> Certificate:
         """Validate a document strictly and build the certificate; :class:`CertificateError` otherwise."""
-        return cls(**_parse_document(doc))
+        return cls.from_document(validate_document(doc))
+
+    @classmethod
+    def from_document(cls, document: CertificateDocument) -> Certificate:
+        """The certificate of an already validated document (:func:`aerocal.certificate_schema.validate_document`),
+        built without validating it a second time."""
+        cert = object.__new__(cls)
+        for name, value in _fields_of(document).items():
+            object.__setattr__(cert, name, value)
+        return cert
 
     def to_json(self, indent: int | None = 2) -> str:
         """The document as JSON text (no NaN or Infinity: strict JSON)."""
@@ -450,13 +434,7 @@ class Certificate:
     @classmethod
     def from_json(cls, text: str | bytes) -> Certificate:
         """Parse JSON text and validate it; a syntax error names the line and column."""
-        try:
-            doc = json.loads(text, parse_constant=_refuse_constant)
-        except json.JSONDecodeError as e:
-            raise CertificateError(
-                f"line {e.lineno} column {e.colno}: invalid JSON ({e.msg}); fix the syntax there"
-            ) from None
-        return cls.from_dict(doc)
+        return cls.from_dict(parse_json(text))
 
     def content_hash(self) -> str:
         """sha256 (hex) of the canonical JSON of the calibration's content.
@@ -473,6 +451,14 @@ class Certificate:
     def with_version(self, version: int, supersedes: str | None) -> Certificate:
         """A copy numbered ``version`` that supersedes certificate id ``supersedes`` (or none)."""
         return dataclasses.replace(self, version=version, supersedes=supersedes)
+
+    @property
+    def calibration_date(self) -> dt.date:
+        """The date of the data the calibration was computed from (``conditions.date``), else the UTC date it
+        was issued: a certificate applies to flights on or after it."""
+        if self.conditions.date is not None:
+            return dt.date.fromisoformat(self.conditions.date)
+        return self.issued.astimezone(dt.UTC).date()
 
     @property
     def valid_temperature_range(self) -> tuple[float, float] | None:
@@ -588,449 +574,76 @@ class Certificate:
         return [f"  thermal model: polynomial of degree {m.degree}, T0 {m.t0:.2f} degC; valid {vr}"]
 
 
-# =============================================================================== document validation
-def _show(value: Any) -> str:
-    try:
-        text = json.dumps(value, allow_nan=True, default=repr)
-    except (TypeError, ValueError):
-        text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
 
-
-def _fail(path: str, expected: str, got: Any, fix: str) -> CertificateError:
-    return CertificateError(f"{path}: expected {expected}, got {_show(got)}; {fix}")
-
-
-def _refuse_constant(name: str) -> None:
-    raise CertificateError(f"JSON constant {name} is not allowed (strict JSON); "
-                           "write a finite number or null")
-
-
-def _object(v: Any, path: str, keys: Iterable[str], optional: Iterable[str] = ()) -> Mapping:
-    keys, optional = tuple(keys), tuple(optional)
-    if not isinstance(v, Mapping):
-        raise _fail(path or "document", "a JSON object", v, "write an object {...} here")
-    for k in v:
-        if k not in keys and k not in optional:
-            raise CertificateError(
-                f"{_join(path, k)}: unknown field; valid fields of {path or 'the document'}: "
-                f"{', '.join(keys + optional)}; remove or rename it"
-            )
-    for k in keys:
-        if k not in v:
-            raise CertificateError(f"{_join(path, k)}: missing; add it (null where the value is unknown and "
-                                   "null is allowed)")
-    return v
-
-
-def _join(path: str, key: Any) -> str:
-    return f"{path}.{key}" if path else str(key)
-
-
-def _number(v: Any, path: str, *, positive: bool = False, nonneg: bool = False, nullable: bool = False,
-            fix: str = "write a finite JSON number") -> float | None:
-    if v is None and nullable:
-        return None
-    what = "a positive number" if positive else "a non-negative number" if nonneg else "a finite number"
-    if nullable:
-        what += " or null"
-    if isinstance(v, bool) or not isinstance(v, int | float):
-        raise _fail(path, what, v, fix)
-    try:
-        x = float(v)
-    except OverflowError:  # an integer written out with hundreds of digits
-        raise _fail(path, what, v, fix) from None
-    if not math.isfinite(x) or (positive and x <= 0) or (nonneg and x < 0):
-        raise _fail(path, what, v, fix)
-    return x
-
-
-def _integer(v: Any, path: str, *, minimum: int = 0, nullable: bool = False, fix: str = "") -> int | None:
-    if v is None and nullable:
-        return None
-    what = f"an integer >= {minimum}" + (" or null" if nullable else "")
-    if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-        raise _fail(path, what, v, fix or "write a whole JSON number without a decimal point")
-    return int(v)
-
-
-def _string(v: Any, path: str, *, nullable: bool = False, nonempty: bool = True, fix: str = "") -> str | None:
-    if v is None and nullable:
-        return None
-    if not isinstance(v, str) or (nonempty and not v):
-        what = ("a non-empty string" if nonempty else "a string") + (" or null" if nullable else "")
-        raise _fail(path, what, v, fix or "write a JSON string in double quotes")
-    return v
-
-
-def _boolean(v: Any, path: str, *, nullable: bool = False) -> bool | None:
-    if v is None and nullable:
-        return None
-    if not isinstance(v, bool):
-        raise _fail(path, "true or false" + (" or null" if nullable else ""), v, "write true or false")
-    return v
-
-
-def _array(v: Any, path: str, *, length: int | None = None) -> list | tuple:
-    if not isinstance(v, list | tuple) or (length is not None and len(v) != length):
-        what = "a JSON array" if length is None else f"an array of {length} elements"
-        raise _fail(path, what, v, "write [...] here")
-    return v
-
-
-def _range(v: Any, path: str, *, nullable: bool = True) -> tuple[float, float] | None:
-    if v is None and nullable:
-        return None
-    a = _array(v, path, length=2)
-    lo = _number(a[0], f"{path}[0]", fix="write [lowest, highest] in degC")
-    hi = _number(a[1], f"{path}[1]", fix="write [lowest, highest] in degC")
-    if lo > hi:
-        raise _fail(path, "[lo, hi] with lo <= hi", v, "swap the two values")
-    return (lo, hi)
-
-
-def _name_map(v: Any, path: str, names: Iterable[str] | None, value_fn) -> FrozenMap:
-    if not isinstance(v, Mapping):
-        raise _fail(path, "a JSON object {name: value}", v, "write an object here ({} when empty)")
-    allowed = None if names is None else tuple(names)
-    out = {}
-    for k, x in v.items():
-        if not isinstance(k, str) or not k:
-            raise _fail(path, "non-empty string keys", k, "name each entry")
-        if allowed is not None and k not in allowed:
-            raise CertificateError(f"{_join(path, k)}: unknown name; valid names: {', '.join(allowed)}; "
-                                   "remove or rename it")
-        out[k] = value_fn(x, _join(path, k))
-    return FrozenMap(out)
-
-
-def _parse_model(v: Any) -> Camera:
-    m = _object(v, "model", ("kind", "width", "height", "pixel_size_mm", "params"))
-    if m["kind"] != "brown":
-        raise _fail("model.kind", '"brown"', m["kind"], 'write "brown" (the only camera model of schema 1)')
-    width = _integer(m["width"], "model.width", minimum=1, fix="write the image width in pixels")
-    height = _integer(m["height"], "model.height", minimum=1, fix="write the image height in pixels")
-    pix = _number(m["pixel_size_mm"], "model.pixel_size_mm", positive=True, nullable=True,
-                  fix="write the pixel pitch in millimetres (e.g. 0.017), or null when unknown")
-    p = _object(m["params"], "model.params", PARAM_NAMES)
-    params = {}
-    for n in PARAM_NAMES:
-        unit = "pixels" if PARAM_UNITS[n] == "px" else "a dimensionless coefficient"
-        params[n] = _number(p[n], f"model.params.{n}", positive=(n == "f"),
-                            fix=f"write {n} as a JSON number ({unit})")
-    _sane_model(width, height, pix, params)
-    return Camera(width=width, height=height, pixel_size_mm=pix, **params)
-
-
-#: Bounds no real frame camera leaves (a document outside them is corrupt or hostile, not a camera): image
-#: side in pixels, focal length in image sides, principal point within one image side of the image,
-#: distortion coefficients, affinity and skew in focal lengths, pixel pitch in millimetres.
-MAX_IMAGE_SIDE_PX = 200_000
-MAX_FOCAL_IN_SIDES = 1000.0
-MAX_DISTORTION_COEFFICIENT = 100.0
-MAX_PIXEL_SIZE_MM = 1.0
-
-
+# =============================================================================== checks and document reading
 def validate_camera(camera: Camera) -> None:
     """Raise :class:`CertificateError` naming the field when ``camera`` holds a value no real frame camera
-    has (non-finite, or outside the bounds above): a nominal camera from ``camera.json`` gets the checks
-    a certificate gets."""
+    has (non-finite, or outside the bounds of :mod:`aerocal.certificate_schema`): a nominal camera from
+    ``camera.json`` gets the checks a certificate gets."""
     params = {n: float(getattr(camera, n)) for n in PARAM_NAMES}
     for n, x in params.items():
         if not math.isfinite(x) or (n == "f" and x <= 0):
-            raise _fail(f"model.params.{n}", "a positive number" if n == "f" else "a finite number", x,
-                        f"write {n} as a finite number")
-    _sane_model(int(camera.width), int(camera.height), camera.pixel_size_mm, params)
+            raise problem(f"model.params.{n}", "a positive number" if n == "f" else "a finite number", x,
+                          f"write {n} as a finite number")
+    found = camera_problem(int(camera.width), int(camera.height), camera.pixel_size_mm, params)
+    if found is not None:
+        path, expected, got, fix = found
+        raise problem(f"model.{path}", expected, got, fix)
 
-
-def _sane_model(width: int, height: int, pix: float | None, params: dict[str, float]) -> None:
-    side = max(width, height)
-    for name, size in (("width", width), ("height", height)):
-        if size > MAX_IMAGE_SIDE_PX:
-            raise _fail(f"model.{name}", f"at most {MAX_IMAGE_SIDE_PX} pixels", size, "write the image size in pixels")
-    if params["f"] > MAX_FOCAL_IN_SIDES * side:
-        raise _fail("model.params.f", f"at most {MAX_FOCAL_IN_SIDES:g} x the larger image side "
-                    f"({MAX_FOCAL_IN_SIDES * side:g} px)", params["f"], "write the focal length in pixels")
-    for name, size in (("cx", width), ("cy", height)):
-        if not -size <= params[name] <= 2 * size:
-            raise _fail(f"model.params.{name}", f"within one image side of the image ({-size} to {2 * size} px)",
-                        params[name], "write the principal point in pixels from the top-left corner")
-    for name in ("k1", "k2", "k3", "p1", "p2"):
-        if abs(params[name]) > MAX_DISTORTION_COEFFICIENT:
-            raise _fail(f"model.params.{name}", f"a coefficient of magnitude at most {MAX_DISTORTION_COEFFICIENT:g}",
-                        params[name], "write the Brown coefficient for normalised coordinates")
-    for name in ("b1", "b2"):
-        if abs(params[name]) > params["f"]:
-            raise _fail(f"model.params.{name}", "smaller in magnitude than f", params[name],
-                        "write the affinity/skew in pixels")
-    if pix is not None and pix > MAX_PIXEL_SIZE_MM:
-        raise _fail("model.pixel_size_mm", f"at most {MAX_PIXEL_SIZE_MM:g} mm", pix,
-                    "write the pixel pitch in millimetres (e.g. 0.017)")
-
-
-def _parse_correlation(v: Any) -> Correlation:
-    c = _object(v, "correlation", ("names", "matrix"))
-    names = [_string(x, f"correlation.names[{i}]")
-             for i, x in enumerate(_array(c["names"], "correlation.names"))]
-    if len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
-        raise _fail("correlation.names", "unique names", dup, "list each parameter once")
-    rows = _array(c["matrix"], "correlation.matrix", length=len(names))
-    matrix = []
-    for i, row in enumerate(rows):
-        row = _array(row, f"correlation.matrix[{i}]", length=len(names))
-        matrix.append([_number(x, f"correlation.matrix[{i}][{j}]", fix="write a correlation in [-1, 1]")
-                       for j, x in enumerate(row)])
-    m = np.asarray(matrix, dtype=float).reshape(len(names), len(names))
-    if m.size:
-        bad = np.argwhere(np.abs(m) > 1.0 + _CORRELATION_TOL)
-        if len(bad):
-            i, j = bad[0]
-            raise _fail(f"correlation.matrix[{i}][{j}]", "a correlation in [-1, 1]", matrix[i][j],
-                        "write correlations, not covariances")
-        diag = np.flatnonzero(np.abs(np.diag(m) - 1.0) > _CORRELATION_TOL)
-        if len(diag):
-            i = int(diag[0])
-            raise _fail(f"correlation.matrix[{i}][{i}]", "1 on the diagonal", matrix[i][i],
-                        "write correlations, not covariances")
-        asym = np.argwhere(np.abs(m - m.T) > _CORRELATION_TOL)
-        if len(asym):
-            i, j = asym[0]
-            raise _fail(f"correlation.matrix[{i}][{j}]", f"the same value as [{j}][{i}] ({matrix[j][i]})",
-                        matrix[i][j], "make the matrix symmetric")
-    return Correlation(tuple(names), m)
-
-
-def _parse_significance(v: Any) -> FrozenMap:
-    def one(x: Any, path: str) -> ParameterSignificance:
-        s = _object(x, path, ("t", "significant", "dropped"),
-                    optional=("held_out_gain", "held_out_sigma", "calibrated_t", "prior_sigma"))
-        return ParameterSignificance(
-            t=_number(s["t"], f"{path}.t", fix="write the t statistic (value / sigma)"),
-            significant=_boolean(s["significant"], f"{path}.significant"),
-            dropped=_string(s["dropped"], f"{path}.dropped", nullable=True,
-                            fix="write why the parameter was dropped, or null when it was kept"),
-            held_out_gain=_number(s.get("held_out_gain"), f"{path}.held_out_gain", nullable=True,
-                                  fix="write the relative held-out gain, or null when not measured"),
-            held_out_sigma=_number(s.get("held_out_sigma"), f"{path}.held_out_sigma", nullable=True, nonneg=True,
-                                   fix="write the held-out gain's standard error, or null"),
-            calibrated_t=_number(s.get("calibrated_t"), f"{path}.calibrated_t", nullable=True,
-                                 fix="write t over the square root of the block's overdispersion, or null"),
-            prior_sigma=_number(s.get("prior_sigma"), f"{path}.prior_sigma", nullable=True, nonneg=True,
-                                fix="write the standard deviation of the nominal value held, or null"),
-        )
-
-    return _name_map(v, "significance", PARAM_NAMES + THERMAL_SLOPE_NAMES, one)
-
-
-def _numbers(v: Any, path: str, *, length: int | None = None) -> tuple[float, ...]:
-    a = _array(v, path, length=length)
-    return tuple(_number(x, f"{path}[{i}]") for i, x in enumerate(a))
-
-
-def _parse_thermal(v: Any) -> ThermalCalibration | None:
-    if v is None:
+def _thermal_of(section: Any) -> ThermalCalibration | None:
+    if section is None:
         return None
-    if not isinstance(v, Mapping):
-        raise _fail("thermal", "an object or null", v, "write the thermal model object, or null when none")
-    kind = v.get("kind")
-    sigma_fn = lambda x, p: _number(x, p, nonneg=True, fix="write a standard deviation >= 0")  # noqa: E731
-    if kind == "linear":
-        t = _object(v, "thermal", ("kind", "t0", "df_dt", "dcx_dt", "dcy_dt", "valid_range", "sigmas"))
-        model = LinearThermalModel(
-            t0=_number(t["t0"], "thermal.t0", fix="write the reference temperature in degC"),
-            **{n: _number(t[n], f"thermal.{n}", fix="write the slope in pixels per degC")
-               for n in THERMAL_SLOPE_NAMES},
-            valid_range=_range(t["valid_range"], "thermal.valid_range"),
-        )
-        sigmas = _name_map(t["sigmas"], "thermal.sigmas", THERMAL_SLOPE_NAMES, sigma_fn)
+    sigmas = FrozenMap(section.sigmas)
+    valid_range = section.valid_range
+    if isinstance(section, LinearThermalSection):
+        model = LinearThermalModel(t0=section.t0, df_dt=section.df_dt, dcx_dt=section.dcx_dt,
+                                   dcy_dt=section.dcy_dt, valid_range=valid_range)
         return ThermalCalibration(model, sigmas)
-    if kind == "similarity":
-        t = _object(v, "thermal", ("kind", "temperatures", "tx", "ty", "scale", "theta", "centre",
-                                   "valid_range", "sigmas"))
-        temps = _numbers(t["temperatures"], "thermal.temperatures")
-        if not temps:
-            raise _fail("thermal.temperatures", "at least one temperature", [],
-                        "list the tabulated temperatures")
-        cols = {n: _numbers(t[n], f"thermal.{n}", length=len(temps)) for n in ("tx", "ty", "scale", "theta")}
-        centre = _numbers(t["centre"], "thermal.centre", length=2)
-        model = SimilarityThermalModel(temperatures=temps, centre=centre, **cols)
-    elif kind == "polynomial":
-        t = _object(v, "thermal", ("kind", "t0", "centre", "norm", "coefficients", "degree", "valid_range",
-                                   "sigmas"))
-        degree = _integer(t["degree"], "thermal.degree", minimum=0)
-        shape = (2, 3, degree + 1, degree + 1)
-        try:
-            coef = np.asarray(t["coefficients"], dtype=float)
-        except (TypeError, ValueError):
-            coef = None
-        if coef is None or coef.shape != shape or not np.all(np.isfinite(coef)):
-            raise _fail("thermal.coefficients", f"finite numbers nested with shape {list(shape)}",
-                        t["coefficients"], "write coefficients[axis][power of dT - 1][i][j]")
-        model = thermal_model_from_dict({
-            "kind": "polynomial",
-            "t0": _number(t["t0"], "thermal.t0", fix="write the reference temperature in degC"),
-            "centre": _numbers(t["centre"], "thermal.centre", length=2),
-            "norm": _number(t["norm"], "thermal.norm", positive=True,
-                            fix="write the normalisation in pixels"),
-            "coefficients": coef, "degree": degree,
-        })
+    if isinstance(section, SimilarityThermalSection):
+        model = SimilarityThermalModel(
+            temperatures=tuple(section.temperatures), tx=tuple(section.tx), ty=tuple(section.ty),
+            scale=tuple(section.scale), theta=tuple(section.theta), centre=tuple(section.centre),
+        )
     else:
-        raise _fail("thermal.kind", '"linear", "similarity" or "polynomial"', kind,
-                    "write one of the thermal model kinds of aerocal.camera")
-    sigmas = _name_map(t["sigmas"], "thermal.sigmas", None, sigma_fn)
-    return ThermalCalibration(model, sigmas, valid_range=_range(t["valid_range"], "thermal.valid_range"))
+        model = thermal_model_from_dict({
+            "kind": "polynomial", "t0": section.t0, "centre": tuple(section.centre), "norm": section.norm,
+            "coefficients": np.asarray(section.coefficients, dtype=float), "degree": section.degree,
+        })
+    return ThermalCalibration(model, sigmas, valid_range=valid_range)
 
 
-def _parse_conditions(v: Any) -> Conditions:
-    c = _object(v, "conditions", ("date", "temperature_range", "n_images", "strips", "transversal_strip",
-                                  "n_gcp", "priors", "images"))
-    date = _string(c["date"], "conditions.date", nullable=True, fix='write the date as "YYYY-MM-DD"')
-    if date is not None:
-        try:
-            ok = bool(_DATE.match(date)) and dt.date.fromisoformat(date) is not None
-        except ValueError:
-            ok = False
-        if not ok:
-            raise _fail("conditions.date", 'a date "YYYY-MM-DD" or null', date, 'write e.g. "2024-05-17"')
-    images = tuple(_string(x, f"conditions.images[{i}]")
-                   for i, x in enumerate(_array(c["images"], "conditions.images")))
-    n_images = _integer(c["n_images"], "conditions.n_images", nullable=True)
-    if images and n_images != len(images):
-        raise _fail("conditions.n_images", f"{len(images)} (the number of names in conditions.images)",
-                    n_images, "make n_images equal the length of images")
-    return Conditions(
-        date=date,
-        temperature_range=_range(c["temperature_range"], "conditions.temperature_range"),
-        n_images=n_images,
-        strips=_integer(c["strips"], "conditions.strips", nullable=True),
-        transversal_strip=_boolean(c["transversal_strip"], "conditions.transversal_strip", nullable=True),
-        n_gcp=_integer(c["n_gcp"], "conditions.n_gcp", nullable=True),
-        priors=_name_map(c["priors"], "conditions.priors", None, _prior_sigma),
-        images=images,
-    )
-
-
-def _prior_sigma(x: Any, path: str) -> float:
-    return _number(x, path, positive=True, fix="write the prior's sigma, its unit in the name (e.g. gnss_m)")
-
-
-def _parse_issued(v: Any) -> dt.datetime:
-    fix = 'write UTC time as ISO-8601 with a Z suffix, e.g. "2024-05-17T09:30:00Z"'
-    s = _string(v, "issued", fix=fix)
-    try:
-        t = dt.datetime.fromisoformat(s)
-    except ValueError:
-        raise _fail("issued", "an ISO-8601 UTC time", v, fix) from None
-    if t.tzinfo is None or t.utcoffset() != dt.timedelta(0):
-        raise _fail("issued", "a UTC time (Z suffix)", v, fix)
-    return t.astimezone(dt.UTC)
-
-
-def _parse_document(doc: Any) -> dict[str, Any]:
-    """Validate a certificate document; return the keyword arguments of :class:`Certificate`."""
-    if isinstance(doc, Mapping) and "schema" in doc and doc["schema"] != SCHEMA:
-        raise _fail("schema", f'"{SCHEMA}"', doc["schema"], "this aerocal reads certificate schema 1 only; "
-                    "re-export the certificate or upgrade aerocal")
-    d = _object(doc, "", ("schema", "id", "camera", "version", "supersedes", "issued", "model", "sigmas",
-                          "estimated", "correlation", "significance", "thermal", "conditions", "quality",
-                          "provenance"), optional=("review",))
-    cid = _string(d["id"], "id")
-    if not _HEX32.match(cid):
-        raise _fail("id", "32 lowercase hex digits (uuid4().hex)", cid, "write uuid.uuid4().hex")
-    cam = _object(d["camera"], "camera", ("make", "model", "serial", "lens"))
-    identity = CameraIdentity(**{k: _string(cam[k], f"camera.{k}", fix=f'write the camera {k}, or "unknown"')
-                                 for k in ("make", "model", "serial", "lens")})
-    for k in ("make", "model", "serial", "lens"):
-        text = getattr(identity, k)
-        if "|" in text or any(ord(ch) < 32 or ord(ch) == 127 for ch in text):
-            raise _fail(f"camera.{k}", "one line of text without '|'", text,
-                        "remove the '|' (it separates the parts of the camera key) and control characters")
-    version = _integer(d["version"], "version", minimum=1, nullable=True,
-                       fix="leave null; the certificate store numbers versions from 1")
-    supersedes = _string(d["supersedes"], "supersedes", nullable=True)
-    if supersedes is not None and not _HEX32.match(supersedes):
-        raise _fail("supersedes", "the id (32 hex digits) of the superseded certificate, or null", supersedes,
-                    "write the id of the certificate this one replaces")
-    camera = _parse_model(d["model"])
-    estimated = tuple(_string(x, f"estimated[{i}]")
-                      for i, x in enumerate(_array(d["estimated"], "estimated")))
-    for i, n in enumerate(estimated):
-        if n not in PARAM_NAMES:
-            raise _fail(f"estimated[{i}]", f"one of {', '.join(PARAM_NAMES)}", n,
-                        "use the parameter names of aerocal.camera.PARAM_NAMES")
-        if estimated.index(n) != i:
-            raise _fail(f"estimated[{i}]", "each parameter once", n, "remove the duplicate")
-    sigmas = _name_map(d["sigmas"], "sigmas", PARAM_NAMES,
-                       lambda x, p: _number(x, p, nonneg=True, fix="write the standard deviation (>= 0)"))
-    for n in sigmas:
-        if n not in estimated:
-            raise CertificateError(f"sigmas.{n}: {n} has a sigma but is not in estimated; "
-                                   f"add {n} to estimated or remove its sigma")
-    thermal = _parse_thermal(d["thermal"])
-    correlation = _parse_correlation(d["correlation"])
-    thermal_names = set(thermal.sigmas) | set(THERMAL_SLOPE_NAMES) if thermal is not None else set()
-    for i, n in enumerate(correlation.names):
-        if n not in estimated and n not in thermal_names:
-            raise _fail(f"correlation.names[{i}]", "an estimated parameter (listed in estimated) or a "
-                        "thermal slope", n, "add it to estimated or remove its row and column")
-    significance = _parse_significance(d["significance"])
-    for n, s in significance.items():
-        if n in THERMAL_SLOPE_NAMES and thermal is None:
-            raise CertificateError(f"significance.{n}: a thermal slope but thermal is null; "
-                                   "add the thermal model or remove this entry")
-        if s.dropped is not None and n in estimated:
-            raise CertificateError(f"significance.{n}.dropped: {n} is marked dropped but is listed in "
-                                   "estimated; remove it from estimated or set dropped to null")
-    q = _object(d["quality"], "quality", ("sigma0", "reprojection_rms_px", "dof"))
-    quality = Quality(
-        sigma0=_number(q["sigma0"], "quality.sigma0", positive=True, nullable=True,
-                       fix="write the a-posteriori sigma0 (unitless), or null when unknown"),
-        reprojection_rms_px=_number(q["reprojection_rms_px"], "quality.reprojection_rms_px", nonneg=True,
-                                    nullable=True, fix="write the RMS reprojection error in pixels, or null"),
-        dof=_integer(q["dof"], "quality.dof", nullable=True),
-    )
-    p = _object(d["provenance"], "provenance", ("flow_run", "code_version", "inputs"))
-
-    def sha(x: Any, path: str) -> str:
-        s = _string(x, path)
-        if not _SHA256.match(s):
-            raise _fail(path, "a sha256 as 64 lowercase hex digits", s,
-                        "write hashlib.sha256(data).hexdigest()")
-        return s
-
-    provenance = Provenance(
-        flow_run=_string(p["flow_run"], "provenance.flow_run", nullable=True),
-        code_version=_string(p["code_version"], "provenance.code_version",
-                             fix='write the version, or "unknown"'),
-        inputs=_name_map(p["inputs"], "provenance.inputs", None, sha),
-    )
+def _fields_of(d: CertificateDocument) -> dict[str, Any]:
+    """The fields of :class:`Certificate` from a validated document."""
+    m, c, q, p = d.model, d.conditions, d.quality, d.provenance
+    params = m.params
+    significance = FrozenMap({
+        n: ParameterSignificance(t=s.t, significant=s.significant, dropped=s.dropped, held_out_gain=s.held_out_gain,
+                                 held_out_sigma=s.held_out_sigma, calibrated_t=s.calibrated_t,
+                                 prior_sigma=s.prior_sigma)
+        for n, s in d.significance.items()
+    })
+    review = d.review
     return {
-        "identity": identity, "camera": camera, "sigmas": sigmas, "estimated": estimated,
-        "correlation": correlation, "significance": significance, "thermal": thermal,
-        "conditions": _parse_conditions(d["conditions"]), "quality": quality, "provenance": provenance,
-        "id": cid, "issued": _parse_issued(d["issued"]), "version": version, "supersedes": supersedes,
-        "review": _parse_review(d.get("review")),
+        "identity": CameraIdentity(d.camera.make, d.camera.model, d.camera.serial, d.camera.lens),
+        "camera": Camera(width=m.width, height=m.height, pixel_size_mm=m.pixel_size_mm,
+                         **{n: getattr(params, n) for n in PARAM_NAMES}),
+        "sigmas": FrozenMap(d.sigmas),
+        "estimated": tuple(d.estimated),
+        "correlation": Correlation(tuple(d.correlation.names), d.correlation.matrix),
+        "significance": significance,
+        "thermal": _thermal_of(d.thermal),
+        "conditions": Conditions(date=c.date, temperature_range=c.temperature_range, n_images=c.n_images,
+                                 strips=c.strips, transversal_strip=c.transversal_strip, n_gcp=c.n_gcp,
+                                 priors=FrozenMap(c.priors), images=tuple(c.images)),
+        "quality": Quality(sigma0=q.sigma0, reprojection_rms_px=q.reprojection_rms_px, dof=q.dof),
+        "provenance": Provenance(flow_run=p.flow_run, code_version=p.code_version, inputs=FrozenMap(p.inputs)),
+        "id": d.id,
+        "issued": d.issued,
+        "version": d.version,
+        "supersedes": d.supersedes,
+        "review": None if review is None else Review(review.status, tuple(review.problems), tuple(review.checks),
+                                                     tuple(review.notes)),
     }
-
-
-def _parse_review(v: Any) -> Review | None:
-    if v is None:
-        return None
-    r = _object(v, "review", ("status", "problems", "checks", "notes"))
-    status = _string(r["status"], "review.status")
-    if status not in STATUSES:
-        raise _fail("review.status", " or ".join(f'"{x}"' for x in STATUSES), status,
-                    "write the verdict of the calibration's review")
-    lists = {k: tuple(_string(x, f"review.{k}[{i}]") for i, x in enumerate(_array(r[k], f"review.{k}")))
-             for k in ("problems", "checks", "notes")}
-    if status == ACCEPTED and lists["problems"]:
-        raise CertificateError("review.problems: an accepted certificate lists problems; a problem rejects it "
-                               '(write "rejected") or remove the problems')
-    if status == REJECTED and not lists["problems"]:
-        raise CertificateError("review.problems: a rejected certificate must say why; list the problems")
-    return Review(status, **lists)
-
 
 def _significance_dict(s: ParameterSignificance) -> dict:
     out = {"t": s.t, "significant": s.significant, "dropped": s.dropped}
@@ -1044,14 +657,19 @@ def _significance_dict(s: ParameterSignificance) -> dict:
 
 
 # =============================================================================== helpers for rendering
+_SCALARS = frozenset((float, int, str, bool, type(None)))
+
+
 def _plain(obj: Any) -> Any:
-    """Tuples to lists, numpy scalars to Python numbers (JSON-ready)."""
-    if isinstance(obj, Mapping):
+    """Tuples to lists, numpy scalars and arrays to Python numbers and lists (JSON-ready)."""
+    if type(obj) in _SCALARS:
+        return obj
+    if isinstance(obj, dict | Mapping):
         return {k: _plain(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple | np.ndarray):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return obj.item()
+    if isinstance(obj, list | tuple):
+        return [v if type(v) in _SCALARS else _plain(v) for v in obj]
+    if isinstance(obj, np.ndarray | np.generic):
+        return obj.tolist()
     return obj
 
 
@@ -1070,6 +688,7 @@ def _or_q(v: int | None) -> str:
 
 
 __all__ = [
+    "HASH_EXCLUDED_FIELDS",
     "SCHEMA",
     "THERMAL_SLOPE_NAMES",
     "CameraIdentity",
@@ -1084,4 +703,5 @@ __all__ = [
     "ThermalCalibration",
     "code_version",
     "sigmas_and_correlation",
+    "validate_camera",
 ]

@@ -1,48 +1,41 @@
 """The certificate store: issuing immutable, versioned certificates and selecting the one a flight uses.
 
-A certificate document (produced by ``aerocal.certificate``) is a JSON object of schema
-``aerocal.certificate/1``; this module reads only the fields it indexes (camera, id, issued, model kind,
-thermal model, conditions, quality) and stores the whole document unchanged apart from the three fields
-the store owns: ``id`` (kept, or a new uuid4 hex when absent), ``version`` and ``supersedes``.
+A certificate document is validated whole by the engine's schema (:mod:`aerocal.certificate_schema`, through
+:meth:`aerocal.certificate.Certificate.from_dict`) and stored unchanged apart from the fields the store owns:
+``id`` (kept, or a new uuid4 hex when absent), ``issued`` (kept, or now when absent), ``version`` and
+``supersedes``. The columns selection needs are indexed from the engine certificate (:func:`index_fields`).
 
 Versions are consecutive per camera from 1, assigned under a lock: ``BEGIN IMMEDIATE`` on SQLite, a
 ``SELECT ... FOR UPDATE`` of the camera row on PostgreSQL, with the unique constraint
 (camera_id, version) as the last guard and a retry when two writers still collide.
 
-Temperature coverage
---------------------
-A certificate covers the temperatures it was determined over: ``thermal.valid_range`` when it has a
-thermal model (widened by :attr:`SelectionRules.thermal_tolerance_c`, default 0 degC: the model is
-not extrapolated), else ``conditions.temperature_range`` widened by
-:attr:`SelectionRules.temperature_tolerance_c` (default 3 degC) on each side. A constant-IO
-certificate made at 30 degC therefore does not cover a flight at 10 degC. A certificate that records
-no temperatures covers any flight temperature (``accept_unrecorded_temperature``), and a flight that
-records none is not checked; the selection reason says so in both cases.
-
-Dates
------
-A certificate applies to flights on or after its calibration date: ``conditions.date`` (the date of
-the data it was computed from), or the issue date when the document has none. Using the date of the
-data rather than the issue time lets a certificate computed today from a 2016 flight serve a 2017
-flight of the same camera. ``max_age_days`` limits the days between calibration and flight.
+Which stored certificate a flight uses is decided by the engine's rules
+(:func:`aerocal.certificate_selection.choose_certificate`: same camera, date and temperature coverage, age,
+pins, rejected ones never chosen); :func:`select_certificate` queries the candidates and records the choice.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import random
 import time
 import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from datetime import UTC, date, datetime
+from datetime import date, datetime
 from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from storage.cameras import CameraIdentity, find_camera, get_or_create_camera
+from aerocal.certificate import Certificate as EngineCertificate
+from aerocal.certificate import CertificateError
+from aerocal.certificate_schema import SCHEMA
+from aerocal.certificate_selection import Candidate, SelectionRules, choose_certificate, flight_day
+from aerocal.certificate_selection import NoCertificateError as NoApplicableCertificate
+from aerocal.certificate_selection import coverage as candidate_coverage
+from aerocal.decision import STATUSES
+from storage.cameras import CameraIdentity, find_camera, get_or_create_camera, stored_identity
 from storage.database import begin_write
 from storage.errors import (
     CertificateDocumentError,
@@ -54,32 +47,33 @@ from storage.models import Camera, Certificate, utcnow
 from storage.runs import record_certificate
 
 #: Schema family of certificate documents and the major version this code reads.
-SCHEMA_FAMILY = "aerocal.certificate"
-SCHEMA_VERSION = 1
+SCHEMA_FAMILY, _, _major = SCHEMA.partition("/")
+SCHEMA_VERSION = int(_major)
 
+#: review verdicts a stored certificate can carry (``aerocal.decision.STATUSES``)
+CERTIFICATE_STATUSES = STATUSES
 
-@dataclass(frozen=True)
-class SelectionRules:
-    """How :func:`select_certificate` decides whether a certificate covers a flight's temperatures.
-
-    Attributes:
-        temperature_tolerance_c: degC added on each side of a constant-IO certificate's calibration
-            temperature range (default 3 degC: about the spread of sensor temperature within one
-            calibration flight).
-        thermal_tolerance_c: degC added on each side of a thermal model's ``valid_range`` (default 0:
-            a fitted dIO/dT is not extrapolated).
-        accept_unrecorded_temperature: whether a certificate recording no temperatures covers any
-            flight temperature (default True; the reason then says the temperature was not checked).
-    """
-
-    temperature_tolerance_c: float = 3.0
-    thermal_tolerance_c: float = 0.0
-    accept_unrecorded_temperature: bool = True
+__all__ = [
+    "CERTIFICATE_STATUSES",
+    "SCHEMA_FAMILY",
+    "SCHEMA_VERSION",
+    "IndexedFields",
+    "SelectionRules",
+    "candidate",
+    "coverage",
+    "get_certificate",
+    "index_fields",
+    "issue_certificate",
+    "latest_certificate",
+    "list_certificates",
+    "select_certificate",
+    "supersession_chain",
+]
 
 
 @dataclass(frozen=True)
 class IndexedFields:
-    """What the store reads from a certificate document (see :func:`index_fields`)."""
+    """What the store indexes of a certificate document (see :func:`index_fields`)."""
 
     id: str
     camera: CameraIdentity
@@ -93,143 +87,7 @@ class IndexedFields:
     status: str = "accepted"
 
 
-#: review verdicts a stored certificate can carry (``aerocal.decision.STATUSES``)
-CERTIFICATE_STATUSES = ("accepted", "rejected")
-
-
 # --------------------------------------------------------------------------------------- documents
-def _parse_time(value: object, where: str) -> datetime:
-    if not isinstance(value, str):
-        raise CertificateDocumentError(f"{where} must be an ISO-8601 UTC time like 2016-03-14T10:00:00Z")
-    try:
-        parsed = datetime.fromisoformat(value.strip())
-    except ValueError:
-        raise CertificateDocumentError(
-            f"{where} {value!r} is not an ISO-8601 time; write it like 2016-03-14T10:00:00Z"
-        ) from None
-    if parsed.tzinfo is None:  # documented: times without offset are UTC
-        parsed = parsed.replace(tzinfo=UTC)
-    return parsed.astimezone(UTC)
-
-
-def _parse_date(value: object, where: str) -> date:
-    if isinstance(value, datetime):
-        return value.astimezone(UTC).date() if value.tzinfo else value.date()
-    if isinstance(value, date):
-        return value
-    if isinstance(value, str):
-        try:
-            return date.fromisoformat(value.strip()[:10])
-        except ValueError:
-            pass
-    raise CertificateDocumentError(f"{where} {value!r} is not a date; write it as YYYY-MM-DD")
-
-
-def _number(value: object, where: str) -> float | None:
-    if value is None:
-        return None
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise CertificateDocumentError(f"{where} must be a number or null, got {value!r}")
-    return float(value)
-
-
-def _range(value: object, where: str) -> tuple[float, float] | None:
-    if value is None:
-        return None
-    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != 2:
-        raise CertificateDocumentError(f"{where} must be [min, max] in degC or null, got {value!r}")
-    lo, hi = (_number(v, where) for v in value)
-    if lo is None or hi is None:
-        return None
-    if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-        raise CertificateDocumentError(f"{where} must be finite with min <= max, got {list(value)}")
-    return (lo, hi)
-
-
-def _section(document: Mapping[str, Any], name: str, where: str, required: bool = False) -> Mapping[str, Any]:
-    value = document.get(name)
-    if value is None and not required:
-        return {}
-    if not isinstance(value, Mapping):
-        raise CertificateDocumentError(f"{where}: field {name!r} must be an object")
-    return value
-
-
-def index_fields(document: Mapping[str, Any]) -> IndexedFields:
-    """Validate and read the fields the store indexes; :class:`CertificateDocumentError` names the field.
-
-    A missing ``id`` becomes a new uuid4 hex; a missing ``issued`` becomes now; times without an
-    offset are read as UTC.
-    """
-    if not isinstance(document, Mapping):
-        raise CertificateDocumentError("a certificate document must be a JSON object")
-    raw_id = document.get("id")
-    if raw_id is not None and (not isinstance(raw_id, str) or not raw_id.strip() or len(raw_id) > 64):
-        raise CertificateDocumentError(
-            f"certificate id must be a non-empty string of at most 64 characters, got {raw_id!r}"
-        )
-    cert_id = raw_id.strip() if raw_id else uuid.uuid4().hex
-    where = f"certificate {cert_id}"
-    schema = document.get("schema")
-    if not isinstance(schema, str) or not schema.startswith(SCHEMA_FAMILY + "/"):
-        raise CertificateDocumentError(
-            f"{where}: field 'schema' is {schema!r}, expected '{SCHEMA_FAMILY}/{SCHEMA_VERSION}'"
-        )
-    major = schema.split("/", 1)[1].split(".")[0]
-    if major != str(SCHEMA_VERSION):
-        raise CertificateDocumentError(
-            f"{where}: schema {schema!r} is not readable by this aerocal ({SCHEMA_FAMILY}/{SCHEMA_VERSION}); "
-            "upgrade aerocal"
-        )
-    camera = CameraIdentity.from_mapping(
-        _section(document, "camera", where, required=True), f"{where}: camera"
-    )
-    issued = _parse_time(document["issued"], f"{where}: issued") if document.get("issued") else utcnow()
-    model = _section(document, "model", where, required=True)
-    model_kind = model.get("kind")
-    if not isinstance(model_kind, str) or not model_kind:
-        raise CertificateDocumentError(f"{where}: model.kind must name the camera model (e.g. 'brown')")
-    conditions = _section(document, "conditions", where)
-    calibration_date = (
-        _parse_date(conditions["date"], f"{where}: conditions.date")
-        if conditions.get("date")
-        else issued.date()
-    )
-    condition_range = _range(conditions.get("temperature_range"), f"{where}: conditions.temperature_range")
-    thermal = _section(document, "thermal", where)
-    thermal_kind = None
-    temperature_range = condition_range
-    if thermal:
-        thermal_kind = thermal.get("kind")
-        if not isinstance(thermal_kind, str) or not thermal_kind:
-            raise CertificateDocumentError(
-                f"{where}: thermal.kind must name the thermal model (e.g. 'linear')"
-            )
-        valid = _range(thermal.get("valid_range"), f"{where}: thermal.valid_range")
-        temperature_range = valid if valid is not None else condition_range
-    quality = _section(document, "quality", where)
-    review = _section(document, "review", where)
-    status = review.get("status", "accepted") if review else "accepted"
-    if status not in CERTIFICATE_STATUSES:
-        raise CertificateDocumentError(
-            f"{where}: review.status is {status!r}; write one of {', '.join(CERTIFICATE_STATUSES)}"
-        )
-    return IndexedFields(
-        id=cert_id,
-        camera=camera,
-        issued=issued,
-        calibration_date=calibration_date,
-        temperature_range=temperature_range,
-        thermal_kind=thermal_kind,
-        model_kind=model_kind,
-        sigma0=_number(quality.get("sigma0"), f"{where}: quality.sigma0"),
-        reprojection_rms_px=_number(
-            quality.get("reprojection_rms_px"), f"{where}: quality.reprojection_rms_px"
-        ),
-        status=status,
-    )
-
-
 def _json_default(obj: object) -> object:
     # numpy scalars and arrays without importing numpy here
     if hasattr(obj, "tolist"):
@@ -239,35 +97,64 @@ def _json_default(obj: object) -> object:
     raise TypeError(f"{type(obj).__name__} is not JSON serialisable")
 
 
-def _first_non_finite(obj: object, path: str = "") -> str | None:
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return path or "(document)"
-    if isinstance(obj, Mapping):
-        for key, value in obj.items():
-            found = _first_non_finite(value, f"{path}.{key}" if path else str(key))
-            if found:
-                return found
-    elif isinstance(obj, list | tuple):
-        for i, value in enumerate(obj):
-            found = _first_non_finite(value, f"{path}[{i}]")
-            if found:
-                return found
-    return None
-
-
-def _plain_json(document: Mapping[str, Any], where: str) -> dict[str, Any]:
-    """The document as plain JSON types; NaN and infinities are refused (PostgreSQL JSON rejects them)."""
-    try:
-        text = json.dumps(document, default=_json_default)
-    except TypeError as exc:
-        raise CertificateDocumentError(f"{where}: not JSON serialisable ({exc})") from None
-    plain = json.loads(text)
-    bad = _first_non_finite(plain)
-    if bad:
+def _plain_document(document: Mapping[str, Any]) -> dict[str, Any]:
+    """The document as plain JSON types, with the fields the store owns filled in: a missing ``id`` becomes a
+    new uuid4 hex, a missing ``issued`` now; ``version`` and ``supersedes`` are assigned when it is stored."""
+    if not isinstance(document, Mapping):
         raise CertificateDocumentError(
-            f"{where}: field {bad} is NaN or infinite; store null for a value that was not estimated"
+            f"a certificate document must be a JSON object, got {type(document).__name__}"
         )
+    raw_id = document.get("id")
+    where = f"certificate {raw_id}" if isinstance(raw_id, str) and raw_id else "certificate"
+    try:
+        plain = json.loads(json.dumps(document, default=_json_default))
+    except (TypeError, ValueError) as exc:
+        raise CertificateDocumentError(f"{where}: not JSON serialisable ({exc})") from None
+    if not plain.get("id"):
+        plain["id"] = uuid.uuid4().hex
+    if not plain.get("issued"):
+        plain["issued"] = utcnow().isoformat().replace("+00:00", "Z")
+    plain["version"] = plain["supersedes"] = None
     return plain
+
+
+def _indexed(certificate: EngineCertificate) -> IndexedFields:
+    facts = Candidate.of(certificate)
+    return IndexedFields(
+        id=certificate.id,
+        camera=stored_identity(certificate.identity),
+        issued=certificate.issued,
+        calibration_date=facts.calibration_date,
+        temperature_range=facts.temperature_range,
+        thermal_kind=facts.thermal_kind,
+        model_kind="brown",
+        sigma0=certificate.quality.sigma0,
+        reprojection_rms_px=certificate.quality.reprojection_rms_px,
+        status=facts.status,
+    )
+
+
+def _validated(document: Mapping[str, Any]) -> tuple[IndexedFields, dict[str, Any]]:
+    """The indexed fields and the plain document to store; :class:`CertificateDocumentError` names the
+    certificate, the field, what was expected and found, and the fix."""
+    plain = _plain_document(document)
+    where = f"certificate {plain['id']}"
+    try:
+        certificate = EngineCertificate.from_dict(plain)
+    except CertificateError as exc:
+        raise CertificateDocumentError(f"{where}: {exc}") from None
+    try:
+        fields = _indexed(certificate)
+    except ValueError as exc:  # make, model or serial unknown
+        raise CertificateDocumentError(f"{where}: camera: {exc}") from None
+    return fields, plain
+
+
+def index_fields(document: Mapping[str, Any]) -> IndexedFields:
+    """Validate a certificate document with the engine's schema and read the fields the store indexes;
+    :class:`CertificateDocumentError` names the field. A missing ``id`` becomes a new uuid4 hex, a missing
+    ``issued`` now; the camera must name make, model and serial."""
+    return _validated(document)[0]
 
 
 # ----------------------------------------------------------------------------------------- issuing
@@ -289,13 +176,13 @@ def issue_certificate(session: Session, document: Mapping[str, Any], max_attempt
     a transaction of its own, and any transaction open on ``session`` is committed first.
 
     Raises:
-        CertificateDocumentError: a field the store indexes is missing or malformed, the document
-            holds NaN, or a certificate with this id is already stored.
+        CertificateDocumentError: the document does not pass the certificate schema (the message names the
+            field, what was expected and found, and the fix), its camera lacks make, model or serial, or a
+            certificate with this id is already stored.
         StorageError: the version could not be assigned after ``max_attempts`` collisions.
     """
-    fields = index_fields(document)
+    fields, plain = _validated(document)
     where = f"certificate {fields.id}"
-    plain = _plain_json(document, where)
     if session.in_transaction():
         session.commit()
     last_error: Exception | None = None
@@ -318,11 +205,8 @@ def issue_certificate(session: Session, document: Mapping[str, Any], max_attempt
             ).first()
             version = latest.version + 1 if latest is not None else 1
             stored_document = dict(plain)
-            stored_document["id"] = fields.id
             stored_document["version"] = version
             stored_document["supersedes"] = latest.id if latest is not None else None
-            if not stored_document.get("issued"):
-                stored_document["issued"] = fields.issued.isoformat().replace("+00:00", "Z")
             lo, hi = fields.temperature_range if fields.temperature_range else (None, None)
             record = Certificate(
                 id=fields.id,
@@ -384,7 +268,7 @@ def list_certificates(session: Session, camera: CameraIdentity | str | None = No
     """
     query = sa.select(Certificate).join(Camera)
     if isinstance(camera, CameraIdentity) or (isinstance(camera, str) and "|" in camera):
-        identity = CameraIdentity.coerce(camera)
+        identity = stored_identity(camera)
         query = query.where(
             Camera.make == identity.make,
             Camera.model == identity.model,
@@ -413,101 +297,30 @@ def latest_certificate(session: Session, camera: CameraIdentity | str) -> Certif
 
 
 # --------------------------------------------------------------------------------------- selection
-def coverage(certificate: Certificate, rules: SelectionRules | None = None) -> tuple[float, float] | None:
-    """Temperature range (degC) the certificate covers under ``rules``, ``None`` when it records none."""
-    rules = rules or SelectionRules()
-    recorded = certificate.temperature_range
-    if recorded is None:
-        return None
-    tol = rules.thermal_tolerance_c if certificate.thermal_kind else rules.temperature_tolerance_c
-    return (recorded[0] - tol, recorded[1] + tol)
-
-
-def _coverage_basis(certificate: Certificate, rules: SelectionRules) -> str:
-    recorded = certificate.temperature_range
-    if recorded is None:
-        return "records no temperatures"
-    if certificate.thermal_kind:
-        tol = f" +/- {rules.thermal_tolerance_c:g}" if rules.thermal_tolerance_c else ""
-        return f"{certificate.thermal_kind} thermal model valid {_span(recorded)}{tol}"
-    return f"constant IO calibrated at {_span(recorded)} +/- {rules.temperature_tolerance_c:g}"
-
-
-def _span(rng: tuple[float, float]) -> str:
-    return f"{rng[0]:g}-{rng[1]:g} degC"
-
-
-def _flight_date(value: date | datetime | str) -> date:
-    try:
-        return _parse_date(value, "flight date")
-    except CertificateDocumentError as exc:
-        raise ValueError(str(exc)) from None
-
-
-def _flight_range(value: Sequence[float] | None) -> tuple[float, float] | None:
-    if value is None:
-        return None
-    lo, hi = (float(v) for v in value)
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        raise ValueError(f"flight temperature range must be finite, got {list(value)}")
-    return (min(lo, hi), max(lo, hi))
-
-
-def _problems(
-    cert: Certificate,
-    flight_date: date,
-    flight_range: tuple[float, float] | None,
-    max_age_days: float | None,
-    rules: SelectionRules,
-) -> list[str]:
-    """Why ``cert`` does not apply to the flight (empty when it does)."""
-    problems = []
-    if cert.status != "accepted":
-        why = "; ".join((cert.document.get("review") or {}).get("problems") or []) or "no reason recorded"
-        problems.append(f"was rejected by its review ({why})")
-    if cert.calibration_date > flight_date:
-        problems.append(f"was calibrated after the flight of {flight_date}")
-    else:
-        age = (flight_date - cert.calibration_date).days
-        if max_age_days is not None and age > max_age_days:
-            problems.append(
-                f"is {age} days older than the flight of {flight_date}; the limit is {max_age_days:g} days"
-            )
-    covered = coverage(cert, rules)
-    if flight_range is not None:
-        if covered is None:
-            if not rules.accept_unrecorded_temperature:
-                problems.append(f"records no temperatures; flight spans {_span(flight_range)}")
-        elif flight_range[0] < covered[0] or flight_range[1] > covered[1]:
-            problems.append(f"covers {_span(covered)}; flight spans {_span(flight_range)}")
-    return problems
-
-
-def _describe_choice(
-    cert: Certificate,
-    n_applicable: int,
-    n_total: int,
-    flight_date: date,
-    flight_range: tuple[float, float] | None,
-    max_age_days: float | None,
-    rules: SelectionRules,
-) -> str:
-    age = (flight_date - cert.calibration_date).days
-    limit = f" (limit {max_age_days:g})" if max_age_days is not None else ""
-    covered = coverage(cert, rules)
-    if flight_range is None:
-        temperature = "flight records no temperatures, not checked"
-    elif covered is None:
-        temperature = f"certificate records no temperatures, flight {_span(flight_range)} not checked"
-    else:
-        temperature = (
-            f"covers {_span(covered)} ({_coverage_basis(cert, rules)}) >= flight {_span(flight_range)}"
-        )
-    return (
-        f"newest applicable certificate ({n_applicable} of {n_total} for camera {cert.camera.label}): "
-        f"v{cert.version} {cert.id} calibrated {cert.calibration_date}, {age} days before the flight{limit}; "
-        f"{temperature}"
+def candidate(certificate: Certificate, camera: CameraIdentity | None = None) -> Candidate:
+    """What the selection rules read of a stored certificate (the row is the candidate's ``item``); ``camera``
+    is its camera's identity when the caller has it already."""
+    problems: tuple[str, ...] = ()
+    if certificate.status != "accepted":
+        problems = tuple((certificate.document.get("review") or {}).get("problems") or ())
+    return Candidate(
+        id=certificate.id,
+        camera=camera or certificate.camera.identity,
+        calibration_date=certificate.calibration_date,
+        temperature_range=certificate.temperature_range,
+        thermal_kind=certificate.thermal_kind,
+        version=certificate.version,
+        issued=certificate.issued,
+        status=certificate.status,
+        problems=problems,
+        item=certificate,
     )
+
+
+def coverage(certificate: Certificate, rules: SelectionRules | None = None) -> tuple[float, float] | None:
+    """Temperature range (degC) the stored certificate covers under ``rules``, ``None`` when it records none
+    (:func:`aerocal.certificate_selection.coverage`)."""
+    return candidate_coverage(candidate(certificate), rules)
 
 
 def select_certificate(
@@ -520,16 +333,14 @@ def select_certificate(
     rules: SelectionRules | None = None,
     run_id: str | None = None,
 ) -> tuple[Certificate, str]:
-    """The certificate a flight of ``camera`` on ``flight_date`` should use, and why.
+    """The stored certificate a flight of ``camera`` on ``flight_date`` should use, and why.
 
-    Candidates are the certificates of the same camera identity (make, model, serial, lens) that
-    were calibrated on or before the flight date, at most ``max_age_days`` before it, and whose
-    temperature coverage (see the module docstring) contains ``temperature_range`` (the flight's
-    sensor temperatures ``(min, max)`` in degC, or ``None`` when unknown). The newest candidate by
-    calibration date (then version) wins.
-
-    ``pin`` selects a certificate by id (or unique prefix) instead; it must belong to the same camera.
-    Rules it breaks are noted in the reason, not refused: a pin is a deliberate choice.
+    The candidates are the camera's stored certificates (or, with ``pin``, the certificate with that id or
+    unique prefix, of any camera); the choice is :func:`aerocal.certificate_selection.choose_certificate`'s:
+    same camera identity, calibrated on or before the flight date and at most ``max_age_days`` before it,
+    temperature coverage containing ``temperature_range`` (the flight's sensor temperatures ``(min, max)`` in
+    degC, or ``None`` when unknown), never a rejected one; the newest by calibration date (then version)
+    wins. A pin's broken rules are noted in the reason, not refused; it must belong to the same camera.
 
     With ``run_id`` the choice and reason are recorded on that run (not committed).
 
@@ -538,79 +349,39 @@ def select_certificate(
             ``camera NEC TS9260 s/n 123: newest certificate 2016-03-14 covers 18-24 degC; flight
             spans 12-19 degC; ...``.
     """
-    rules = rules or SelectionRules()
-    identity = CameraIdentity.coerce(camera)
-    day = _flight_date(flight_date)
-    flight_range = _flight_range(temperature_range)
+    identity = stored_identity(camera)
+    day = flight_day(flight_date)
     if pin is not None:
         try:
-            chosen = get_certificate(session, pin)
+            pinned = get_certificate(session, pin)
         except NotFoundError as exc:
             raise NoCertificateError(f"camera {identity}: pinned {exc}") from None
-        if CameraIdentity.coerce(chosen.camera) != identity:
-            raise NoCertificateError(
-                f"camera {identity}: pinned certificate {chosen.id} belongs to camera {chosen.camera.label}; "
-                "pin a certificate of this camera"
-            )
-        if chosen.status != "accepted":
-            raise NoCertificateError(
-                f"camera {identity}: pinned certificate {chosen.id} "
-                + _problems(chosen, day, None, None, rules)[0]
-                + "; a rejected certificate is never used: pin an accepted one or calibrate on this flight"
-            )
-        problems = _problems(chosen, day, flight_range, max_age_days, rules)
-        reason = f"pinned by id: v{chosen.version} {chosen.id} calibrated {chosen.calibration_date}"
-        if problems:
-            reason += "; note: it " + "; it ".join(problems)
-    else:
-        chosen, reason = _select_newest(session, identity, day, flight_range, max_age_days, rules)
+        candidates, pin = [candidate(pinned)], pinned.id
+    else:  # the camera's certificates: its identity is the flight's
+        candidates = [candidate(row, identity) for row in _certificates_of(session, identity)]
+    try:
+        chosen, reason = choose_certificate(
+            candidates, identity, day, temperature_range, rules=rules, pin=pin, max_age_days=max_age_days
+        )
+    except NoApplicableCertificate as exc:
+        raise NoCertificateError(str(exc)) from None
     if run_id is not None:
         record_certificate(session, run_id, chosen, reason)
     return chosen, reason
 
 
-def _select_newest(
-    session: Session,
-    identity: CameraIdentity,
-    day: date,
-    flight_range: tuple[float, float] | None,
-    max_age_days: float | None,
-    rules: SelectionRules,
-) -> tuple[Certificate, str]:
+def _certificates_of(session: Session, identity: CameraIdentity) -> list[Certificate]:
+    """The camera's stored certificates, newest calibration (then version) first."""
     stored_camera = find_camera(session, identity)
-    certificates: list[Certificate] = []
-    if stored_camera is not None:
-        certificates = list(
-            session.scalars(
-                sa.select(Certificate)
-                .where(Certificate.camera_id == stored_camera.id)
-                .order_by(Certificate.calibration_date.desc(), Certificate.version.desc())
-            )
+    if stored_camera is None:
+        return []
+    return list(
+        session.scalars(
+            sa.select(Certificate)
+            .where(Certificate.camera_id == stored_camera.id)
+            .order_by(Certificate.calibration_date.desc(), Certificate.version.desc())
         )
-    fix = "calibrate the camera on this flight, import a certificate, or pin one"
-    if not certificates:
-        raise NoCertificateError(f"camera {identity}: no certificate is stored for this camera; {fix}")
-    verdicts = [(cert, _problems(cert, day, flight_range, max_age_days, rules)) for cert in certificates]
-    applicable = [cert for cert, problems in verdicts if not problems]
-    if applicable:
-        chosen = applicable[0]
-        return chosen, _describe_choice(
-            chosen, len(applicable), len(certificates), day, flight_range, max_age_days, rules
-        )
-    before = [(cert, problems) for cert, problems in verdicts if cert.calibration_date <= day]
-    if before:
-        cert, problems = before[0]
-        what = f"newest certificate {cert.calibration_date} " + "; it ".join(problems)
-    else:
-        cert, problems = verdicts[-1]
-        what = f"oldest certificate {cert.calibration_date} " + "; it ".join(problems)
-    count = f"{len(certificates)} certificate{'s' if len(certificates) > 1 else ''} checked"
-    if flight_range is not None and len(certificates) > 1:
-        spans = [span for span in (coverage(c, rules) for c in certificates) if span is not None]
-        if spans:
-            widest = max(spans, key=lambda s: s[1] - s[0])
-            count += f"; widest temperature coverage of any certificate: {_span(widest)}"
-    raise NoCertificateError(f"camera {identity}: {what} ({count}); {fix}")
+    )
 
 
 def supersession_chain(session: Session, certificate: Certificate | str) -> list[Certificate]:

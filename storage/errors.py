@@ -6,6 +6,8 @@ masked, certificate id, artifact URI, document field) and says how to fix it.
 
 from __future__ import annotations
 
+from aerocal.certificate_selection import NoCertificateError as NoApplicableCertificateError
+
 
 class StorageError(Exception):
     """Base class of every storage error; ``str(err)`` is a single line meant for the user."""
@@ -35,8 +37,9 @@ class ImmutableCertificateError(StorageError):
     """Something tried to change or delete a stored certificate; issue a new one that supersedes it."""
 
 
-class NoCertificateError(StorageError, LookupError):
-    """No stored certificate applies to a flight; the message says what is missing."""
+class NoCertificateError(StorageError, NoApplicableCertificateError):
+    """No stored certificate applies to a flight; the message says what is missing (the engine's
+    :class:`aerocal.certificate_selection.NoCertificateError`, raised by the database store)."""
 
 
 class CorruptArtifactError(StorageError):

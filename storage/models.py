@@ -40,7 +40,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
-from aerocal.ingest.camera_identity import is_shared_identity
+from aerocal.camera_identity import CameraIdentity
 from storage.errors import ImmutableCertificateError
 
 #: Constraint names follow one pattern, so migrations (and SQLite batch mode) can refer to them.
@@ -124,14 +124,15 @@ class Camera(Base):
     )
 
     @property
+    def identity(self) -> CameraIdentity:
+        """The camera's identity (make, model, serial, lens)."""
+        return CameraIdentity(self.make, self.model, self.serial, self.lens)
+
+    @property
     def label(self) -> str:
-        """Human-readable identity, e.g. ``NEC TS9260 s/n 123``; a camera without a recorded serial number
-        (``"no-serial WxH"``) says that its certificates may be shared by several bodies of the model."""
-        if is_shared_identity(self.serial):
-            text = f"{self.make} {self.model} ({self.serial}: any body of this model, no serial recorded)"
-        else:
-            text = f"{self.make} {self.model} s/n {self.serial}"
-        return text if self.lens == "unknown" else f"{text} lens {self.lens}"
+        """Human-readable identity, e.g. ``NEC TS9260 s/n 123`` (:attr:`aerocal.camera_identity.CameraIdentity.label`:
+        a camera without a recorded serial number says its certificates may serve several bodies of the model)."""
+        return self.identity.label
 
 
 class Certificate(Base):

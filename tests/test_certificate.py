@@ -8,6 +8,7 @@ import datetime as dt
 import hashlib
 import json
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -154,6 +155,29 @@ def test_json_round_trip_preserves_everything_and_the_content_hash(variant):
     # and through pickle (certificates cross process boundaries on a Dask cluster)
     assert pickle.loads(pickle.dumps(back)) == cert
     assert hash(back) == hash(cert)
+
+
+#: documents written by aerocal before the certificate schema (commit 8244184, the hand-written validator):
+#: self-calibrations with each thermal model kind, a rejected review with held-out gains, a nominal camera with
+#: a serial-less identity, and imports from the four foreign formats, each with its content hash of then
+WRITTEN_BEFORE = Path(__file__).with_name("certificate_documents_8244184.json")
+
+
+@pytest.mark.parametrize("entry", json.loads(WRITTEN_BEFORE.read_text())["documents"], ids=lambda e: e["name"])
+def test_documents_written_before_the_schema_load_unchanged(entry):
+    doc = entry["document"]
+    cert = Certificate.from_dict(doc)
+    assert cert.to_dict() == doc
+    assert cert.content_hash() == entry["content_hash"]
+    assert Certificate(**{f.name: getattr(cert, f.name) for f in dataclasses.fields(cert)}) == cert
+
+
+def test_calibration_date_is_the_data_s_date_else_the_issue_date():
+    cert = make_certificate()
+    assert cert.calibration_date == dt.date(2017, 3, 14)
+    undated = dataclasses.replace(cert, conditions=Conditions(),
+                                  issued=dt.datetime(2024, 5, 17, 23, 30, tzinfo=dt.timezone(dt.timedelta(hours=-2))))
+    assert undated.calibration_date == dt.date(2024, 5, 18)  # the UTC date
 
 
 def test_content_hash_ignores_issue_identity_but_not_content():
@@ -360,3 +384,46 @@ def test_a_nominal_camera_taken_as_it_is_is_uncertain_in_f_principal_point_and_d
     assert sd["f"] == pytest.approx(11.25) and sd["cx"] == pytest.approx(6.4) and sd["cy"] == pytest.approx(5.12)
     # either term alone moves the corner by 2 % of its radius
     assert sd["k1"] * corner2 == pytest.approx(0.02) and sd["k2"] * corner2**2 == pytest.approx(0.02)
+
+
+#: what a hand edit, a script or an attacker puts anywhere in a document
+HOSTILE_VALUES = [None, [], {}, "", "x", 10**400, -(10**400), float("nan"), float("inf"), True, -1, 0, 1.5, [[1]],
+                  {"a": 1}, [None], "2024-13-01", "a|b", "\n", 4294967297, [1, 2], {"kind": "linear"}, 1e308]
+FUZZ_SEED = 20261126
+
+
+def _paths(obj, path=()):
+    yield path
+    if isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _paths(v, (*path, k))
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _paths(v, (*path, i))
+
+
+@pytest.mark.parametrize("variant", list(THERMAL_VARIANTS))
+def test_hostile_values_anywhere_are_one_line_certificate_errors(variant):
+    """300 seeded mutations per thermal variant (any node of the document replaced by a hostile value): each
+    document is refused with a one-line CertificateError naming a field, or accepted and then round-trips;
+    never another exception."""
+    rng = np.random.default_rng(FUZZ_SEED)
+    base = _variant(variant).to_dict()
+    for k in range(300):
+        doc = copy.deepcopy(base)
+        paths = [p for p in _paths(doc) if p]
+        path = paths[int(rng.integers(len(paths)))]
+        node = doc
+        for p in path[:-1]:
+            node = node[p]
+        node[path[-1]] = copy.deepcopy(HOSTILE_VALUES[int(rng.integers(len(HOSTILE_VALUES)))])
+        case = f"seed {FUZZ_SEED}, {variant} case {k}: {path} = {node[path[-1]]!r:.40}"
+        try:
+            cert = Certificate.from_dict(doc)
+        except CertificateError as exc:
+            text = str(exc)
+            assert "\n" not in text and ": " in text and "; " in text, f"{case}: {text}"
+            continue
+        except Exception as exc:  # the assertion: nothing else is raised
+            pytest.fail(f"{case}: {type(exc).__name__}: {exc}")
+        assert Certificate.from_json(cert.to_json()) == cert, case

@@ -3,7 +3,7 @@
 =============  =====================================  ==============================================
 ``fmt``        file                                   module
 =============  =====================================  ==============================================
-certificate    aerocal certificate JSON (lossless)    :mod:`aerocal.certificate`
+certificate    aerocal certificate JSON (lossless)    :mod:`aerocal.certificate_schema`
 opencv         OpenCV ``cv2.FileStorage`` YAML        :mod:`aerocal.formats.opencv` (XML read too)
 colmap         COLMAP ``cameras.txt`` (FULL_OPENCV)   :mod:`aerocal.formats.colmap`
 opensfm        OpenSfM / ODM ``cameras.json``         :mod:`aerocal.formats.opensfm`
@@ -23,7 +23,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from aerocal.certificate import CameraIdentity, Certificate, CertificateError
+from aerocal.camera_identity import CameraIdentity
+from aerocal.certificate import Certificate, CertificateError
+from aerocal.certificate_schema import SCHEMA
 from aerocal.formats import colmap, metashape, opencv, opensfm
 from aerocal.formats.safe_parsing import FormatError, decode_text, format_error, parse_xml, read_bytes
 from aerocal.io import write_text_atomic
@@ -143,7 +145,7 @@ def guess_format(path: str | Path) -> str:
                 return "opensfm"  # the importer reports the syntax error with its line
             raise format_error(path, None, "cannot tell the format (not valid JSON)",
                                f"pass fmt= (one of {', '.join(FORMATS)})") from None
-        is_cert = isinstance(doc, Mapping) and str(doc.get("schema", "")).startswith("aerocal.certificate")
+        is_cert = isinstance(doc, Mapping) and str(doc.get("schema", "")).startswith(SCHEMA.split("/")[0])
         return "certificate" if is_cert else "opensfm"
     if suffix == ".xml" or head.startswith("<"):
         return "opencv" if parse_xml(path, data).tag == "opencv_storage" else "metashape"

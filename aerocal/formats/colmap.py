@@ -13,7 +13,9 @@ import math
 from pathlib import Path
 
 from aerocal.camera import from_pycolmap, to_pycolmap
-from aerocal.certificate import MAX_IMAGE_SIDE_PX, CameraIdentity, Certificate
+from aerocal.camera_identity import CameraIdentity
+from aerocal.certificate import Certificate
+from aerocal.certificate_schema import MAX_IMAGE_SIDE_PX
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import decode_text, format_error, read_bytes
 from aerocal.io import write_text_atomic

@@ -13,8 +13,8 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from aerocal.camera import Camera
+from aerocal.camera_identity import CameraIdentity
 from aerocal.certificate import (
-    CameraIdentity,
     Certificate,
     CertificateError,
     Conditions,

@@ -31,7 +31,8 @@ from typing import Any
 import numpy as np
 
 from aerocal.camera import Camera
-from aerocal.certificate import CameraIdentity, Certificate
+from aerocal.camera_identity import CameraIdentity
+from aerocal.certificate import Certificate
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import (
     decode_text,

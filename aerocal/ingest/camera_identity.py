@@ -1,7 +1,9 @@
-"""Camera identity (make, model, serial, lens) and the nominal camera of a flight folder's ``camera.json``.
+"""The camera identity and nominal camera of a flight folder's ``camera.json``.
 
-``camera_id`` in the ``images`` table is ``"make|model|serial|lens"`` with empty parts where unknown, and
-``|`` removed from the parts themselves. ``camera.json`` (written by the simulator, or by hand)::
+The identity itself is :class:`aerocal.camera_identity.CameraIdentity` (re-exported here with
+:data:`NO_SERIAL` and :func:`is_shared_identity`); ingest writes its ``camera_id`` form into the ``images``
+table: ``"make|model|serial|lens"`` with empty parts where unknown and ``|`` inside a part written as ``/``.
+``camera.json`` (written by the simulator, or by hand)::
 
     {"identity": {"make": ..., "model": ..., "serial": ..., "lens": ...},
      "camera": {fields of aerocal.camera.Camera: width, height, f, cx, cy, k1, ...}}
@@ -10,44 +12,29 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from pathlib import Path
 
 from aerocal.camera import Camera
+from aerocal.camera_identity import IDENTITY_PARTS, NO_SERIAL, CameraIdentity, is_shared_identity
 from aerocal.certificate import validate_camera
 from aerocal.ingest.problems import ProblemLog
 
+#: ``images.camera_id`` of an image nothing identifies (kept as earlier flights' tables hold it)
 UNKNOWN_CAMERA_ID = "unknown|unknown||"
-#: serial part of the identity of a camera whose images record no serial number: ``"no-serial WxH"``
-#: (make, model, lens and frame size identify it; several bodies may share its certificates)
-NO_SERIAL = "no-serial"
 MAX_JSON_BYTES = 4 * 1024 * 1024
 
+#: the parts as image metadata records them (``None`` where absent): :meth:`CameraIdentity.from_parts`
+identity_of = CameraIdentity.from_parts
 
-@dataclass(frozen=True)
-class CameraIdentity:
-    make: str = ""
-    model: str = ""
-    serial: str = ""
-    lens: str = ""
-
-    @property
-    def camera_id(self) -> str:
-        parts = [p.replace("|", "/").strip() for p in (self.make, self.model, self.serial, self.lens)]
-        return "|".join(parts)
-
-    @property
-    def is_known(self) -> bool:
-        return bool(self.make or self.model)
-
-
-def is_shared_identity(serial: str | None) -> bool:
-    """True for the serial part of a camera that records none (:data:`NO_SERIAL`)."""
-    return bool(serial) and str(serial).startswith(NO_SERIAL)
-
-
-def identity_of(make: str | None, model: str | None, serial: str | None, lens: str | None) -> CameraIdentity:
-    return CameraIdentity(make or "", model or "", serial or "", lens or "")
+__all__ = [
+    "MAX_JSON_BYTES",
+    "NO_SERIAL",
+    "UNKNOWN_CAMERA_ID",
+    "CameraIdentity",
+    "identity_of",
+    "is_shared_identity",
+    "read_camera_json",
+]
 
 
 def read_camera_json(path: str | Path, problems: ProblemLog) -> tuple[CameraIdentity | None, Camera | None]:
@@ -71,16 +58,11 @@ def read_camera_json(path: str | Path, problems: ProblemLog) -> tuple[CameraIden
     identity = None
     ident = obj.get("identity")
     if isinstance(ident, dict):
-        values = {k: ident.get(k) for k in ("make", "model", "serial", "lens")}
+        values = {k: ident.get(k) for k in IDENTITY_PARTS}
         bad = [k for k, v in values.items() if v is not None and not isinstance(v, str | int)]
         if bad:
             problems.warning(path, f"identity field(s) {bad} are not text; ignored", "identity")
-        identity = CameraIdentity(
-            *(
-                str(values[k]) if isinstance(values[k], str | int) else ""
-                for k in ("make", "model", "serial", "lens")
-            )
-        )
+        identity = CameraIdentity.from_mapping({k: v for k, v in values.items() if k not in bad})
     elif ident is not None:
         problems.warning(path, "'identity' is not an object; ignored", "identity")
     camera = None

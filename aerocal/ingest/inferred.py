@@ -7,7 +7,7 @@ and processing can use it; each returns ``None`` (with the reason) where the ima
 * :func:`infer_camera`: the nominal camera from :mod:`aerocal.ingest.camera_catalogue`.
 * :func:`certificate_identity`: the identity a certificate is stored under. A camera that records no
   serial number is identified by make, model, lens and frame size: its serial part is
-  ``"no-serial WxH"`` (:data:`aerocal.ingest.camera_identity.NO_SERIAL`), and such a certificate may be
+  ``"no-serial WxH"`` (:data:`aerocal.camera_identity.NO_SERIAL`), and such a certificate may be
   shared by several bodies of that model (the certificate store says so).
 * :func:`infer_height_agl`: the flying height above ground from DJI's XMP ``RelativeAltitude`` (height
   above the take-off point: above ground where the take-off point is at the ground level of the area).
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from aerocal.camera import Camera
+from aerocal.camera_identity import CameraIdentity
 from aerocal.ingest.camera_catalogue import nominal_camera
-from aerocal.ingest.camera_identity import NO_SERIAL, CameraIdentity
 from aerocal.ingest.metadata import ImageMetadata
 
 #: GNSS standard deviations (horizontal, vertical; metres) of a DJI position without RTK: the makers
@@ -83,17 +83,16 @@ def certificate_identity(
         same = [m for m in metas if (m.make, m.model) == (make, model)]
         serials = {m.serial for m in same if m.serial}
         lenses = {m.lens for m in same if m.lens}
-        serial = serials.pop() if len(serials) == 1 else ""
-        ident = CameraIdentity(make or "", model or "", serial, lenses.pop() if len(lenses) == 1 else "")
+        ident = CameraIdentity.from_parts(make, model, serials.pop() if len(serials) == 1 else None,
+                                          lenses.pop() if len(lenses) == 1 else None)
     if ident is None:
         return None
-    serial, lens = ident.serial, ident.lens
-    if not serial:
+    if not ident.has_serial:
         w, h = (camera.width, camera.height) if camera is not None else _dominant(metas)[2:]
-        serial = f"{NO_SERIAL} {w}x{h}"
-    if not lens and camera is not None and camera.pixel_size_mm:
-        lens = f"{camera.f * camera.pixel_size_mm:.1f} mm"
-    return CameraIdentity(ident.make, ident.model, serial, lens)
+        ident = ident.serial_less(w, h)
+    if not ident.has_lens and camera is not None and camera.pixel_size_mm:
+        ident = CameraIdentity(ident.make, ident.model, ident.serial, f"{camera.f * camera.pixel_size_mm:.1f} mm")
+    return ident
 
 
 def infer_height_agl(metas: list[ImageMetadata]) -> Inferred:
