@@ -11,7 +11,9 @@ import pytest
 from typer.testing import CliRunner
 
 import aerocal
-from flows.commands_storage import certificates_app, db_app, runs_app
+from flows.cli.certificates import certificates_app
+from flows.cli.database import db_app
+from flows.cli.runs import runs_app
 from storage.certificates import issue_certificate, select_certificate
 from storage.database import connect
 from storage.runs import finish_run, record_timing, start_run

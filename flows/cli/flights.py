@@ -1,0 +1,384 @@
+"""Commands that process flights: ``ingest``, ``match``, ``process``, ``calibrate``, ``report``.
+
+The functions here are registered as commands by :mod:`flows.cli.app`. Prefect, the flows, the tasks and
+the engine's ingest are imported inside the commands, not here: ``aerocal --help`` imports this module, and
+Prefect alone takes about 1 s to import (the engine's ingest 1 s); :func:`flows.environment.quiet_prefect`
+sets Prefect's environment first.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Any
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from flows.cli.console import console, err_console, print_key_values
+from flows.cli.errors import BAD_INPUT, FAILED, CommandInputError, fail, flow_errors, user_errors
+from flows.cli.options import ARTIFACT_ROOT_OPTION, DASK_OPTION, DATABASE_URL_OPTION
+from flows.environment import conceal_password, quiet_prefect
+
+#: ingest problems the run summary prints (errors first); `aerocal ingest` lists them all
+INGEST_LINES = 10
+
+#: files of a run folder that `aerocal report` points to, when present
+REPORT_FILES = ("report.html", "orthomosaic.tif", "dsm.tif", "certificate.json", "provenance.json")
+
+
+def require_folder(folder: Path, what: str = "a flight folder (images/ or observations/)") -> None:
+    """Refuse (exit 2) before any server starts when ``folder`` is not a folder."""
+    if not folder.is_dir():
+        fail(f"{folder} is not a folder; give {what}", BAD_INPUT)
+
+
+def default_run_dir(flight_dir: Path, out: Path | None) -> Path:
+    """The run folder of a flight: ``out``, else ``FLIGHT_DIR-processed`` beside the flight folder."""
+    return (out or flight_dir.with_name(flight_dir.name + "-processed")).resolve()
+
+
+def print_steps(summary: dict[str, Any]) -> None:
+    """The steps of a run: status (and why a step was skipped or reused), seconds, who computed it."""
+    table = Table(title=f"run {summary['run_id']} of {summary['flight']}")
+    for col in ("step", "status", "seconds", "computed by"):
+        table.add_column(col)
+    for name, step in summary["steps"].items():
+        table.add_row(
+            name,
+            step["status"] + (f" ({step['reason']})" if step.get("reason") else ""),
+            f"{step.get('seconds', 0):.2f}",
+            step.get("computed_by", "") or "",
+        )
+    console.print(table)
+
+
+def print_run(summary: dict[str, Any]) -> None:
+    """A processing run's summary: steps, ingest problems, ground control, certificate, accuracy, diagnosis,
+    recorded-EO checks, the twin's verdict and the files written."""
+    print_steps(summary)
+    skipped = summary.get("images_skipped_at_ingest") or []
+    if skipped:
+        from aerocal.ingest.problems import name_list
+
+        console.print(f"[yellow]{len(skipped)} image(s) skipped at ingest[/yellow]: {name_list(skipped)} "
+                      "(`aerocal ingest FOLDER` says why)")
+    problems = summary.get("ingest_problems") or []
+    errors = [p for p in problems if p.endswith("[error]")]
+    warnings = [p for p in problems if p.endswith("[warning]")]
+    shown = errors[:INGEST_LINES] + warnings[: max(0, INGEST_LINES - len(errors))]
+    if shown:
+        console.print(f"[yellow]ingest found {len(errors)} error(s) and {len(warnings)} warning(s)[/yellow] that did "
+                      "not stop processing (a certificate from input with errors is stored as rejected):")
+        for line in shown:
+            console.print(f"  {line}", markup=False, highlight=False)
+        if len(problems) > len(shown):
+            console.print(f"  ... and {len(problems) - len(shown)} more: `aerocal ingest FOLDER` lists them all")
+    for key, text in (summary.get("flight_facts") or {}).items():
+        if not text.startswith(("flight.json", "/")):  # inferred from the images: say so
+            console.print(f"{key}: {text}")
+    control = summary.get("ground_control") or {}
+    if control.get("demoted"):
+        console.print(f"[yellow]ground control demoted[/yellow] (neither control nor check point): "
+                      f"{', '.join(control['demoted'])}")
+    for line in control.get("lines") or []:
+        console.print(f"ground control: {line}")
+    console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
+    if summary.get("adjustment_converged") is False:
+        console.print(f"[yellow]the block adjustment did not converge[/yellow] ({summary.get('adjustment_iterations')} "
+                      "iterations): its sigma0, residuals, products and diagnosis describe an unfinished solution")
+    acc = summary.get("accuracy") or {}
+    if acc.get("rho"):
+        rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
+        console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
+    if summary.get("diagnosis"):
+        console.print(f"diagnosis: {summary['diagnosis']}")
+    if summary.get("recorded_eo"):
+        from tasks.products import recorded_eo_text
+
+        console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
+    if summary.get("recorded_eo_corrections"):
+        console.print("recorded positions in the block adjustment: " + "; ".join(summary["recorded_eo_corrections"]))
+    if summary.get("twin"):
+        console.print(f"twin (what the simulation gets wrong): {summary['twin']}")
+    for name, path in summary.get("files", {}).items():
+        console.print(f"{name:>13}: {path}")
+
+
+def print_problems(result: Any, out: Console, warnings: bool = True, limit: int = 50) -> None:
+    """Every error of an ingest result (blocking ones first), then warnings up to ``limit`` lines in all."""
+    ordered = result.blocking + [p for p in result.errors if not p.stops_processing]
+    if warnings:
+        ordered += result.warnings[: max(0, limit - len(ordered))]
+    for p in ordered:
+        out.print(str(p), markup=False)
+    rest = len(result.warnings) - len([p for p in ordered if p.severity == "warning"])
+    if warnings and rest > 0:
+        out.print(f"... and {rest} more warnings (aerocal ingest FOLDER --out DIR writes them all)")
+
+
+def stop_if_not_processable(flight_dir: Path) -> None:
+    """Run ingest's checks on an image-mode flight before any server starts; on a blocking problem print
+    ingest's errors and exit 2 (bad input)."""
+    from aerocal.ingest import ingest_folder
+
+    if (flight_dir / "observations" / "observations.parquet").is_file():
+        return
+    with user_errors():
+        with console.status(f"checking {flight_dir} ..."):
+            result = ingest_folder(flight_dir)
+    if result.blocking:
+        err_console.print(
+            f"[red]error:[/red] {flight_dir} cannot be processed: {len(result.blocking)} problem(s) stop "
+            f"processing ({len(result.errors)} error(s) in all; nothing was processed or stored):",
+            markup=True,
+        )
+        print_problems(result, err_console, warnings=False)
+        raise typer.Exit(BAD_INPUT)
+
+
+def ingest(
+    folder: Path = typer.Argument(..., help="Flight folder or folder of images."),
+    gcp: list[Path] = typer.Option([], "--gcp", help="GCP file (ODM gcp_list.txt or CSV); repeatable."),
+    eo: Path | None = typer.Option(None, "--eo", help="Exterior-orientation CSV (default: eo.csv)."),
+    crs: str | None = typer.Option(None, "--crs", help="Projected CRS, e.g. EPSG:32632 (default: UTM zone)."),
+    out: Path | None = typer.Option(None, "--out", help="Write the ingested tables to this folder."),
+) -> None:
+    """Check a flight folder; list every problem by file and line.
+
+    Reads the images, their metadata, the exterior orientation and the ground control, and prints a summary
+    and every problem by file and line. Exit code 0 when nothing is wrong (warnings only), 2 when there are
+    errors: skipped images or rows, and problems that stop `aerocal process` (each names the file, the field
+    and the fix).
+
+    Example: aerocal ingest flights/2016-03-14 --gcp flights/2016-03-14/gcp_list.txt --out ingested
+    """
+    from aerocal.ingest import ingest_folder, summary_rows, write_ingest
+
+    if not folder.exists():
+        fail(f"{folder}: no such folder; give a flight folder or a folder of images", BAD_INPUT)
+    with user_errors():
+        with console.status(f"ingesting {folder} ..."):
+            result = ingest_folder(folder, gcp_file=list(gcp) or None, eo_file=eo, crs=crs)
+        if out is not None:
+            write_ingest(result, out)
+    table = Table(title=f"ingest of {folder}", show_header=False)
+    for item, value in summary_rows(result):
+        table.add_row(item, value)
+    console.print(table)
+    print_problems(result, console)
+    if out is not None:
+        console.print(f"tables written to {out}")
+    if result.blocking:
+        err_console.print(
+            f"[red]{len(result.blocking)} problem(s) stop `aerocal process`[/red] (marked 'stops processing'); "
+            "fix them and ingest again",
+            markup=True,
+        )
+    if result.errors:
+        raise typer.Exit(BAD_INPUT)
+
+
+def match(
+    folder: Path = typer.Argument(..., help="Flight folder with images/ (and eo.csv, gcp files, camera.json)."),
+    out: Path | None = typer.Option(None, "--out", help="Folder for the tables (default: FOLDER/observations)."),
+    dask: str | None = DASK_OPTION,
+    workers: int = typer.Option(2, "--workers", help="Local Dask workers when --dask is not given."),
+) -> None:
+    """Match a flight's images into tie-point observations.
+
+    Enhances and matches the frames (tile-parallel SIFT on Dask) and writes the images, observations, gcps
+    and gcp_observations tables; the folder can then be processed in observations mode.
+
+    Example: aerocal match flights/2016-03-14 --workers 2
+
+    Example: aerocal match flights/2016-03-14 --dask tcp://scheduler:8786
+    """
+    from aerocal import tables
+    from aerocal.ingest import ingest_folder
+
+    if not folder.is_dir():
+        fail(f"{folder}: no such folder; give a flight folder with images/", BAD_INPUT)
+    quiet_prefect()
+    with user_errors():
+        from tasks.flight import FlightInputError, MatchStepConfig, match_images
+
+        res = ingest_folder(folder)
+        if res.images.num_rows == 0:
+            raise FlightInputError(
+                f"{folder}: no image could be ingested; run `aerocal ingest {folder}` to see why"
+            )
+        if res.camera is None:
+            raise FlightInputError(
+                f"{folder / 'camera.json'} is missing; matching needs the camera's nominal "
+                "model (width, height, f, cx, cy in pixels) there"
+            )
+        meta_path = folder / "flight.json"
+        meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+        meta["folder"] = str(folder)
+        with console.status(f"matching {res.images.num_rows} images ..."):
+            kp, matches, obs, n_pairs = match_images(
+                res.images, res.camera, res.gcps, meta, MatchStepConfig(dask_workers=workers), dask
+            )
+        target = out or folder / "observations"
+        for kind, tab in (
+            ("images", res.images),
+            ("observations", obs),
+            ("gcps", res.gcps),
+            ("gcp_observations", res.gcp_observations),
+            ("keypoints", kp),
+            ("matches", matches),
+        ):
+            tables.write(tab, target / f"{kind}.parquet", kind)
+    console.print(
+        f"{res.images.num_rows} images, {n_pairs} candidate pairs, {matches.num_rows} verified matches, "
+        f"{obs.num_rows} observations of {len(set(obs.column('track_id').to_pylist()))} tracks"
+    )
+    console.print(f"tables written to {target}")
+
+
+def process(
+    flight_dir: Path = typer.Argument(..., help="Flight folder (images/ or observations/, eo.csv, gcp files)."),
+    certificate: str = typer.Option(
+        "auto", "--certificate",
+        help="auto (stored certificate that applies, else self-calibrate), none (always self-calibrate) or a "
+        "certificate id.",
+    ),
+    out: Path | None = typer.Option(None, "--out", help="Run folder (default: FLIGHT_DIR-processed)."),
+    dask: str | None = DASK_OPTION,
+    database_url: str | None = DATABASE_URL_OPTION,
+    artifact_root: Path | None = ARTIFACT_ROOT_OPTION,
+    as_json: bool = typer.Option(False, "--json", help="Print the run summary as JSON."),
+) -> None:
+    """Process a flight end to end and record the run.
+
+    Ingest, match, orient, calibrate or reuse a stored certificate, adjust, mosaic, assess, diagnose and
+    write the report. A re-run after a crash or Ctrl-C resumes after the last completed step.
+
+    Example: aerocal process flights/2016-03-14 --certificate auto --out runs/2016-03-14
+    """
+    require_folder(flight_dir)
+    stop_if_not_processable(flight_dir)
+    quiet_prefect()
+    run_dir = default_run_dir(flight_dir, out)
+    with flow_errors(run_dir):
+        from flows.flight import process_flight
+
+        with console.status(f"processing {flight_dir} ..."):
+            summary = process_flight(
+                flight_dir,
+                out,
+                certificate,
+                None,
+                conceal_password(database_url),
+                str(artifact_root) if artifact_root else None,
+                dask,
+            )
+    if as_json:
+        console.print_json(json.dumps(summary, default=str))
+    else:
+        print_run(summary)
+
+
+def subset_config(subset: str) -> dict[str, Any]:
+    """The calibration settings ``--subset`` asks for: ``{}`` for auto, else the image ids or names listed
+    one per line in the file ``subset`` (``#`` starts a comment)."""
+    if subset == "auto":
+        return {}
+    path = Path(subset)
+    if not path.is_file():
+        raise CommandInputError(
+            f"--subset {subset}: no such file; give auto or a file of image names or ids, one per line"
+        )
+    items = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        text = line.split("#", 1)[0].strip()
+        if text:
+            items.append((n, text))
+    if not items:
+        raise CommandInputError(f"{path}: no image names or ids; write one per line")
+    if all(t.isdigit() for _, t in items):
+        return {"subset_images": tuple(int(t) for _, t in items)}
+    bad = [(n, t) for n, t in items if t.isdigit()]
+    if bad:
+        raise CommandInputError(
+            f"{path}:{bad[0][0]}: {bad[0][1]!r} is an id among image names; use names or ids, not both"
+        )
+    return {"subset_names": tuple(t for _, t in items)}
+
+
+def calibrate(
+    flight_dir: Path = typer.Argument(..., help="A calibration flight folder."),
+    subset: str = typer.Option(
+        "auto", "--subset",
+        help="auto (sub-block chosen by predicted IO precision) or a FILE of image names or ids, one per line.",
+    ),
+    out: Path | None = typer.Option(None, "--out", help="Run folder (default: FLIGHT_DIR-processed)."),
+    dask: str | None = DASK_OPTION,
+    database_url: str | None = DATABASE_URL_OPTION,
+    artifact_root: Path | None = ARTIFACT_ROOT_OPTION,
+) -> None:
+    """Calibrate a camera from a flight; store the certificate.
+
+    Self-calibrates on a sub-block, stores the certificate and prints it: parameters, sigmas, significance,
+    dropped parameters, correlations above 0.9. Exit code 1 when the review rejects the calibration (it is
+    stored, marked rejected, and never used).
+
+    Example: aerocal calibrate flights/calibration --subset auto --out runs/calibration
+
+    Example: aerocal calibrate flights/calibration --subset subset.txt
+    """
+    with user_errors():
+        settings = subset_config(subset)
+    require_folder(flight_dir)
+    quiet_prefect()
+    with flow_errors(default_run_dir(flight_dir, out)):
+        from aerocal.certificate import Certificate
+        from flows.config import ProcessConfig
+        from flows.flight import calibrate_camera
+
+        cfg = ProcessConfig()
+        cfg.calibration = dataclasses.replace(cfg.calibration, **settings)
+        with console.status(f"calibrating from {flight_dir} ..."):
+            summary = calibrate_camera(
+                flight_dir, out, cfg, conceal_password(database_url), str(artifact_root) if artifact_root else None,
+                dask,
+            )
+        cert = Certificate.from_json(Path(summary["files"]["calibration_certificate"]).read_text())
+    console.print(cert.render_text(correlation_threshold=0.9))
+    console.print(f"stored: {summary['certificate_id']} ({summary['certificate_reason']})")
+    console.print(f"certificate file: {summary['files']['calibration_certificate']}")
+    if cert.status != "accepted":
+        console.print("[bold red]the calibration was REJECTED[/]: it is on record but will never be used; "
+                      "see the review above")
+        raise typer.Exit(FAILED)
+
+
+def report(
+    run_dir: Path = typer.Argument(..., help="Run folder written by `aerocal process`."),
+    as_json: bool = typer.Option(False, "--json", help="Print the report's numbers as JSON."),
+) -> None:
+    """Show a processed flight's key figures and its files.
+
+    Reads the run folder's summary.json (written with report.html by `aerocal process`).
+
+    Example: aerocal report runs/2016-03-14
+
+    Example: aerocal report runs/2016-03-14 --json
+    """
+    path = run_dir / "summary.json"
+    if not path.is_file():
+        fail(f"{path}: no such file; give a run folder written by `aerocal process` (or re-run it)", BAD_INPUT)
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        fail(f"{path}:{exc.lineno}: not valid JSON ({exc.msg}); re-run `aerocal process` to rewrite it", BAD_INPUT)
+    if as_json:
+        console.print_json(json.dumps(doc))
+        return
+    print_key_values(doc.get("title", f"report of {run_dir}"), doc.get("summary", {}))
+    for name in REPORT_FILES:
+        if (run_dir / name).exists():
+            console.print(f"{name:>16}: {(run_dir / name).resolve()}")

@@ -1,0 +1,110 @@
+"""Commands that simulate: ``aerocal simulate`` (a flight folder with its truth beside it) and
+``aerocal demo`` (a simulated thermal flight processed end to end).
+
+``simulate`` runs the engine alone: it never imports Prefect, SQLAlchemy or the flows. The simulator takes
+about 0.6 s to import and is imported inside the command; ``demo`` imports the flows (Prefect: about 1 s)
+only after :func:`flows.environment.demo_environment` has put Prefect's home under ``--out``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from flows.cli.console import console, print_key_values, progress
+from flows.cli.errors import BAD_INPUT, fail, user_errors
+from flows.environment import demo_environment
+
+
+def simulate(
+    preset: str = typer.Argument(
+        ..., help="Flight preset: conte-city, conte-calibration, daakir-uav, daakir-calibration, mitishita-block, "
+        "xt2-survey (FLIR R-JPEG), seneca (stations read from real images).",
+    ),
+    out: Path = typer.Option(..., "--out", help="Flight folder to write (must not exist or be empty)."),
+    seed: int = typer.Option(0, help="Random seed; the same seed gives the same flight."),
+    mode: str = typer.Option(
+        "observations", help="observations (image measurements, fast) or images (rendered frames)."
+    ),
+    effect: list[str] = typer.Option(
+        [], "--effect", help="Hidden effect NAME=VALUE, repeatable, e.g. thermal_focal=0.075 or boresight=0.01,0,0."
+    ),
+    max_images: int | None = typer.Option(
+        None, "--max-images", help="Keep only the N frames nearest the block centre."
+    ),
+    as_recorded: bool = typer.Option(
+        False, "--as-recorded", help="Images mode: write only the images, as they come off the aircraft (no "
+        "camera.json, flight.json, eo.csv or GCP files).",
+    ),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+    source: Path | None = typer.Option(
+        None, "--source", help="Image folder of a measured preset (seneca); default ../shared/data/seneca/images."
+    ),
+) -> None:
+    """Simulate a flight and write its flight folder.
+
+    The truth (camera, orientations, hidden effects) is written beside it, for tests and studies only:
+    processing never reads it. With --as-recorded only the images are written, as they come off the aircraft.
+
+    Example: aerocal simulate conte-calibration --out flight --seed 3 --effect thermal_focal=0.05
+
+    Example: aerocal simulate xt2-survey --mode images --as-recorded --max-images 12 --out xt2
+    """
+    from aerocal.effects import parse_effect
+    from aerocal.simulate import MODES, SimulationError, get_preset, simulate_flight, write_flight
+    from aerocal.simulate.simulator import spec_summary
+
+    with user_errors():
+        spec = get_preset(preset, source)
+        if mode not in MODES:
+            raise SimulationError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
+        effects = dict(parse_effect(e) for e in effect)
+        if out.exists() and (not out.is_dir() or any(out.iterdir())):
+            fail(f"output folder {out} exists and is not empty; choose a new --out or remove it", BAD_INPUT)
+        sim = simulate_flight(spec, seed=seed, effects=effects, max_images=max_images)
+        with progress(f"writing {mode}", sim.images.num_rows if mode == "images" else 0) as advance:
+            write_flight(sim, out, mode=mode, progress=advance, as_recorded=as_recorded)
+    summary = spec_summary(sim)
+    summary["out"] = str(out)
+    if as_json:
+        console.print_json(json.dumps(summary))
+    else:
+        print_key_values(f"simulated {preset} (seed {seed})", summary)
+
+
+def demo(
+    out: Path = typer.Option(Path("demo-output"), "--out", help="Folder for everything the demo writes."),
+    seed: int = typer.Option(7, help="Random seed of the simulated flight."),
+) -> None:
+    """Simulate a thermal flight and process it end to end.
+
+    The flight has one hidden effect (thermal_focal); processing self-calibrates and stores the
+    certificate, adjusts, mosaics, assesses, diagnoses and writes an HTML report, in about a minute.
+    Everything goes under --out (SQLite database, artifacts, Prefect's home) unless AEROCAL_DATABASE_URL or
+    AEROCAL_ARTIFACT_ROOT are set.
+
+    Example: aerocal demo --out demo-output
+    """
+    demo_environment(out)  # before Prefect is imported: its home goes under --out
+    with user_errors():
+        from flows.demo import DemoConfig
+        from flows.demo import demo as demo_flow
+
+        with console.status("simulating and processing the demo flight (about a minute) ..."):
+            summary = demo_flow(out, DemoConfig(seed=seed))
+    print_key_values("demo: simulated thermal flight (one hidden effect: thermal_focal)", summary["simulated"])
+    steps = ", ".join(f"{k} {v['status']}" for k, v in summary["steps"].items())
+    console.print(f"steps: {steps}")
+    console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
+    acc = summary.get("accuracy") or {}
+    if acc.get("rho"):
+        rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
+        console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
+    console.print(f"[bold]diagnosis:[/bold] {summary.get('diagnosis')}")
+    console.print(f"flight folder: {summary['flight_dir']}")
+    for name, path in summary["files"].items():
+        console.print(f"{name:>13}: {path}")
+    for key, value in summary["storage"].items():
+        console.print(f"{key:>13}: {value}")
