@@ -16,15 +16,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from PIL import Image
 
 from aerocal import tables
-from aerocal.ingest import IngestOutputError, ingest_folder, read_ingest, write_ingest
+from aerocal.ingest import IngestOutputError, ingest_folder, read_ingest, read_raw, write_ingest
 from aerocal.ingest.delimited import read_text_lines
 from aerocal.ingest.eo_csv import read_eo_csv
 from aerocal.ingest.gcp_odm import read_odm_gcp_list
 from aerocal.ingest.metadata_writer import dji_xmp_packet, jpeg_without_metadata, write_tiff_with_metadata
 from aerocal.ingest.problems import ProblemLog
-from aerocal.ingest.tiff import parse_tiff
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SHARED_MISSING = f"measured data not found at {DATA} (a clone without ../shared/data)"
@@ -56,33 +56,41 @@ def _graft(real: bytes, app3: bytes = b"", app4: bool = False, width: int = 64, 
     return body[:2] + segs + body[2:]
 
 
-def _exif_entry_offset(data: bytes, tag: int, ifd: str = "ifd0") -> int:
-    """Byte offset in ``data`` of the 12-byte IFD entry of ``tag`` (IFD0, EXIF or GPS IFD of APP1)."""
-    for m, o, n in _segments(data):
-        if m == 0xE1 and data[o : o + 6] == b"Exif\x00\x00":
-            base = o + 6
-            t = parse_tiff(data[base : base + n - 6])
-            offset = t.first_ifd
-            if ifd != "ifd0":
-                ptr = t.read_ifd(t.first_ifd)[{"exif": 34665, "gps": 34853}[ifd]]
-                offset = ptr.value[0]
-            count = struct.unpack_from("<H", data, base + offset)[0]
-            for k in range(count):
-                pos = base + offset + 2 + 12 * k
-                if struct.unpack_from("<H", data, pos)[0] == tag:
-                    return pos
+def _entry(data: bytes, ifd_offset: int, tag: int) -> int:
+    """Byte offset in ``data`` (a little-endian TIFF block) of the 12-byte entry of ``tag`` in the IFD there."""
+    count = struct.unpack_from("<H", data, ifd_offset)[0]
+    for k in range(count):
+        pos = ifd_offset + 2 + 12 * k
+        if struct.unpack_from("<H", data, pos)[0] == tag:
+            return pos
     raise KeyError(tag)
 
 
-def _canon_camera_info_temperature_offset(data: bytes) -> int:
+def _exif_block(data: bytes) -> tuple[int, Image.Exif]:
+    """(offset of the TIFF header, Pillow's reading) of the APP1 EXIF block of a JPEG."""
     for m, o, n in _segments(data):
         if m == 0xE1 and data[o : o + 6] == b"Exif\x00\x00":
-            base = o + 6
-            t = parse_tiff(data[base : base + n - 6])
-            exif = t.read_ifd(t.read_ifd(t.first_ifd)[34665].value[0])
-            info = t.read_ifd(exif[0x927C].offset)[0x000D]
-            return base + info.offset + 4 * (info.count - 3)
-    raise KeyError("maker note")
+            exif = Image.Exif()
+            exif.load(data[o + 6 : o + n])
+            return o + 6, exif
+    raise KeyError("EXIF")
+
+
+def _exif_entry_offset(data: bytes, tag: int, ifd: str = "ifd0") -> int:
+    """Byte offset in ``data`` of the 12-byte IFD entry of ``tag`` (IFD0, EXIF or GPS IFD of APP1)."""
+    base, exif = _exif_block(data)
+    offset = struct.unpack_from("<I", data, base + 4)[0] if ifd == "ifd0" else exif[{"exif": 34665, "gps": 34853}[ifd]]
+    return base + _entry(data[base:], offset, tag)
+
+
+def _canon_camera_info_temperature_offset(data: bytes) -> int:
+    """Byte offset in ``data`` of the CameraInfo value (third from the end) Canon compacts keep degC in."""
+    base, exif = _exif_block(data)
+    block = data[base:]
+    maker_note = block.find(exif.get_ifd(34665)[0x927C])
+    entry = _entry(block, maker_note, 0x000D)
+    count, values = struct.unpack_from("<II", block, entry + 4)
+    return base + values + 4 * (count - 3)
 
 
 def _seeds(tmp: Path) -> dict[str, bytes]:
@@ -163,13 +171,7 @@ def _mutations(seeds: dict[str, bytes], rng: np.random.Generator):
 
 
 def _tiff_entry(data: bytes, tag: int) -> int:
-    t = parse_tiff(data)
-    count = struct.unpack_from("<H", data, t.first_ifd)[0]
-    for k in range(count):
-        pos = t.first_ifd + 2 + 12 * k
-        if struct.unpack_from("<H", data, pos)[0] == tag:
-            return pos
-    raise KeyError(tag)
+    return _entry(data, struct.unpack_from("<I", data, 4)[0], tag)
 
 
 def _assert_table_sane(images) -> None:
@@ -204,6 +206,48 @@ def test_truncated_and_stripped_images_are_named_and_the_rest_ingests(tmp_path):
     rows = r.images.to_pylist()
     assert rows[0]["lat"] is not None and rows[0]["temperature_c"] is not None
     assert rows[1]["lat"] is None and rows[1]["camera_id"] == rows[0]["camera_id"], "same size: same camera"
+
+
+@needs_data
+def test_ifd_entries_pillow_cannot_read_are_reported_not_silent(tmp_path):
+    """Pillow skips an entry of unknown type without a word and stops an IFD at a value outside the block:
+    both are reported against the file, and the rest of the image ingests."""
+    copr = _graft((DATA / "copr" / "images" / "IMG_0046.jpg").read_bytes())
+    unknown = bytearray(copr)
+    struct.pack_into("<H", unknown, _exif_entry_offset(copr, 272) + 2, 2050)  # Model: type 2050 does not exist
+    (tmp_path / "model_unknown_type.jpg").write_bytes(bytes(unknown))
+    outside = bytearray(copr)
+    struct.pack_into("<I", outside, _exif_entry_offset(copr, 271) + 8, 0xFFFFFF)  # Make's text beyond the block
+    (tmp_path / "make_outside.jpg").write_bytes(bytes(outside))
+    r = ingest_folder(tmp_path)
+    rows = {row["name"]: row for row in r.images.to_pylist()}
+    assert set(rows) == {"model_unknown_type.jpg", "make_outside.jpg"}
+    assert not [p for p in r.errors if p.file.endswith(".jpg")], [str(p) for p in r.errors]
+    by_file = {name: [p for p in r.problems if p.file == str(tmp_path / name)] for name in rows}
+    skipped = [p for p in by_file["model_unknown_type.jpg"] if p.field == "EXIF"]
+    assert len(skipped) == 1 and "IFD0 at byte 8 declares 9 entries, Pillow read 8" in skipped[0].message
+    assert rows["model_unknown_type.jpg"]["camera_id"].startswith("Canon||")
+    messages = [p.message for p in by_file["make_outside.jpg"] if p.field == "EXIF"]
+    assert any(m.startswith("Pillow: Truncated File Read") for m in messages), messages
+    assert any("declares 9 entries" in m for m in messages), messages
+    assert rows["make_outside.jpg"]["temperature_c"] is None, "no make: the Canon maker note is not read"
+
+
+def test_bigtiff_is_read_little_endian_and_named_big_endian(tmp_path):
+    import tifffile
+
+    pixels = np.arange(20 * 30, dtype=np.uint16).reshape(20, 30)
+    tags = [(271, "s", 0, "aerocal", True), (272, "s", 0, "BigSim", True)]
+    tifffile.imwrite(tmp_path / "little.tif", pixels, bigtiff=True, extratags=tags)
+    tifffile.imwrite(tmp_path / "big.tif", pixels, bigtiff=True, byteorder=">", extratags=tags)
+    r = ingest_folder(tmp_path)
+    row = r.images.to_pylist()[0]
+    assert (row["name"], row["width"], row["height"], row["bit_depth"]) == ("little.tif", 30, 20, 16)
+    assert row["camera_id"].startswith("aerocal|BigSim|")
+    assert r.skipped_images == ["big.tif"]
+    (big,) = [p for p in r.errors if p.file.endswith("big.tif")]
+    assert "big-endian BigTIFF" in big.message
+    assert np.array_equal(read_raw(tmp_path / "little.tif"), pixels)
 
 
 # ---------------------------------------------------------------------------- fuzz corpus

@@ -1,5 +1,10 @@
 """Canon maker notes: the camera's own temperature, serial number and lens name.
 
+Kept as our own reader: Pillow's ``Exif.get_ifd(ExifTags.IFD.MakerNote)`` parses only Fujifilm and Nintendo
+maker notes and tifffile returns the MakerNote as opaque bytes; neither knows Canon's CameraInfo or ShotInfo
+arrays. What is ours is only the part no library reads: where the maker note's IFD starts and which array
+element holds the temperature; the IFD itself is parsed by Pillow's ``ImageFileDirectory_v2``.
+
 The Canon maker note (EXIF tag 0x927C) is a bare IFD (no header) whose offsets count from the start
 of the EXIF TIFF header, in the EXIF byte order. Where the camera temperature lives depends on the
 model family; the positions follow ExifTool's ``Canon.pm`` and were checked on the measured data:
@@ -19,8 +24,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
-from aerocal.ingest.tiff import IfdEntry, TiffStructure, entry_text
+from PIL.ExifTags import IFD
+
+from aerocal.ingest.exif import int_values, read_ifd, text_value
 
 TAG_SHOT_INFO, TAG_SERIAL, TAG_CAMERA_INFO, TAG_LENS_MODEL, TAG_INTERNAL_SERIAL = (
     0x0004,
@@ -32,7 +40,10 @@ TAG_SHOT_INFO, TAG_SERIAL, TAG_CAMERA_INFO, TAG_LENS_MODEL, TAG_INTERNAL_SERIAL 
 SHOT_INFO_TEMPERATURE_INDEX = 12
 SHOT_INFO_TEMPERATURE_BIAS = 128
 CAMERA_INFO_TEMPERATURE_FROM_END = 3
+TAGS_READ = (TAG_SHOT_INFO, TAG_SERIAL, TAG_CAMERA_INFO, TAG_LENS_MODEL, TAG_INTERNAL_SERIAL)
 COMPACT_FAMILIES = ("POWERSHOT", "IXUS", "IXY", "ELPH")
+#: TIFF field types (TIFF 6.0): SHORT, SSHORT, LONG, SLONG
+SHORT, SSHORT, LONG, SLONG = 3, 8, 4, 9
 
 
 @dataclass
@@ -50,52 +61,65 @@ def is_canon(make: str | None) -> bool:
     return bool(make) and make.strip().upper().startswith("CANON")
 
 
-def read_canon_maker_note(tiff: TiffStructure, maker_note: IfdEntry, model: str | None) -> CanonMakerNote:
-    """Parse the Canon maker note IFD the EXIF ``MakerNote`` entry points to."""
+def _maker_note_ifd(
+    block: bytes, maker_note: bytes, notes: list[tuple[str, str]]
+) -> tuple[dict[int, Any], dict[int, int]]:
+    """The maker note's IFD (values of the tags read here, and every tag's type), read by Pillow from the EXIF
+    block so that its offsets resolve as Canon means them.
+
+    Pillow gives the MakerNote's bytes, not where they lie; the IFD is read where those bytes lie in the
+    block. Should the same bytes also lie earlier, reading there gives the same entries, and their
+    out-of-line values (offsets from the block start) are the same bytes: the result cannot differ.
+    """
+    start = block.find(maker_note)
+    if len(maker_note) < 2 or start < 0:
+        return {}, {}
+    try:
+        return read_ifd(block, start, notes, "Canon maker note", "MakerNote", group=IFD.MakerNote, wanted=TAGS_READ)
+    except Exception as exc:  # Pillow warns on most damage; whatever else it raises is reported, not raised
+        notes.append(("MakerNote", f"Pillow cannot read the maker note ({type(exc).__name__}: {exc})"))
+        return {}, {}
+
+
+def read_canon_maker_note(block: bytes, maker_note: bytes, model: str | None) -> CanonMakerNote:
+    """Parse the Canon maker note (the EXIF ``MakerNote`` value) of the EXIF TIFF ``block``."""
     out = CanonMakerNote()
-    ifd = tiff.read_ifd(maker_note.offset, "Canon maker note")
-    if not ifd:
+    values, types = _maker_note_ifd(block, maker_note, out.notes)
+    if not types:
         out.notes.append(("MakerNote", "Canon maker note could not be read; no camera temperature"))
         return out
     model_up = (model or "").upper()
     is_eos = "EOS" in model_up
     is_compact = any(f in model_up for f in COMPACT_FAMILIES)
 
+    def array(tag: int, kinds: tuple[int, int]) -> tuple[int, ...] | None:
+        return int_values(values.get(tag)) if types.get(tag) in kinds else None
+
     raw: float | None = None
     source: str | None = None
-    shot = ifd.get(TAG_SHOT_INFO)
-    if is_eos and shot is not None and isinstance(shot.value, tuple) and shot.type in (3, 8):
-        values = shot.value
-        if len(values) > SHOT_INFO_TEMPERATURE_INDEX:
-            v = int(values[SHOT_INFO_TEMPERATURE_INDEX])
-            if shot.type == 3 and v >= 0x8000:  # stored as int16s
-                v -= 0x10000
-            if v != 0:
-                raw = float(v - SHOT_INFO_TEMPERATURE_BIAS)
-                source = "canon:ShotInfo[12]-128"
-    info = ifd.get(TAG_CAMERA_INFO)
-    if (
-        raw is None
-        and is_compact
-        and info is not None
-        and info.type in (4, 9)
-        and isinstance(info.value, tuple)
-    ):
-        values = info.value
-        if len(values) >= CAMERA_INFO_TEMPERATURE_FROM_END:
-            v = int(values[-CAMERA_INFO_TEMPERATURE_FROM_END])
-            if info.type == 4 and v >= 0x80000000:  # stored as int32s
-                v -= 0x100000000
-            raw = float(v)
-            source = "canon:CameraInfo[-3]"
+    shot = array(TAG_SHOT_INFO, (SHORT, SSHORT))
+    if is_eos and shot is not None and len(shot) > SHOT_INFO_TEMPERATURE_INDEX:
+        v = shot[SHOT_INFO_TEMPERATURE_INDEX]
+        if types[TAG_SHOT_INFO] == SHORT and v >= 0x8000:  # stored as int16s
+            v -= 0x10000
+        if v != 0:
+            raw = float(v - SHOT_INFO_TEMPERATURE_BIAS)
+            source = "canon:ShotInfo[12]-128"
+    info = array(TAG_CAMERA_INFO, (LONG, SLONG))
+    if raw is None and is_compact and info is not None and len(info) >= CAMERA_INFO_TEMPERATURE_FROM_END:
+        v = info[-CAMERA_INFO_TEMPERATURE_FROM_END]
+        if types[TAG_CAMERA_INFO] == LONG and v >= 0x80000000:  # stored as int32s
+            v -= 0x100000000
+        raw = float(v)
+        source = "canon:CameraInfo[-3]"
     if raw is not None and math.isfinite(raw):
         out.temperature_c = raw
         out.temperature_source = source
 
-    serial = ifd.get(TAG_SERIAL)
-    if serial is not None and isinstance(serial.value, tuple) and serial.value and serial.type in (3, 4):
-        out.serial = str(int(serial.value[0]))
+    serial = array(TAG_SERIAL, (SHORT, LONG))
+    if serial:
+        out.serial = str(int(serial[0]))
     if out.serial is None:
-        out.serial = entry_text(ifd, TAG_INTERNAL_SERIAL)
-    out.lens = entry_text(ifd, TAG_LENS_MODEL)
+        out.serial = text_value(values.get(TAG_INTERNAL_SERIAL))
+    out.lens = text_value(values.get(TAG_LENS_MODEL))
     return out

@@ -18,6 +18,11 @@ temperatures in degC. This reading is **not documented by DJI**: they are report
 ``dji_app4_f132_undocumented`` etc. and are used as the sensor temperature only when the user opts in
 (``IngestConfig.dji_app4_temperature``). On the M2EA, M30T and H30T the same bytes hold zeros or values
 like 1e28, so they are read on the H20T only.
+
+Kept as our own reader: no installed library reads R-JPEG data (Pillow returns the APP3/APP4 payloads as
+opaque bytes in ``applist``; tifffile reads no JPEG; DJI's Thermal SDK is a closed binary library, not a
+package), and the XMP fields are a name mapping over :func:`aerocal.ingest.xmp.parse_xmp` (Pillow's
+``getxmp`` loses the ``drone-dji`` namespace, see :mod:`aerocal.ingest.xmp`).
 """
 
 from __future__ import annotations

@@ -1,45 +1,54 @@
-"""EXIF fields ingest uses: camera identity, capture time, GNSS position, image layout of TIFF files.
+"""EXIF fields ingest uses, read through Pillow: camera identity, capture time, GNSS position, TIFF layout.
 
-Reads IFD0, the EXIF sub-IFD (tag 34665) and the GPS sub-IFD (tag 34853) of a
-:class:`~aerocal.ingest.tiff.TiffStructure` (the EXIF block of a JPEG's APP1 segment, or a TIFF file).
-Values of the wrong type (a latitude stored as text, a make stored as a number) are not guessed at:
-the field is left empty and a note says which tag and type were found.
+Pillow's IFD reader (``PIL.TiffImagePlugin.ImageFileDirectory_v2``, what ``Image.getexif()`` and its
+``get_ifd()`` use) parses the IFDs: byte order, classic TIFF and little-endian BigTIFF, every field type,
+values stored out of line, rationals (``IFDRational``; a zero denominator reads NaN). It checks each value's
+offset and length against the block and skips what does not fit with a ``UserWarning``; :func:`read_ifd`
+turns those warnings into notes that ingest reports per file and field, and notes the entries Pillow dropped
+without a word, so a damaged block is a message, never a traceback. Only IFD0 and the EXIF and GPS IFDs it
+points to are read (no IFD chain is followed, so no input can make it loop), and of the EXIF IFD only the
+tags used here are decoded.
 
-Tag numbers are those of EXIF 2.32 (CIPA DC-008): Make 271, Model 272, Orientation 274, XMP 700,
-DateTimeOriginal 0x9003, OffsetTimeOriginal 0x9011, SubSecTimeOriginal 0x9291, FocalLength 0x920A,
-Temperature 0x9400 (ambient), BodySerialNumber 0xA431, LensModel 0xA434, MakerNote 0x927C;
-GPS: LatitudeRef 1, Latitude 2, LongitudeRef 3, Longitude 4, AltitudeRef 5, Altitude 6, TimeStamp 7,
-DateStamp 29. Altitude in EXIF GPS is referenced to sea level (EXIF 2.32, GPSAltitudeRef).
+Compared with the struct reader this replaced: the same values on every image of ``shared/data``; from a
+damaged IFD Pillow keeps less (it stops reading an IFD at the first value outside the block, and skips every
+later out-of-line value once one entry claims more bytes than the block holds, where the struct reader
+skipped the one entry), and it does not read big-endian BigTIFF.
+
+This module only interprets the values. A value of the wrong kind (a latitude stored as text, a make stored
+as a number) is not guessed at: the field is left empty and a note says which tag held what.
+
+Tags (EXIF 2.32, CIPA DC-008; Pillow's :mod:`PIL.ExifTags` names them): Make, Model, Orientation and
+XMLPacket (700) in IFD0; DateTimeOriginal, SubsecTimeOriginal, OffsetTimeOriginal, FocalLength,
+AmbientTemperature (0x9400), BodySerialNumber, LensModel and MakerNote in the EXIF IFD (also accepted in
+IFD0, where some writers put them); GPSLatitude(Ref), GPSLongitude(Ref), GPSAltitude(Ref), GPSTimeStamp and
+GPSDateStamp in the GPS IFD. Altitude in EXIF GPS is referenced to sea level (EXIF 2.32, GPSAltitudeRef).
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import io
 import math
 import re
+import struct
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, TypeVar
 
-from aerocal.ingest.tiff import (
-    IfdEntry,
-    TiffStructure,
-    entry_bytes,
-    entry_int,
-    entry_numbers,
-    entry_text,
-)
+from PIL.ExifTags import GPS, IFD, Base
+from PIL.TiffImagePlugin import IFDRational, ImageFileDirectory_v2
 
-TAG_MAKE, TAG_MODEL, TAG_ORIENTATION, TAG_XMP = 271, 272, 274, 700
-TAG_EXIF_IFD, TAG_GPS_IFD = 34665, 34853
-TAG_DATETIME_ORIGINAL, TAG_OFFSET_TIME_ORIGINAL, TAG_SUBSEC_ORIGINAL = 0x9003, 0x9011, 0x9291
-TAG_FOCAL_LENGTH, TAG_AMBIENT_TEMPERATURE = 0x920A, 0x9400
-TAG_BODY_SERIAL, TAG_LENS_MODEL, TAG_MAKER_NOTE = 0xA431, 0xA434, 0x927C
-# TIFF image layout
-TAG_WIDTH, TAG_HEIGHT, TAG_BITS, TAG_COMPRESSION, TAG_SAMPLES = 256, 257, 258, 259, 277
-TAG_STRIP_OFFSETS, TAG_STRIP_COUNTS, TAG_TILE_OFFSETS, TAG_TILE_COUNTS = 273, 279, 324, 325
-TAG_SAMPLE_FORMAT = 339
+T = TypeVar("T")
 
+TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+BIGTIFF_MAGICS = (b"II+\x00", b"MM\x00+")
 _DATETIME_RE = re.compile(r"^(\d{4})[:\-](\d{2})[:\-](\d{2})[ T](\d{2}):(\d{2}):(\d{2})")
 _OFFSET_RE = re.compile(r"^([+-])(\d{2}):?(\d{2})$")
+
+
+class ExifFormatError(ValueError):
+    """The bytes do not start with a TIFF header, so Pillow cannot read them as IFDs."""
 
 
 @dataclass
@@ -59,11 +68,156 @@ class ExifData:
     gps_utc: dt.datetime | None = None  # GPSDateStamp + GPSTimeStamp (UTC)
     focal_length_mm: float | None = None
     ambient_temperature_c: float | None = None
-    maker_note: IfdEntry | None = None
+    maker_note: bytes | None = None
     xmp_packet: bytes | None = None
-    ifd0: dict[int, IfdEntry] = field(default_factory=dict)
-    tiff: TiffStructure | None = None  # the structure the maker note's offsets refer to
+    block: bytes = b""  # the TIFF bytes the IFD offsets (and a Canon maker note's) count from
     notes: list[tuple[str, str]] = field(default_factory=list)  # (field, message)
+
+
+def capture_pillow_warnings(fn: Callable[[], T], notes: list[tuple[str, str]], field_name: str) -> T:
+    """``fn()`` with the ``UserWarning``\\ s Pillow emits for corrupt IFD data appended to ``notes``.
+
+    ``warnings.catch_warnings`` swaps the process-wide warning filters for the call (it is not thread-safe);
+    ingest reads its files one after the other in one thread.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = fn()
+    for w in caught:
+        notes.append((field_name, "Pillow: " + " ".join(str(w.message).split())))
+    return result
+
+
+def read_ifd(
+    block: bytes,
+    offset: int,
+    notes: list[tuple[str, str]],
+    name: str,
+    field_name: str,
+    group: int | None = None,
+    wanted: tuple[int, ...] | None = None,
+) -> tuple[dict[int, Any], dict[int, int]]:
+    """The IFD at ``offset`` of the TIFF ``block``, read by Pillow: ``({tag: value}, {tag: TIFF type})``.
+
+    Values are those of Pillow's ``Image.getexif()`` (``str`` for ASCII, ``bytes`` for BYTE/UNDEFINED, an
+    ``int`` or ``IFDRational``, a tuple of them when there are several); only the ``wanted`` tags are decoded,
+    all when ``None``. ``group`` is Pillow's tag table for the IFD (``IFD.Exif``, ``IFD.GPSInfo``; ``None`` for IFD0).
+    Pillow's warnings and entries it dropped become ``notes`` under ``field_name``; ``name`` says which IFD.
+    """
+    bigtiff = block[:4] in BIGTIFF_MAGICS
+    ifd = ImageFileDirectory_v2(block[:16] if bigtiff else block[:8], group=group)  # byte order, BigTIFF
+    fp = io.BytesIO(block)
+    fp.seek(offset)
+
+    def load() -> dict[int, Any]:
+        ifd.load(fp)
+        values = {int(tag): ifd[tag] for tag in (list(ifd) if wanted is None else wanted) if tag in ifd}
+        # one value unwrapped from its tuple, as Image.getexif() and its get_ifd() give it
+        return {tag: v[0] if isinstance(v, tuple) and len(v) == 1 else v for tag, v in values.items()}
+
+    values = capture_pillow_warnings(load, notes, field_name)
+    size = 8 if bigtiff else 2
+    if 0 <= offset <= len(block) - size:
+        # Pillow skips an entry of unknown type without a warning, and stops reading the IFD at the first
+        # value that runs past the block; the count the IFD declares shows both
+        endian = "<" if block[:2] == b"II" else ">"
+        declared = struct.unpack_from(endian + ("Q" if bigtiff else "H"), block, offset)[0]
+        if len(ifd) < declared:
+            notes.append(
+                (
+                    field_name,
+                    f"{name} at byte {offset} declares {declared} entries, Pillow read {len(ifd)} (it skips an "
+                    "entry of unknown type, and stops at a value that lies outside the block); the others are "
+                    "ignored",
+                )
+            )
+    return values, dict(ifd.tagtype)
+
+
+def load_exif(data: bytes, notes: list[tuple[str, str]], field_name: str = "EXIF") -> dict[int, Any]:
+    """IFD0 of a TIFF structure (a JPEG's APP1 EXIF block without ``Exif\\0\\0``, or a whole TIFF file).
+
+    Raises :class:`ExifFormatError` when ``data`` has no TIFF header, or is a big-endian BigTIFF (Pillow 13
+    takes the version from byte 2 of the header, which is 0 there, and reads it as a classic TIFF); damage
+    past the header becomes notes.
+    """
+    if data[:4] not in TIFF_MAGICS or len(data) < (16 if data[:4] in BIGTIFF_MAGICS else 8):
+        raise ExifFormatError(f"no TIFF header (starts with {data[:4]!r})")
+    if data[:4] == b"MM\x00+":
+        raise ExifFormatError("big-endian BigTIFF, which Pillow's TIFF reader does not read")
+    first = ImageFileDirectory_v2(data[:16] if data[:4] in BIGTIFF_MAGICS else data[:8]).next
+    if not 8 <= first < len(data):
+        raise ExifFormatError(f"first IFD offset {first} lies outside the {len(data)}-byte block")
+    try:
+        return read_ifd(data, first, notes, "IFD0", field_name)[0]
+    except Exception as exc:  # Pillow warns on most damage, but a header it accepts can still fail to unpack
+        raise ExifFormatError(f"Pillow cannot read IFD0 ({type(exc).__name__}: {exc})") from exc
+
+
+def sub_ifd(
+    ifd0: dict[int, Any], block: bytes, tag: IFD, notes: list[tuple[str, str]], wanted: tuple[int, ...] | None = None
+) -> dict[int, Any]:
+    """The EXIF or GPS IFD IFD0 points to, as ``{tag: value}`` (``{}`` when absent or unreadable, noted)."""
+    name = "EXIF IFD" if tag == IFD.Exif else "GPS IFD"
+    pointer = ifd0.get(tag)
+    if pointer is None:
+        return {}
+    if not isinstance(pointer, int) or pointer < 0:
+        notes.append((name, f"{name} pointer (tag {int(tag)}) holds {_kind(pointer)}, expected an offset; ignored"))
+        return {}
+    try:
+        return read_ifd(block, pointer, notes, name, name, group=tag, wanted=wanted)[0]
+    except Exception as exc:  # Pillow raises several types on IFDs it cannot place (seek, struct)
+        notes.append((name, f"{name} at byte {pointer} cannot be read ({type(exc).__name__}: {exc}); ignored"))
+        return {}
+
+
+def text_value(value: Any) -> str | None:
+    """An ASCII (or UNDEFINED) value as text up to its first NUL, printable characters only, else ``None``."""
+    if isinstance(value, bytes):
+        value = value.decode("latin-1", errors="replace")
+    if not isinstance(value, str):
+        return None
+    value = "".join(ch for ch in value.split("\x00", 1)[0] if ch.isprintable()).strip()
+    return value or None
+
+
+def int_values(value: Any) -> tuple[int, ...] | None:
+    """An integer-typed value (one or several) as a tuple of ints, else ``None`` (rationals, text, bytes)."""
+    if isinstance(value, int) and not isinstance(value, bool):
+        return (value,)
+    if isinstance(value, tuple) and value and all(isinstance(v, int) and not isinstance(v, bool) for v in value):
+        return value
+    return None
+
+
+def number_values(value: Any) -> tuple[float, ...] | None:
+    """A numeric value (integers, rationals, floats; one or several) as floats, else ``None``."""
+    items = value if isinstance(value, tuple) else (value,)
+    if not items or not all(isinstance(v, int | float | IFDRational) and not isinstance(v, bool) for v in items):
+        return None
+    return tuple(float(v) for v in items)
+
+
+def _rationals(value: Any) -> tuple[float, ...] | None:
+    """A RATIONAL/SRATIONAL value as floats (``None`` for any other type: EXIF GPS values are rationals)."""
+    items = value if isinstance(value, tuple) else (value,)
+    if not items or not all(isinstance(v, IFDRational) for v in items):
+        return None
+    return tuple(float(v) for v in items)
+
+
+def _kind(value: Any) -> str:
+    """What a value is, for a message."""
+    if isinstance(value, str):
+        return f"text {value[:40]!r}"
+    if isinstance(value, bytes):
+        return f"{len(value)} bytes"
+    if isinstance(value, IFDRational):
+        return "a rational number"
+    if isinstance(value, tuple):
+        return f"{len(value)} values"
+    return f"the number {value!r}" if isinstance(value, int | float) else type(value).__name__
 
 
 def parse_exif_datetime(text: str | None) -> dt.datetime | None:
@@ -99,82 +253,95 @@ def _dms(values: tuple[float, ...] | None) -> float | None:
     return values[0] + values[1] / 60.0 + values[2] / 3600.0
 
 
-def read_exif(tiff: TiffStructure) -> ExifData:
-    """Interpret IFD0, EXIF and GPS IFDs of ``tiff``."""
-    out = ExifData(tiff=tiff)
-    chain = tiff.ifd_chain()
-    ifd0 = chain[0] if chain else {}
-    out.ifd0 = ifd0
-    exif = tiff.sub_ifd(ifd0, TAG_EXIF_IFD, "EXIF IFD")
-    gps = tiff.sub_ifd(ifd0, TAG_GPS_IFD, "GPS IFD")
+#: the tags of the EXIF IFD read here (only these are decoded)
+EXIF_TAGS = (
+    Base.BodySerialNumber,
+    Base.LensModel,
+    Base.DateTimeOriginal,
+    Base.SubsecTimeOriginal,
+    Base.OffsetTimeOriginal,
+    Base.FocalLength,
+    Base.AmbientTemperature,
+    Base.MakerNote,
+)
 
-    def text(ifd: dict[int, IfdEntry], tag: int, name: str) -> str | None:
-        value = entry_text(ifd, tag)
-        if value is None and tag in ifd:
-            out.notes.append((name, f"has type {ifd[tag].type_name}, expected ASCII text; ignored"))
+
+def read_exif(ifd0: dict[int, Any], block: bytes) -> ExifData:
+    """Interpret IFD0 (from :func:`load_exif`) and the EXIF and GPS IFDs of the TIFF ``block``."""
+    out = ExifData(block=block)
+    merged = {**ifd0, **sub_ifd(ifd0, block, IFD.Exif, out.notes, EXIF_TAGS)}  # some writers use IFD0
+    gps = sub_ifd(ifd0, block, IFD.GPSInfo, out.notes)
+
+    def text(ifd: dict[int, Any], tag: Base) -> str | None:
+        value = text_value(ifd.get(tag))
+        if value is None and ifd.get(tag) is not None and not isinstance(ifd[tag], str | bytes):
+            out.notes.append((tag.name, f"holds {_kind(ifd[tag])}, expected ASCII text; ignored"))
         return value
 
-    out.make = text(ifd0, TAG_MAKE, "Make")
-    out.model = text(ifd0, TAG_MODEL, "Model")
-    out.orientation = entry_int(ifd0, TAG_ORIENTATION)
-    # some writers put EXIF tags in IFD0: accept them there when the EXIF IFD lacks them
-    merged = {**ifd0, **exif}
-    out.serial = text(merged, TAG_BODY_SERIAL, "BodySerialNumber")
-    out.lens = text(merged, TAG_LENS_MODEL, "LensModel")
-    raw_time = text(merged, TAG_DATETIME_ORIGINAL, "DateTimeOriginal")
+    out.make = text(ifd0, Base.Make)
+    out.model = text(ifd0, Base.Model)
+    orientation = int_values(ifd0.get(Base.Orientation))
+    out.orientation = orientation[0] if orientation else None
+    out.serial = text(merged, Base.BodySerialNumber)
+    out.lens = text(merged, Base.LensModel)
+    raw_time = text(merged, Base.DateTimeOriginal)
     out.datetime_original = parse_exif_datetime(raw_time)
     if raw_time and out.datetime_original is None:
         out.notes.append(
             ("DateTimeOriginal", f"value {raw_time!r} is not a valid 'YYYY:MM:DD HH:MM:SS'; ignored")
         )
-    subsec = text(merged, TAG_SUBSEC_ORIGINAL, "SubSecTimeOriginal")
+    subsec = text(merged, Base.SubsecTimeOriginal)
     if out.datetime_original is not None and subsec:
         digits = subsec.strip()
         if digits.isdigit():
             out.datetime_original += dt.timedelta(seconds=int(digits) / 10 ** len(digits))
         else:
             out.notes.append(("SubSecTimeOriginal", f"value {subsec!r} is not digits; ignored"))
-    raw_offset = text(merged, TAG_OFFSET_TIME_ORIGINAL, "OffsetTimeOriginal")
+    raw_offset = text(merged, Base.OffsetTimeOriginal)
     out.utc_offset = parse_utc_offset(raw_offset)
     if raw_offset and out.utc_offset is None:
         out.notes.append(("OffsetTimeOriginal", f"value {raw_offset!r} is not '+HH:MM'; ignored"))
-    focal = entry_numbers(merged, TAG_FOCAL_LENGTH)
+    focal = number_values(merged.get(Base.FocalLength))
     if focal and math.isfinite(focal[0]) and focal[0] > 0:
         out.focal_length_mm = focal[0]
-    ambient = entry_numbers(merged, TAG_AMBIENT_TEMPERATURE)
+    ambient = number_values(merged.get(Base.AmbientTemperature))
     if ambient and math.isfinite(ambient[0]):
         out.ambient_temperature_c = ambient[0]
-    out.maker_note = merged.get(TAG_MAKER_NOTE)
-    out.xmp_packet = entry_bytes(ifd0, TAG_XMP)
+    maker_note = merged.get(Base.MakerNote)
+    out.maker_note = maker_note if isinstance(maker_note, bytes) and maker_note else None
+    xmp = ifd0.get(Base.XMLPacket)
+    if isinstance(xmp, str):
+        xmp = xmp.encode("latin-1", errors="replace")
+    if isinstance(xmp, bytes):
+        out.xmp_packet = xmp or None
+    elif xmp is not None:
+        out.notes.append(("XMLPacket", f"holds {_kind(xmp)}, expected the XMP packet's bytes; ignored"))
     _read_gps(gps, out)
     return out
 
 
-def _read_gps(gps: dict[int, IfdEntry], out: ExifData) -> None:
+def _read_gps(gps: dict[int, Any], out: ExifData) -> None:
     if not gps:
         return
-    for tag, name in ((2, "GPSLatitude"), (4, "GPSLongitude"), (6, "GPSAltitude"), (7, "GPSTimeStamp")):
-        entry = gps.get(tag)
-        if entry is not None and entry.type not in (5, 10):
-            out.notes.append((name, f"has type {entry.type_name}, expected RATIONAL; ignored"))
-    lat = _dms(entry_numbers(gps, 2)) if gps.get(2) and gps[2].type in (5, 10) else None
-    lon = _dms(entry_numbers(gps, 4)) if gps.get(4) and gps[4].type in (5, 10) else None
-    lat_ref = (entry_text(gps, 1) or "N").upper()[:1]
-    lon_ref = (entry_text(gps, 3) or "E").upper()[:1]
+    values: dict[GPS, tuple[float, ...] | None] = {}
+    for tag in (GPS.GPSLatitude, GPS.GPSLongitude, GPS.GPSAltitude, GPS.GPSTimeStamp):
+        raw = gps.get(tag)
+        values[tag] = None if raw is None else _rationals(raw)
+        if raw is not None and values[tag] is None:
+            out.notes.append((tag.name, f"holds {_kind(raw)}, expected RATIONAL; ignored"))
+    lat, lon = _dms(values[GPS.GPSLatitude]), _dms(values[GPS.GPSLongitude])
+    lat_ref = (text_value(gps.get(GPS.GPSLatitudeRef)) or "N").upper()[:1]
+    lon_ref = (text_value(gps.get(GPS.GPSLongitudeRef)) or "E").upper()[:1]
     if lat is not None and lon is not None:
         out.gps_lat = -lat if lat_ref == "S" else lat
         out.gps_lon = -lon if lon_ref == "W" else lon
-    alt = entry_numbers(gps, 6) if gps.get(6) and gps[6].type in (5, 10) else None
+    alt = values[GPS.GPSAltitude]
     if alt and math.isfinite(alt[0]):
-        ref = gps.get(5)
-        below = False
-        if ref is not None and isinstance(ref.value, bytes):
-            below = ref.value[:1] == b"\x01"
-        elif ref is not None and isinstance(ref.value, tuple) and ref.value:
-            below = int(ref.value[0]) == 1
+        ref = gps.get(GPS.GPSAltitudeRef)  # BYTE (Pillow: bytes); some writers use SHORT
+        below = ref[:1] == b"\x01" if isinstance(ref, bytes) else (int_values(ref) or (0,))[0] == 1
         out.gps_alt = -alt[0] if below else alt[0]
-    stamp = entry_numbers(gps, 7) if gps.get(7) and gps[7].type in (5, 10) else None
-    day = entry_text(gps, 29)
+    stamp = values[GPS.GPSTimeStamp]
+    day = text_value(gps.get(GPS.GPSDateStamp))
     if stamp and len(stamp) == 3 and day and all(math.isfinite(v) for v in stamp):
         base = parse_exif_datetime(f"{day.strip()} 00:00:00")
         if base is not None and 0 <= stamp[0] < 24 and 0 <= stamp[1] < 60 and 0 <= stamp[2] < 61:

@@ -30,6 +30,11 @@ frame and an independent Planck evaluation in ``shared/data/flir_samples/README.
 
 None of these cameras records its focal-plane (core) temperature in the FFF records read here; the XMP
 ``FLIR:CentralTemperature`` of DJI XT files is a *scene* temperature and is never taken for the sensor's.
+
+Kept as our own reader: Pillow returns the APP1 ``FLIR`` segments as opaque bytes and tifffile reads no
+JPEG; ``flyr`` reads FFF files but is licensed EUPL-1.2 (a development-only reference here, never imported
+by the product), cannot read the little-endian Zenmuse layout and takes 12-15x longer per file to temperatures
+(``benchmarks/ingest_bench.py``). The 16-bit PNG inside the raw-frame record is decoded by OpenCV.
 """
 
 from __future__ import annotations
@@ -37,11 +42,12 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from aerocal.ingest.jpeg import JpegStructure
+from aerocal.ingest.jpeg import JpegFormatError, JpegStructure, parse_jpeg
 
 APP1 = 0xE1
 SEGMENT_MAGIC = b"FLIR\x00"
@@ -384,10 +390,6 @@ def common_camera_info(paths) -> tuple[FlirCameraInfo | None, str]:
     """The camera information shared by every FLIR frame of ``paths``, with one sentence on why not when
     there is none (not FLIR files, broken, or frames recorded with different constants or emissivity:
     a counts mosaic then has no single temperature scale)."""
-    from pathlib import Path
-
-    from aerocal.ingest.jpeg import JpegFormatError, parse_jpeg
-
     first: FlirCameraInfo | None = None
     for p in paths:
         try:

@@ -6,6 +6,12 @@ sample precision, components). Each step advances by at least two bytes and ever
 against the buffer, so a corrupted file cannot make it loop or read out of bounds. A file whose entropy
 coded data has no EOI marker after the scan is reported as truncated: inside entropy-coded data a
 0xFF byte is always followed by 0x00 or a restart marker, so ``FF D9`` after SOS can only be EOI.
+
+Kept as our own walk: Pillow's ``JpegImagePlugin`` walks the same markers (its ``applist`` holds the APPn
+payloads) but keeps no offsets, so the end-of-image check has no start of scan to search from; it opens a
+DJI R-JPEG (whose APP2 holds an MPF index) as a multi-picture ``MpoImageFile``; and any break in the
+structure comes back as "cannot identify image file" without saying where. tifffile reads no JPEG. This
+walk takes 8 us per seneca file, Pillow's ``Image.open`` 59 us.
 """
 
 from __future__ import annotations

@@ -7,6 +7,35 @@ capture time, the vendor XMP (DJI, senseFly) or EXIF GPS position and attitude, 
 (Canon maker notes; DJI APP4 only on request), and checks every value against its physical range.
 It never raises on bad input: what cannot be used is reported as a :class:`Problem` naming the file and
 field, and a file that cannot be ingested at all returns ``None`` with an error.
+
+Who reads what. A maintained library reads a field wherever one reads it with the same result (checked by
+ingesting every set of ``shared/data`` before and after the change: identical ``images`` tables); our own
+code is kept only where no installed library (Pillow, tifffile, defusedxml) reads the field:
+
+================================  ==============================  ==============================================
+what                              read by                         why
+================================  ==============================  ==============================================
+IFD0, EXIF and GPS IFDs of a      Pillow's IFD reader, as         the same values as the struct reader it
+JPEG's APP1 block and of a TIFF   ``Image.getexif()`` uses it     replaced, at about the same speed; it
+file; the TIFF layout tags        (:mod:`.exif` interprets the    salvages less from a damaged IFD (it stops at
+                                  values)                         the first value outside the block) and skips
+                                                                  unknown types silently, so the declared entry
+                                                                  count is checked and reported; big-endian
+                                                                  BigTIFF is not read
+Canon maker note (temperature,    ours (:mod:`.canon`); its IFD   Pillow parses Fujifilm and Nintendo maker
+serial, lens)                     parsed by Pillow                notes only; tifffile returns the bytes
+JPEG markers (frame size, APPn,   ours (:mod:`.jpeg`)             Pillow keeps no segment offsets (the EOI
+end-of-image check)                                               check needs the start of scan), opens DJI
+                                                                  R-JPEGs as MPO, says only "cannot identify"
+XMP (DJI, senseFly, FLIR, Adobe   ours (:mod:`.xmp`) on           Pillow's ``getxmp`` drops namespace URIs;
+namespaces)                       defusedxml                      :mod:`.dji`, :mod:`.sensefly` map names
+DJI R-JPEG raw frame, APP4        ours (:mod:`.dji`)              no library reads them (Pillow: opaque bytes)
+FLIR FFF records in APP1          ours (:mod:`.flir`)             Pillow: opaque bytes; flyr is EUPL-1.2 (test
+                                                                  reference only) and misses DJI's layout
+time zone from GNSS UTC           ours (:mod:`.capture_time`)     a flight-wide inference, not a format
+pixels                            tifffile, OpenCV; ours for      (:mod:`.pixels`)
+                                  FLIR and DJI raw frames
+================================  ==============================  ==============================================
 """
 
 from __future__ import annotations
@@ -17,22 +46,19 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
+
+from PIL.ExifTags import Base
 
 from aerocal.ingest.canon import is_canon, read_canon_maker_note
 from aerocal.ingest.config import IngestConfig
 from aerocal.ingest.dji import app4_field_name, app4_floats, has_dji, raw_thermal_layout, read_dji_xmp
 from aerocal.ingest.exif import (
-    TAG_BITS,
-    TAG_COMPRESSION,
-    TAG_HEIGHT,
-    TAG_SAMPLE_FORMAT,
-    TAG_SAMPLES,
-    TAG_STRIP_COUNTS,
-    TAG_STRIP_OFFSETS,
-    TAG_TILE_COUNTS,
-    TAG_TILE_OFFSETS,
-    TAG_WIDTH,
+    TIFF_MAGICS,
     ExifData,
+    ExifFormatError,
+    int_values,
+    load_exif,
     parse_utc_offset,
     read_exif,
 )
@@ -42,7 +68,6 @@ from aerocal.ingest.numbers import PLAUSIBLE_RANGES, in_range
 from aerocal.ingest.problems import Problem
 from aerocal.ingest.recorded_pose import RecordedPose
 from aerocal.ingest.sensefly import has_sensefly, read_sensefly
-from aerocal.ingest.tiff import TiffFormatError, entry_int, entry_numbers, parse_tiff
 from aerocal.ingest.xmp import XmpError, packet_from_app1, parse_xmp
 
 #: DJI models whose APP4 floats were seen to drift like internal temperatures (``h20t_forest``); on the
@@ -85,7 +110,7 @@ def sniff_container(data: bytes) -> str | None:
     """``"jpeg"``, ``"tiff"`` or ``None`` from the first bytes."""
     if is_jpeg(data):
         return "jpeg"
-    if data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+    if data[:4] in TIFF_MAGICS:
         return "tiff"
     return None
 
@@ -269,29 +294,34 @@ def _flir_extra(meta: ImageMetadata, info: FlirCameraInfo | None, warn) -> None:
         warn("FLIR camera information unusable for temperatures (" + "; ".join(bad) + "): counts only", "FLIR")
 
 
+def _first_int(ifd: dict[int, Any], tag: int) -> int | None:
+    """The first value of an integer-typed tag (``None`` if absent or of another type)."""
+    values = int_values(ifd.get(tag))
+    return values[0] if values else None
+
+
 def _read_tiff(data, path, digest, cfg, error, warn):
+    notes: list[tuple[str, str]] = []
     try:
-        tiff = parse_tiff(data)
-    except TiffFormatError as exc:
+        ifd0 = load_exif(data, notes, "TIFF")
+    except ExifFormatError as exc:
         return error(f"not a readable TIFF: {exc}; skipped")
-    exif = read_exif(tiff)
-    for issue in tiff.issues:
-        warn(issue, "TIFF")
-    ifd0 = exif.ifd0
-    width, height = entry_int(ifd0, TAG_WIDTH), entry_int(ifd0, TAG_HEIGHT)
+    for field_name, message in notes:
+        warn(message, field_name)
+    exif = read_exif(ifd0, data)
+    width, height = _first_int(ifd0, Base.ImageWidth), _first_int(ifd0, Base.ImageLength)
     if width is None or height is None or not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
         return error(f"TIFF ImageWidth/ImageLength give an impossible size {width}x{height}; skipped", "size")
-    bits = entry_numbers(ifd0, TAG_BITS)
-    bit_depth = int(bits[0]) if bits else 1
+    bit_depth = _first_int(ifd0, Base.BitsPerSample) or 1
     if bit_depth not in (1, 8, 12, 14, 16, 32, 64):
         return error(f"TIFF BitsPerSample {bit_depth} is not supported; skipped", "BitsPerSample")
-    samples = entry_int(ifd0, TAG_SAMPLES) or 1
-    compression = entry_int(ifd0, TAG_COMPRESSION) or 1
-    fmt = entry_int(ifd0, TAG_SAMPLE_FORMAT) or 1
+    samples = _first_int(ifd0, Base.SamplesPerPixel) or 1
+    compression = _first_int(ifd0, Base.Compression) or 1
+    fmt = _first_int(ifd0, Base.SampleFormat) or 1
     if fmt == 3:
         warn(f"floating-point samples ({bit_depth}-bit); radiometry kept as float", "SampleFormat")
-    offsets = entry_numbers(ifd0, TAG_STRIP_OFFSETS) or entry_numbers(ifd0, TAG_TILE_OFFSETS)
-    counts = entry_numbers(ifd0, TAG_STRIP_COUNTS) or entry_numbers(ifd0, TAG_TILE_COUNTS)
+    offsets = int_values(ifd0.get(Base.StripOffsets)) or int_values(ifd0.get(Base.TileOffsets))
+    counts = int_values(ifd0.get(Base.StripByteCounts)) or int_values(ifd0.get(Base.TileByteCounts))
     if not offsets or not counts or len(offsets) != len(counts):
         return error("TIFF has no usable strip or tile offsets/byte counts; skipped", "StripOffsets")
     end = max(o + c for o, c in zip(offsets, counts, strict=True))
@@ -312,15 +342,15 @@ def _read_tiff(data, path, digest, cfg, error, warn):
 
 
 def _exif_from(block: bytes, warn) -> ExifData | None:
+    notes: list[tuple[str, str]] = []
     try:
-        tiff = parse_tiff(block)
-    except TiffFormatError as exc:
+        ifd0 = load_exif(block, notes)
+    except ExifFormatError as exc:
         warn(f"EXIF block is not readable ({exc}); ignored", "EXIF")
         return None
-    exif = read_exif(tiff)
-    for issue in tiff.issues:
-        warn(issue, "EXIF")
-    return exif
+    for field_name, message in notes:
+        warn(message, field_name)
+    return read_exif(ifd0, block)
 
 
 def _xmp_from(packet: bytes, warn) -> dict[str, str]:
@@ -372,8 +402,8 @@ def _interpret(
             meta.extra["exif_focal_length_mm"] = exif.focal_length_mm
         if exif.ambient_temperature_c is not None:
             meta.extra["exif_ambient_temperature_c"] = exif.ambient_temperature_c
-        if exif.maker_note is not None and is_canon(exif.make) and exif.tiff is not None:
-            canon = read_canon_maker_note(exif.tiff, exif.maker_note, exif.model)
+        if exif.maker_note is not None and is_canon(exif.make):
+            canon = read_canon_maker_note(exif.block, exif.maker_note, exif.model)
             for field_name, message in canon.notes:
                 warn(message, field_name)
             meta.serial = meta.serial or canon.serial

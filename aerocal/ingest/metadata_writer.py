@@ -5,6 +5,10 @@ single-channel TIFF or 8-bit JPEG, EXIF Make/Model/BodySerialNumber/DateTimeOrig
 ``drone-dji`` fields) and for tests. Files are little-endian classic TIFF, one uncompressed strip;
 JPEGs get an APP1 EXIF segment and an APP1 XMP segment right after SOI (existing APPn segments other
 than APP0 are removed).
+
+The IFDs are laid out here rather than by Pillow's ``Exif.tobytes``: Pillow reduces every rational (the
+47000000/1000000 written here becomes 47/1), so the files the simulator and the tests write would change
+byte for byte. Tag numbers are Pillow's (:mod:`PIL.ExifTags`).
 """
 
 from __future__ import annotations
@@ -15,21 +19,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
+import cv2
 import numpy as np
+from PIL.ExifTags import IFD, Base
 
-from aerocal.ingest.exif import (
-    TAG_BODY_SERIAL,
-    TAG_DATETIME_ORIGINAL,
-    TAG_EXIF_IFD,
-    TAG_FOCAL_LENGTH,
-    TAG_GPS_IFD,
-    TAG_LENS_MODEL,
-    TAG_MAKE,
-    TAG_MODEL,
-    TAG_OFFSET_TIME_ORIGINAL,
-    TAG_SUBSEC_ORIGINAL,
-    TAG_XMP,
-)
+from aerocal.ingest.flir import CAMERA_INFO_BYTES, CAMERA_INFO_FLOATS, CAMERA_INFO_TEXT, PLANCK_O_OFFSET
 from aerocal.ingest.jpeg import parse_jpeg
 from aerocal.ingest.xmp import XMP_APP1_HEADER
 from aerocal.io import atomic_path
@@ -96,17 +90,17 @@ def _exif_entries(
 ) -> list[Entry]:
     exif: list[Entry] = []
     if focal_mm is not None:
-        exif.append((TAG_FOCAL_LENGTH, 5, [float(focal_mm)]))
+        exif.append((Base.FocalLength, 5, [float(focal_mm)]))
     if time is not None:
-        exif.append((TAG_DATETIME_ORIGINAL, 2, time.strftime("%Y:%m:%d %H:%M:%S")))
+        exif.append((Base.DateTimeOriginal, 2, time.strftime("%Y:%m:%d %H:%M:%S")))
         if time.microsecond:
-            exif.append((TAG_SUBSEC_ORIGINAL, 2, f"{time.microsecond:06d}".rstrip("0")))
+            exif.append((Base.SubsecTimeOriginal, 2, f"{time.microsecond:06d}".rstrip("0")))
     if utc_offset:
-        exif.append((TAG_OFFSET_TIME_ORIGINAL, 2, utc_offset))
+        exif.append((Base.OffsetTimeOriginal, 2, utc_offset))
     if serial:
-        exif.append((TAG_BODY_SERIAL, 2, serial))
+        exif.append((Base.BodySerialNumber, 2, serial))
     if lens:
-        exif.append((TAG_LENS_MODEL, 2, lens))
+        exif.append((Base.LensModel, 2, lens))
     return exif
 
 
@@ -146,22 +140,22 @@ def exif_block(
     """A little-endian TIFF block: IFD0 (Make, Model), the EXIF IFD and the GPS IFD (a JPEG APP1 body)."""
     ifd0: list[Entry] = list(ifd0_extra or [])
     if make:
-        ifd0.append((TAG_MAKE, 2, make))
+        ifd0.append((Base.Make, 2, make))
     if model:
-        ifd0.append((TAG_MODEL, 2, model))
+        ifd0.append((Base.Model, 2, model))
     exif = _exif_entries(serial, lens, time, utc_offset, focal_mm)
     gps_e = _gps_entries(*gps) if gps else []
     # lay out: header (8) | IFD0 | EXIF IFD | GPS IFD; pointers are fixed up once sizes are known
-    ifd0_full = ifd0 + ([(TAG_EXIF_IFD, 4, [0])] if exif else []) + ([(TAG_GPS_IFD, 4, [0])] if gps_e else [])
+    ifd0_full = ifd0 + ([(IFD.Exif, 4, [0])] if exif else []) + ([(IFD.GPSInfo, 4, [0])] if gps_e else [])
     exif_pos = 8 + len(_ifd_bytes(ifd0_full, 8))
     b1 = _ifd_bytes(exif, exif_pos) if exif else b""
     gps_pos = exif_pos + len(b1)
     b2 = _ifd_bytes(gps_e, gps_pos) if gps_e else b""
     fixed = list(ifd0)
     if exif:
-        fixed.append((TAG_EXIF_IFD, 4, [exif_pos]))
+        fixed.append((IFD.Exif, 4, [exif_pos]))
     if gps_e:
-        fixed.append((TAG_GPS_IFD, 4, [gps_pos]))
+        fixed.append((IFD.GPSInfo, 4, [gps_pos]))
     b0 = _ifd_bytes(fixed, 8)
     return b"II*\x00" + struct.pack("<I", 8) + b0 + b1 + b2
 
@@ -211,21 +205,21 @@ def write_tiff_with_metadata(
         (284, 3, [1]),
     ]
     if make:
-        ifd0.append((TAG_MAKE, 2, make))
+        ifd0.append((Base.Make, 2, make))
     if model:
-        ifd0.append((TAG_MODEL, 2, model))
+        ifd0.append((Base.Model, 2, model))
     if xmp:
-        ifd0.append((TAG_XMP, 1, xmp.encode("utf-8")))
+        ifd0.append((Base.XMLPacket, 1, xmp.encode("utf-8")))
     exif = _exif_entries(serial, lens, time, None)
     if exif:
-        ifd0.append((TAG_EXIF_IFD, 4, [0]))
+        ifd0.append((IFD.Exif, 4, [0]))
     # two passes: sizes first, then real offsets
     exif_pos = 8 + len(_ifd_bytes(ifd0, 8))
     b1 = _ifd_bytes(exif, exif_pos) if exif else b""
     pix_pos = exif_pos + len(b1)
-    ifd0 = [e for e in ifd0 if e[0] not in (273, TAG_EXIF_IFD)] + [(273, 4, [pix_pos])]
+    ifd0 = [e for e in ifd0 if e[0] not in (273, IFD.Exif)] + [(273, 4, [pix_pos])]
     if exif:
-        ifd0.append((TAG_EXIF_IFD, 4, [exif_pos]))
+        ifd0.append((IFD.Exif, 4, [exif_pos]))
     b0 = _ifd_bytes(ifd0, 8)
     blob = b"II*\x00" + struct.pack("<I", 8) + b0 + b1 + data
     path = Path(path)
@@ -276,10 +270,6 @@ def fff_file(raw: np.ndarray, info, byte_order: str = "<", payload: str = "raw",
     a big-endian header (FLIR handhelds; records stay little-endian, as those cameras write them);
     ``payload`` ``"raw"`` stores the counts unwrapped, ``"png"`` as a 16-bit PNG with FLIR's swapped bytes.
     """
-    import cv2
-
-    from aerocal.ingest.flir import CAMERA_INFO_BYTES, CAMERA_INFO_FLOATS, CAMERA_INFO_TEXT, PLANCK_O_OFFSET
-
     raw = np.asarray(raw)
     if raw.dtype != np.uint16 or raw.ndim != 2:
         raise ValueError(f"a FLIR raw frame must be a 2-D uint16 array, got {raw.dtype} {raw.shape}")

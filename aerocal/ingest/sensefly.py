@@ -6,6 +6,10 @@ Fields (namespace ``http://ns.sensefly.com/sensefly/1.0/``, one element each, as
 ``PitchAngle``, ``Heading`` (aircraft attitude, degrees; aerospace Z-Y-X, see
 :func:`aerocal.geometry.body_rpy_to_R_cw`), ``GroundSpeed``, ``AirSpeed`` (m/s), ``Course`` (0 on
 ``seneca``: not recorded), ``UTCTime`` (GNSS time, UTC), ``CamID``, ``AutopilotSN``, ``FrameSN``.
+
+A name mapping over :func:`aerocal.ingest.xmp.parse_xmp`, not a parser: Pillow's ``getxmp`` gives these
+values by local name only (without the ``sensefly`` namespace) inside a list of two descriptions on
+``seneca``, so it is not used (see :mod:`aerocal.ingest.xmp`).
 """
 
 from __future__ import annotations

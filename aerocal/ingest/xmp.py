@@ -7,6 +7,11 @@ Prefixes are fixed by namespace URI (:data:`KNOWN_NAMESPACES`) rather than taken
 so a file that binds another prefix to the same namespace reads the same. Arrays (``rdf:Seq``,
 ``rdf:Bag``, ``rdf:Alt``) are joined with ``"; "``. Parsing uses :mod:`defusedxml` (no entity
 expansion, no external entities).
+
+Kept as our own flattening: Pillow's ``Image.getxmp()`` (also on defusedxml) drops the namespace URIs and
+keeps local names only, so DJI's ``drone-dji:GpsLatitude`` cannot be told from another vendor's
+``GpsLatitude`` nor ``tiff:Make`` from ``drone-dji:Make``; it returns seneca's two ``rdf:Description``
+elements as a list and DJI's ``rdf:Seq`` values as nested dicts. tifffile returns the packet as bytes.
 """
 
 from __future__ import annotations
