@@ -32,10 +32,10 @@ def main(argv: list[str] | None = None) -> None:
     from aerocal.adjust import adjust, adjust_fixed_io, select_images
     from aerocal.camera import LinearThermalModel
     from aerocal.ingest import ingest_folder
+    from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
+    from aerocal.pipeline.match_step import match_images
     from aerocal.subset import SubsetConfig, propose_subset
     from benchmarks.colmap_bench import _flight
-    from flows.config import ProcessConfig, with_flight_sigmas
-    from tasks.flight import match_images
 
     with scratch_folder("work-thinning-") as work:
         full = rendered_flight()

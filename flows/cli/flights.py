@@ -96,7 +96,7 @@ def print_run(summary: dict[str, Any]) -> None:
     if summary.get("diagnosis"):
         console.print(f"diagnosis: {summary['diagnosis']}")
     if summary.get("recorded_eo"):
-        from tasks.products import recorded_eo_text
+        from aerocal.pipeline.report_step import recorded_eo_text
 
         console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
     if summary.get("recorded_eo_corrections"):
@@ -203,7 +203,9 @@ def match(
         fail(f"{folder}: no such folder; give a flight folder with images/", BAD_INPUT)
     quiet_prefect()
     with user_errors():
-        from tasks.flight import FlightInputError, MatchStepConfig, match_images
+        from aerocal.pipeline.config import MatchStepConfig
+        from aerocal.pipeline.dataset import FlightInputError
+        from aerocal.pipeline.match_step import match_images
 
         res = ingest_folder(folder)
         if res.images.num_rows == 0:
@@ -264,7 +266,7 @@ def process(
     quiet_prefect()
     run_dir = default_run_dir(flight_dir, out)
     with flow_errors(run_dir):
-        from flows.flight import process_flight
+        from flows.process import process_flight
 
         with console.status(f"processing {flight_dir} ..."):
             summary = process_flight(
@@ -336,8 +338,8 @@ def calibrate(
     quiet_prefect()
     with flow_errors(default_run_dir(flight_dir, out)):
         from aerocal.certificate import Certificate
-        from flows.config import ProcessConfig
-        from flows.flight import calibrate_camera
+        from aerocal.pipeline import ProcessConfig
+        from flows.process import calibrate_camera
 
         cfg = ProcessConfig()
         cfg.calibration = dataclasses.replace(cfg.calibration, **settings)
