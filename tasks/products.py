@@ -341,7 +341,7 @@ def diagnose_step(
 class ReportStepConfig:
     """``title`` of the report (default "Flight report: <flight name>"); ``extra`` key figures added to
     the summary; DSM cells within ``measured_within_m`` (2 m) of a tie point count as measured in the
-    DSM-minus-reference statistics (:func:`aerocal.report.flight.dem_difference_for_flight`)."""
+    DSM-minus-reference statistics (:func:`aerocal.report.flight_figures.dem_difference_for_flight`)."""
 
     title: str | None = None
     extra: dict = field(default_factory=dict)
@@ -423,7 +423,7 @@ def report_step(
 
     def compute(inp: StepInputs) -> dict:
         from aerocal.dsm import read_dsm
-        from aerocal.report.flight import (
+        from aerocal.report.flight_figures import (
             FigureSkipped,
             dem_difference_for_flight,
             image_residuals_from_assessment,

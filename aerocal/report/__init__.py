@@ -1,5 +1,5 @@
 """The flight report: figures (:mod:`aerocal.report.figures`), the figures of a processed flight from its
-step outputs (:mod:`aerocal.report.flight`) and the self-contained HTML (:mod:`aerocal.report.html`)."""
+step outputs (:mod:`aerocal.report.flight_figures`) and the self-contained HTML (:mod:`aerocal.report.html`)."""
 
 from aerocal.report.figures import (
     Figure,
@@ -9,7 +9,7 @@ from aerocal.report.figures import (
     io_at_temperatures,
     temperature_io_figure,
 )
-from aerocal.report.flight import (
+from aerocal.report.flight_figures import (
     FigureSkipped,
     dem_difference_for_flight,
     image_residuals_from_assessment,
