@@ -266,7 +266,7 @@ def overview_figure(
         numbers["mosaic_extent_m"] = [float(v) for v in mosaic_extent]
     if overlap is not None and overlap_extent is not None:
         top = max(int(overlap.max()), 1)
-        steps = [0, 1, 2, 3, 4, 5, 6, 9, 12, 16, 20, 30, 50, 100]
+        steps = [1, 2, 3, 4, 5, 6, 9, 12, 16, 20, 30, 50, 100]
         bounds = [b for b in steps if b <= top] + [top + 1]
         bounds = sorted(set(bounds))
         base = colormaps["viridis"].resampled(max(len(bounds) - 2, 1))
@@ -284,7 +284,6 @@ def overview_figure(
                         "overlap_median": float(np.median(seen)) if seen.size else 0.0,
                         "overlap_max": int(overlap.max()),
                         "overlap_fraction_below_3": float(np.mean(seen < 3)) if seen.size else 0.0})
-    ax.plot(c[:, 0], c[:, 1], "-", color="0.35", lw=0.6, zorder=2)
     ax.plot(c[:, 0], c[:, 1], "k.", markersize=4, label="camera centres", zorder=3)
     for points, marker, colour, label in ((control, "^", "tab:blue", "control points"),
                                           (check, "o", "tab:orange", "check points")):

@@ -229,7 +229,7 @@ def overview_for_flight(
     mosaic, mosaic_extent = (None, None) if orthomosaic is None else mosaic_thumbnail(orthomosaic)
     centres = np.array([f.C[:2] for f in frames], dtype=float)
     seen = counts[counts > 0]
-    caption = (f"{len(frames)} camera centres (dots, in flight order) over the number of images that see each "
+    caption = (f"{len(frames)} camera centres (dots) over the number of images that see each "
                f"ground cell (colour; median {np.median(seen):.0f}, at most {counts.max()}; red: seen by one "
                "image only, where nothing on the ground can be triangulated).")
     if len(control) or len(check):

@@ -48,6 +48,9 @@ from aerocal.report.html import REPORT_NAME, SUMMARY_NAME, CertificateTable, mac
 #: where a flight folder keeps its reference surface, as the report names it when there is none
 REFERENCE_DSM_NAME = "reference/dsm.tif"
 
+#: what a ground point's error cells say when the block could not intersect it (seen in one image)
+NOT_MEASURED = "not measured"
+
 #: the sections of the page, in order: (id, heading)
 SECTIONS: tuple[tuple[str, str], ...] = (
     ("summary", "Summary"),
@@ -126,7 +129,7 @@ def write_flight_report(
     attempt("distortion", lambda: distortion_for_camera(cert.camera))
     attempt("temperature_io", lambda: temperature_io_for_flight(
         cert.camera, thermal, temps, None if cert.thermal is None else cert.thermal.valid_range))
-    attempt("block", lambda: check_point_block(poses, adjustment, gcps))
+    attempt("block", lambda: check_point_block(poses, adjustment, gcps, frames, mosaic.get("ground_height_m")))
     attempt("image_residuals", lambda: image_residuals_from_assessment(assessment))
 
     def dem_difference() -> Figure:
@@ -161,12 +164,12 @@ def write_flight_report(
 
     context = {
         "title": title,
-        "created_utc": doc["created_utc"],
+        "created_utc": doc["created_utc"].replace("T", " ").replace("+00:00", ""),
         "summary_name": SUMMARY_NAME,
         "sections": SECTIONS,
         "subtitle": _subtitle(flight, cert),
         "verdict": _verdict(assessment, adjustment),
-        "key_figures": wording.key_figures(summary),
+        "key_figures": _summary_rows(summary, flight, cert, adjustment, figures, extra or {}),
         "figures": {n: _figure_view(f) for n, f in figures.items()},
         "skipped": skipped,
         "tie_points": _tie_point_rows(adjustment, points, assessment),
@@ -200,7 +203,7 @@ def flight_summary(flight: Mapping, cert: Certificate, adjustment: Mapping, asse
         "temperature_c": flight.get("temperature_range"),
         "flight_facts": "; ".join(f"{k}: {v}" for k, v in (flight.get("facts") or {}).items()) or None,
         "temperature_raster": mosaic.get("temperature"),
-        "certificate": f"{cert.id} (version {cert.version})",
+        "certificate": f"{cert.id} ({_version(cert)})",
         "certificate_review": wording.review_text(cert),
         "thermal_model": cert.thermal.kind if cert.thermal is not None else None,
         "adjustment": "converged" if adj.get("converged", True) else (
@@ -224,18 +227,21 @@ def flight_summary(flight: Mapping, cert: Certificate, adjustment: Mapping, asse
 
 
 # ------------------------------------------------------------------------------ figures from the steps
-def check_point_block(poses: pa.Table, adjustment: Mapping, gcps: pa.Table) -> Figure:
-    """The block figure: camera centres and the check-point residuals of the adjustment (E, N metres)."""
+def check_point_block(poses: pa.Table, adjustment: Mapping, gcps: pa.Table, frames=(),
+                      ground_height_m: float | None = None) -> Figure:
+    """The block figure: camera centres, the frames' footprints on the ground plane at ``ground_height_m``
+    (when both are given) and the check-point residuals of the adjustment (E, N metres)."""
     centres = np.column_stack([poses.column("X").to_numpy(), poses.column("Y").to_numpy()])
+    prints = [f.ground_footprint([ground_height_m]) for f in frames] if ground_height_m is not None else []
     ids = adjustment.get("check_ids") or []
     if not ids:
-        fig = block_figure(centres)
-        return dataclasses.replace(fig, caption="Camera centres. The flight has no check point: no residual "
-                                                "is drawn.")
+        fig = block_figure(centres, prints)
+        return dataclasses.replace(fig, caption="Camera centres and footprints. The flight has no check point: "
+                                                "no residual is drawn.")
     where = _positions(gcps)
     en = np.array([where[i][:2] for i in ids], dtype=float)
     errs = np.asarray(adjustment["check_errors_m"], dtype=float).reshape(-1, 3)
-    return block_figure(centres, points_en=en, residuals=errs, ids=ids)
+    return block_figure(centres, prints, points_en=en, residuals=errs, ids=ids)
 
 
 def _frames(poses: pa.Table, cert: Certificate, temps: Mapping, thermal) -> list:
@@ -272,14 +278,61 @@ def _figure_view(fig: Figure) -> dict:
     return {"name": fig.name, "title": fig.title, "caption": fig.caption, "png": fig.png}
 
 
+def _version(cert: Certificate) -> str:
+    return "unversioned" if cert.version is None else f"version {cert.version}"
+
+
 def _subtitle(flight: Mapping, cert: Certificate) -> str:
     parts = [str(flight["name"])]
     if flight.get("date"):
         parts.append(str(flight["date"]))
     parts.append(f"{flight['n_images']} images")
-    parts.append(f"camera {cert.identity.key}")
+    parts.append(f"camera {cert.identity.label}")
     parts.append(str(flight["crs"]))
     return ", ".join(parts)
+
+
+def _summary_rows(summary: Mapping, flight: Mapping, cert: Certificate, adjustment: Mapping,
+                  figures: Mapping[str, Figure], extra: Mapping) -> list[tuple[str, str]]:
+    """The key figures a reader looks at first, in words; the details are in the sections below."""
+    say = wording.say
+    skipped = flight.get("skipped_images") or []
+    images = f"{flight['n_images']}" + (f" ({summary['images_skipped_at_ingest']} skipped at ingest)" if skipped
+                                        else ", none skipped at ingest")
+    mode = {"observations": "measured image coordinates (no image matching)",
+            "images": "images (features matched)"}.get(str(flight["mode"]), str(flight["mode"]))
+    rows = [("Flight", str(flight["name"])), ("Date", say(flight.get("date"))), ("Images", images),
+            ("Input", mode), ("Coordinate reference system", str(flight["crs"])),
+            ("Sensor temperature", say(flight.get("temperature_range"), "degC"))]
+    if flight.get("facts"):
+        rows.append(("Facts read from the images", "; ".join(f"{wording.humanise(k)[0]}: {v}"
+                                                             for k, v in flight["facts"].items())))
+    rows.append(("Calibration certificate", f"{cert.id[:8]} ({_version(cert)}) of {cert.identity.label}, "
+                                            f"{summary['certificate_review']}"))
+    rows.append(("Thermal model", "none" if cert.thermal is None else f"{cert.thermal.kind}"))
+    rows.append(("Bundle adjustment", summary["adjustment"]))
+    rows.append(("Sigma naught", wording.number(summary.get("sigma0"), 3)))
+    rows.append(("Reprojection error (RMS)", say(summary.get("reprojection_rms_px"), "px")))
+    if adjustment.get("check_ids"):
+        rows.append(("Check-point error (RMSE)", say(summary.get("check_rmse_m"), "m")))
+        if summary.get("rho"):
+            rows.append(("Achieved over predicted accuracy",
+                         "; ".join(f"{a} {wording.number(v, 3)}" for a, v in summary["rho"].items())))
+    else:
+        rows.append(("Check-point error (RMSE)", "no check point: not measured"))
+    rows.append(("Ground control", summary["ground_control"]))
+    rows.append(("Diagnosis", wording.name_effects(summary.get("diagnosis") or "not made").replace("+-", "±")))
+    rows.append(("Ground sampling distance", say(summary.get("gsd_m"), "m")))
+    rows.append(("Frames in the orthomosaic", say(summary.get("mosaic_frames") or 0)))
+    dem = summary.get("dsm_minus_reference_m")
+    if dem:
+        fx = wording.fixed
+        rows.append(("DSM minus reference", f"mean {fx(dem['mean_m'])} m, median {fx(dem['median_m'])} m, "
+                                            f"NMAD {fx(dem['nmad_m'])} m over {dem['n']} cells"))
+    else:
+        rows.append(("DSM minus reference", "not compared (no reference surface)"))
+    rows.extend(wording.key_figures(extra))
+    return rows
 
 
 def _verdict(assessment: Mapping, adjustment: Mapping) -> str:
@@ -325,8 +378,8 @@ def _certificate_view(cert: Certificate) -> dict:
     pairs = cert.correlation.high_pairs(0.9)
     return {
         "id": cert.id,
-        "version": wording.number(cert.version) if cert.version is not None else "unversioned",
-        "camera": cert.identity.key,
+        "version": _version(cert),
+        "camera": cert.identity.label,
         "issued": cert.to_dict()["issued"],
         "status": cert.status,
         "size": size,
@@ -361,14 +414,19 @@ def _point_table(ids: list, errs: np.ndarray, sigmas: np.ndarray | None, where: 
     rows = []
     for k, g in enumerate(ids):
         e = errs[k]
+        measured = bool(np.isfinite(e).all())
         row = {"id": str(g), "position": [wording.fixed(v, 2) for v in where.get(g, (None, None, None))],
-               "error": [wording.fixed(v) for v in e],
-               "total": wording.fixed(float(np.linalg.norm(e)) if np.isfinite(e).all() else None)}
+               "error": [wording.fixed(v) for v in e] if measured else [NOT_MEASURED] * 3,
+               "total": wording.fixed(float(np.linalg.norm(e))) if measured else NOT_MEASURED}
         if sigmas is not None and k < len(sigmas):
-            row["sigma"] = [wording.fixed(v) for v in sigmas[k]]
+            row["sigma"] = [wording.fixed(v) if measured else NOT_MEASURED for v in sigmas[k]]
         rows.append(row)
-    rmse = [wording.fixed(float(np.sqrt(np.mean(errs[:, i] ** 2)))) for i in range(3)] if len(ids) else []
-    return {"rows": rows, "has_sigma": sigmas is not None and len(rows) > 0, "rmse": rmse}
+    ok = np.isfinite(errs).all(axis=1)
+    rmse = [wording.fixed(float(np.sqrt(np.mean(errs[ok, i] ** 2)))) for i in range(3)] if ok.any() else \
+        [NOT_MEASURED] * 3
+    unmeasured = [str(g) for g, m in zip(ids, ok, strict=True) if not m]
+    return {"rows": rows, "has_sigma": sigmas is not None and len(rows) > 0, "rmse": rmse,
+            "unmeasured": ", ".join(unmeasured)}
 
 
 def _screening_view(screening: Mapping | None) -> dict:
@@ -409,5 +467,5 @@ def _diagnosis_view(diagnosis: Mapping) -> dict:
     return {
         "sentences": wording.diagnosis_sentences(diagnosis),
         "recorded_eo": wording.recorded_eo_rows(diagnosis.get("recorded_eo") or {}),
-        "twin": str(twin.get("summary") or ""),
+        "twin": wording.twin_view(twin),
     }

@@ -65,6 +65,23 @@ STAT_LABELS: dict[str, str] = {
     "rmse_m": "RMSE", "max_m": "largest",
 }
 
+#: effects the diagnosis tests beyond the catalogue (:data:`aerocal.diagnose.hypotheses.HYPOTHESES`)
+EXTRA_EFFECTS: dict[str, str] = {"per_strip_io": "an interior orientation of its own per strip"}
+
+#: the statistics of a block and its simulated twins (:func:`aerocal.twin.block_statistics`), for a reader
+TWIN_LABELS: dict[str, str] = {
+    "variance_tie": "Variance factor of the tie points",
+    "variance_gnss": "Variance factor of the GNSS positions",
+    "variance_attitude": "Variance factor of the IMU attitudes",
+    "variance_gcp": "Variance factor of the ground control",
+    "image_field_px": "Systematic field over the image (px)",
+    "per_image_scale": "Per-image scale scatter",
+    "per_image_row_field": "Per-image field along the rows",
+    "per_image_column_field": "Per-image field along the columns",
+    "gnss_lag1": "GNSS residual correlation from one image to the next",
+    "tail_fraction": "Fraction of residuals beyond the blunder screening",
+}
+
 #: step names of a flight run, for a reader
 STEP_LABELS: dict[str, str] = {
     "manifest": "Manifest", "ingest": "Ingest", "enhance": "Enhance", "match": "Enhance and match",
@@ -100,7 +117,7 @@ def label(key: str) -> tuple[str, str]:
 
 def number(v: float | int | None, digits: int = 4) -> str:
     """A number for a reader: integers as they are, floats to ``digits`` significant digits (fixed
-    notation between 1e-3 and 1e6), :data:`MISSING` for ``None`` or a non-finite value."""
+    notation between 1e-4 and 1e6), :data:`MISSING` for ``None`` or a non-finite value."""
     if v is None or isinstance(v, bool):
         return MISSING if v is None else ("yes" if v else "no")
     if isinstance(v, int):
@@ -110,7 +127,7 @@ def number(v: float | int | None, digits: int = 4) -> str:
         return "not available"
     if x == 0:
         return "0"
-    if 1e-3 <= abs(x) < 1e6:
+    if 1e-4 <= abs(x) < 1e6:
         decimals = max(digits - 1 - int(math.floor(math.log10(abs(x)))), 0)
         return f"{x:.{decimals}f}"
     return f"{x:.{digits - 1}e}"
@@ -216,9 +233,12 @@ def recorded_eo_rows(checks: Mapping) -> list[tuple[str, str, str]]:
     for name, c in checks.items():
         if "estimate" in c:
             unit = c.get("units") or ""
-            sig = c.get("sigma") or [None] * len(c["estimate"])
-            est = ", ".join(plus_minus(v, s, 3) for v, s in zip(c["estimate"], sig, strict=False))
-            rows.append((humanise(name)[0], with_unit(est, unit), str(c.get("status") or MISSING)))
+            sig = list(c.get("sigma") or [None] * len(c["estimate"]))
+            known = CATALOGUE.get(name)
+            parts = [with_unit(plus_minus(v, s, 3), unit) for v, s in zip(c["estimate"], sig, strict=False)]
+            if known is not None and len(known.labels) == len(parts):
+                parts = [f"{humanise(n)[0].lower()} {x}" for n, x in zip(known.labels, parts, strict=True)]
+            rows.append((humanise(name)[0], "; ".join(parts), str(c.get("status") or MISSING)))
         else:
             rows.append((humanise(name)[0], "not estimated", str(c.get("status") or MISSING)))
     return rows
@@ -245,7 +265,7 @@ def effect_sentence(effect: Mapping) -> str:
     text += f": {sizes}"
     p = effect.get("p_value")
     if p is not None and math.isfinite(float(p)):
-        text += f", p-value {number(p, 2)}"
+        text += ", p-value below 1e-6" if float(p) < 1e-6 else f", p-value {number(p, 2)}"
     text += "."
     alts = effect.get("alternatives") or []
     if alts:
@@ -281,8 +301,15 @@ def diagnosis_sentences(diagnosis: Mapping) -> list[str]:
     if od is not None and math.isfinite(float(od)) and float(od) > 1.0:
         out.append(f"The statistics were divided by the block's measured overdispersion {number(od, 3)} "
                    "(formal statistics are optimistic on real matches).")
-    out.extend(sentence(n) for n in diagnosis.get("notes") or [])
+    out.extend(sentence(name_effects(n)) for n in diagnosis.get("notes") or [])
     return out
+
+
+def name_effects(text: str) -> str:
+    """``text`` with every catalogue effect's machine name (``rolling_shutter``) as words (rolling shutter)."""
+    names = sorted([*CATALOGUE, *EXTRA_EFFECTS], key=len, reverse=True)
+    return re.sub(r"\b(" + "|".join(map(re.escape, names)) + r")\b",
+                  lambda m: EXTRA_EFFECTS.get(m.group(1), humanise(m.group(1))[0].lower()), str(text))
 
 
 def sentence(text) -> str:
@@ -386,12 +413,53 @@ def step_rows(step_seconds: Mapping[str, float]) -> list[tuple[str, str]]:
 
 
 def duration(seconds: float) -> str:
-    """``"0.42 s"``, ``"12.3 s"``, ``"4 min 05 s"``."""
+    """``"0.42 s"``, ``"12.3 s"``, ``"4 min 05 s"``, ``"2 h 03 min"``."""
     s = float(seconds)
     if not math.isfinite(s):
         return MISSING
+    if s < 10:
+        return f"{s:.2f} s"
     if s < 60:
-        return f"{number(s, 3)} s"
+        return f"{s:.1f} s"
     m, r = divmod(int(round(s)), 60)
     return f"{m} min {r:02d} s" if m < 60 else f"{m // 60} h {m % 60:02d} min"
 
+
+
+def twin_view(twin: Mapping) -> dict:
+    """The comparison of the block with its simulated twins (:meth:`aerocal.twin.TwinComparison.to_dict`):
+    a ``lead`` sentence, ``rows`` (statistic, block value, twins' mean ± spread, what a difference means) for
+    the statistics that differ, and ``sentences`` on the likely causes."""
+    if not twin or "real" not in twin:
+        return {"lead": sentence(str(twin["summary"])) if twin.get("summary") else
+                "No simulated twin of the block was made.", "rows": [], "sentences": []}
+    n = twin.get("n_twins")
+    differs = twin.get("differs") or {}
+    if not differs:
+        return {"lead": f"Simulated twins of the block ({number(n)}, the block's geometry with simulated noise "
+                        "only): every statistic of the block is within their spread, the simulation explains the "
+                        "block.", "rows": [], "sentences": []}
+    rows = [(TWIN_LABELS.get(k, humanise(k)[0]), number(twin["real"].get(k), 3),
+             plus_minus(twin["twin_mean"].get(k), twin["twin_sd"].get(k), 3), sentence(str(why)))
+            for k, why in differs.items()]
+    lead = (f"{len(differs)} statistic{'s' if len(differs) > 1 else ''} of the block differ from {number(n)} "
+            "simulated twins (the block's geometry with simulated noise only):")
+    out = []
+    extended = twin.get("extended") or {}
+    cause = twin.get("cause") or {}
+    for name in dict.fromkeys(cause.values()):
+        ext = extended.get(name) or {}
+        stats = [TWIN_LABELS.get(k, humanise(k)[0]).lower().removesuffix(" (px)") for k, v in cause.items()
+                 if v == name]
+        size = with_unit(number(ext.get("physical"), 2), str(ext.get("unit") or "")) if ext else ""
+        out.append(f"Likely cause of the {' and the '.join(stats)}: {name}" + (f" of {size}." if size else "."))
+    for name, ext in extended.items():
+        if ext.get("plausible") is False:
+            out.append(f"A {name} would need {with_unit(number(ext.get('physical'), 2), str(ext.get('unit') or ''))}, "
+                       "beyond what is physically possible: it is not the cause.")
+    combined = twin.get("combined") or {}
+    if combined.get("extensions"):
+        still = [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get("still_differs") or []]
+        out.append(f"The simulation extended with {', '.join(combined['extensions'])} at once reproduces the block"
+                   + (f" except the {', '.join(still)}." if still else "."))
+    return {"lead": lead, "rows": rows, "sentences": out}
