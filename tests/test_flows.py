@@ -173,11 +173,11 @@ def check_report_shows_every_figure(run_dir):
             assert img.width > 300 and img.height > 200, img.size
             assert np.asarray(img.convert("L")).std() > 10, "the figure has content"
     kinds = {"block", "image_residuals", "temperature_io", "dem_difference"}
-    assert set(parsed.figures) == kinds, parsed.figures
+    assert kinds <= set(parsed.figures), parsed.figures
     assert "Figures not drawn" not in text
 
     doc = json.loads((run_dir / "summary.json").read_text())
-    assert doc["notes"] == [] and set(doc["figures"]) == kinds
+    assert doc["notes"] == [] and kinds <= set(doc["figures"])
     dem = doc["figures"]["dem_difference"]
     assert doc["summary"]["dsm_minus_reference_m"]["mean_m"] == dem["mean_m"]
     measured = dem["measured_cells"]

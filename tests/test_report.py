@@ -69,7 +69,7 @@ def test_report_is_one_html_file_with_decodable_images_and_a_summary(tmp_path):
     assert path.name == "report.html" and sorted(p.name for p in path.parent.iterdir()) == [
         "report.html", "summary.json"], "one HTML file (and the machine summary), nothing else"
     text = path.read_text()
-    srcs = re.findall(r'<img[^>]*\ssrc="([^"]*)"', text)
+    srcs = re.findall(r"<img[^>]*\ssrc='([^']*)'", text)
     assert len(srcs) == len(figures) == text.count("<img")
     for src in srcs:
         assert src.startswith("data:image/png;base64,"), f"not embedded: {src[:40]}"
