@@ -30,6 +30,7 @@ from aerocal.certificate import Certificate
 from aerocal.report.flight_report import write_flight_report
 from aerocal.report.html import REPORT_NAME, SUMMARY_NAME
 from aerocal.report.wording import recorded_eo_text as recorded_eo_text  # re-exported for flows.cli, benchmarks
+from storage.runs import get_run
 from tasks.resume import FileOutput, JsonOutput, StepContext, StepInputs, StepResult, run_step
 from tasks.retries import TASK_RETRIES, TASK_RETRY_DELAYS_S, retry_condition
 
@@ -361,8 +362,8 @@ def report_step(
 
     Inputs beyond the step outputs: the flight folder's reference DSM (:data:`REFERENCE_DSM`), when it
     exists, is stored as an artifact (kind ``reference-dsm``) and keys the step by its content; without
-    one the report says that the DSM was not compared. ``step_seconds`` (step name -> wall time, s) are
-    shown in the report when given; they do not key the step.
+    one the report says that the DSM was not compared. ``step_seconds`` (step name -> wall time, s; default
+    the timings the run recorded for its steps so far) are shown in the report; they do not key the step.
     """
     config = config or ReportStepConfig()
     inputs = {
@@ -388,6 +389,8 @@ def report_step(
         if reference is not None:
             inputs["reference_dsm"] = ctx.store.put_file(session, reference, "reference-dsm").sha256
             session.commit()
+        if step_seconds is None:  # the run's steps so far, as recorded (storage.runs.record_timing)
+            step_seconds = dict(get_run(session, ctx.run_id).timings or {})
 
     def compute(inp: StepInputs) -> dict:
         work = Path(tempfile.mkdtemp(prefix="aerocal-report-"))

@@ -353,9 +353,8 @@ def _tie_point_rows(adjustment: Mapping, points: pa.Table, assessment: Mapping) 
     if points.num_rows:
         n_obs = points.column("n_obs").to_numpy(zero_copy_only=False).astype(float)
         if np.isfinite(n_obs).any():
-            rows.append(("Images measuring a point (median, mean)",
-                         f"{wording.number(float(np.nanmedian(n_obs)), 3)}, "
-                         f"{wording.number(float(np.nanmean(n_obs)), 3)}"))
+            rows.append(("Images measuring a point", f"median {float(np.nanmedian(n_obs)):.0f}, "
+                                                     f"mean {float(np.nanmean(n_obs)):.1f}"))
     rep = assessment.get("reprojection") or {}
     if rep.get("n"):
         rows.append(("Image measurements", wording.number(rep["n"])))
@@ -380,7 +379,7 @@ def _certificate_view(cert: Certificate) -> dict:
         "id": cert.id,
         "version": _version(cert),
         "camera": cert.identity.label,
-        "issued": cert.to_dict()["issued"],
+        "issued": cert.issued.strftime("%Y-%m-%d %H:%M UTC"),
         "status": cert.status,
         "size": size,
         "review": wording.review_text(cert),
