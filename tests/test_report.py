@@ -389,7 +389,7 @@ def test_flight_report_reads_as_a_report(processed_flight, tmp_path):
     assert _reader_problems(text) == [], _reader_problems(text)
     assert "Focal length f" in text and "Prior standard deviation: GNSS position 0.0500 m" in text
     assert "Strips 3, with a transversal strip" in text
-    assert "Step times were not given" not in text and "Total 27.0 s" in text
+    assert "Step times were not given" not in text and "Total of the steps above 27.0 s" in text
     assert "No orthomosaic: the flight holds no image pixels" in text
     # summary.json keeps the machine keys and the figures' numbers
     saved = json.loads((run / "summary.json").read_text())

@@ -408,7 +408,7 @@ def review_text(cert: Certificate) -> str:
 def step_rows(step_seconds: Mapping[str, float]) -> list[tuple[str, str]]:
     """Step times as (step, duration) rows with the total last."""
     rows = [(STEP_LABELS.get(k, humanise(k)[0]), duration(v)) for k, v in step_seconds.items()]
-    rows.append(("Total", duration(sum(float(v) for v in step_seconds.values()))))
+    rows.append(("Total of the steps above", duration(sum(float(v) for v in step_seconds.values()))))
     return rows
 
 
