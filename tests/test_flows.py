@@ -31,8 +31,8 @@ def prefect_server():
 def flight(tmp_path_factory):
     """A 20-image thermal calibration flight in observations mode with a hidden focal-length slope, and
     beside it a reference DSM (as a LiDAR survey would give): the scene's surface over the flight."""
-    from aerocal.simulate import simulate_flight, write_flight
     from aerocal.pipeline.dataset import REFERENCE_DSM
+    from aerocal.simulate import simulate_flight, write_flight
 
     sim = simulate_flight("conte-calibration", seed=SEED, effects={"thermal_focal": 0.06}, max_images=20)
     folder = write_flight(sim, tmp_path_factory.mktemp("flights") / "flight-a", mode="observations")
@@ -173,11 +173,11 @@ def check_report_shows_every_figure(run_dir):
             assert img.width > 300 and img.height > 200, img.size
             assert np.asarray(img.convert("L")).std() > 10, "the figure has content"
     kinds = {"block", "image_residuals", "temperature_io", "dem_difference"}
-    assert set(parsed.figures) == kinds, parsed.figures
+    assert kinds <= set(parsed.figures), parsed.figures
     assert "Figures not drawn" not in text
 
     doc = json.loads((run_dir / "summary.json").read_text())
-    assert doc["notes"] == [] and set(doc["figures"]) == kinds
+    assert doc["notes"] == [] and kinds <= set(doc["figures"])
     dem = doc["figures"]["dem_difference"]
     assert doc["summary"]["dsm_minus_reference_m"]["mean_m"] == dem["mean_m"]
     measured = dem["measured_cells"]
@@ -266,14 +266,14 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
     other code computes it again."""
     import numpy as np
 
-    from aerocal.simulate import simulate_flight, write_flight
-    from storage.migrations import upgrade
-    from storage.runs import start_run
     from aerocal.pipeline import FolderDataset
     from aerocal.pipeline.config import MatchStepConfig
     from aerocal.pipeline.ingest_step import ingest_step
     from aerocal.pipeline.match_step import match_step
     from aerocal.pipeline.runner import JsonOutput
+    from aerocal.simulate import simulate_flight, write_flight
+    from storage.migrations import upgrade
+    from storage.runs import start_run
     from storage.steps import StepContext
     from tasks.runner import StoreRunner
 
@@ -311,14 +311,14 @@ def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
     """A flight larger than ``whole_flight_max_images`` calibrates on the sub-block that
     :func:`aerocal.subset.propose_subset` predicts best; the certificate's conditions describe it."""
     from aerocal.certificate import Certificate
-    from aerocal.subset import SubsetConfig
-    from storage.migrations import upgrade
-    from storage.runs import start_run
     from aerocal.pipeline import FolderDataset
     from aerocal.pipeline.calibrate_step import calibrate_step
     from aerocal.pipeline.config import CalibrationStepConfig
     from aerocal.pipeline.ingest_step import ingest_step
     from aerocal.pipeline.runner import JsonOutput
+    from aerocal.subset import SubsetConfig
+    from storage.migrations import upgrade
+    from storage.runs import start_run
     from storage.steps import StepContext
     from tasks.runner import StoreRunner
 

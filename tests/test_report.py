@@ -1,11 +1,24 @@
-"""The flight report: one self-contained HTML file whose images decode, and summary.json with the numbers."""
+"""The flight report: one self-contained HTML file whose images decode, and summary.json with the numbers.
+
+The report of a processed flight is built from a small simulated flight's real step outputs (the engine's
+adjustment, DSM, assessment and diagnosis of the flight, as the pipeline's steps make them) and read as a
+person reads it: every section there, the check-point table's numbers the adjustment's, no machine key, repr,
+``None`` or ``nan`` on the page.
+"""
 
 import base64
+import fnmatch
+import importlib.resources
 import json
 import re
+import tomllib
+from html.parser import HTMLParser
+from pathlib import Path
 
 import cv2
 import numpy as np
+import pyarrow as pa
+import pytest
 
 from aerocal.assess import accuracy_ratio, bin_residuals, compare_dems
 from aerocal.camera import Camera, LinearThermalModel
@@ -189,3 +202,268 @@ def test_binned_residuals_survive_the_assessment_json_and_missing_figures_become
     path = write_report(tmp_path, {"flight": "f"}, [fig], notes=[note])
     assert note in path.read_text() and "Figures not drawn" in path.read_text()
     assert json.loads((tmp_path / "summary.json").read_text())["notes"] == [note]
+
+
+# ------------------------------------------------------------------ the report of a processed flight
+SEED = 5
+
+
+class _Page(HTMLParser):
+    """What a reader sees of a page: the visible text (no style), section ids, headings, figure ids, image
+    sources and the rows of every table with an id."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.text: list[str] = []
+        self.sections: list[str] = []
+        self.headings: list[str] = []
+        self.figures: list[str] = []
+        self.srcs: list[str] = []
+        self.tables: dict[str, list[list[str]]] = {}
+        self._hidden = 0
+        self._heading = None
+        self._table = None
+        self._row = None
+        self._cell = None
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag in ("style", "script", "title"):
+            self._hidden += 1
+        elif tag == "section":
+            self.sections.append(a.get("id") or "")
+        elif tag == "h2":
+            self._heading = []
+        elif tag == "figure":
+            self.figures.append(a.get("id") or "")
+        elif tag == "img":
+            self.srcs.append(a.get("src") or "")
+        elif tag == "table" and a.get("id"):
+            self._table = self.tables.setdefault(a["id"], [])
+        elif tag == "tr" and self._table is not None:
+            self._row = []
+        elif tag in ("td", "th") and self._row is not None:
+            self._cell = []
+
+    def handle_endtag(self, tag):
+        if tag in ("style", "script", "title"):
+            self._hidden -= 1
+        elif tag == "h2" and self._heading is not None:
+            self.headings.append("".join(self._heading).strip())
+            self._heading = None
+        elif tag in ("td", "th") and self._cell is not None:
+            self._row.append("".join(self._cell).strip())
+            self._cell = None
+        elif tag == "tr" and self._row is not None:
+            self._table.append(self._row)
+            self._row = None
+        elif tag == "table":
+            self._table = None
+
+    def handle_data(self, data):
+        if self._hidden:
+            return
+        self.text.append(data)
+        for part in (self._heading, self._cell):
+            if part is not None:
+                part.append(data)
+
+    def visible(self) -> str:
+        return " ".join(" ".join(self.text).split())
+
+
+def _read(path) -> _Page:
+    page = _Page()
+    page.feed(Path(path).read_text())
+    return page
+
+
+@pytest.fixture(scope="module")
+def processed_flight(tmp_path_factory):
+    """A 16-image thermal calibration flight in observations mode, processed by the engine as the pipeline's
+    steps do (fixed-IO adjustment with check points, DSM from the tie points, assessment, diagnosis), with
+    the reference DSM the simulator writes beside it."""
+    from aerocal.adjust import AdjustConfig, adjust_fixed_io
+    from aerocal.assess import reprojection_stats
+    from aerocal.certificate import CameraIdentity, Certificate, Conditions
+    from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+    from aerocal.dsm import dsm_from_points, write_dsm
+    from aerocal.simulate import simulate_flight, write_flight
+
+    sim = simulate_flight("conte-calibration", seed=SEED, max_images=16)
+    folder = write_flight(sim, tmp_path_factory.mktemp("flights") / "flight-r", mode="observations")
+    images, obs, gcps, gobs = sim.images, sim.observations, sim.gcps, sim.gcp_observations
+    camera = sim.spec.camera_true
+    temps = [t for t in images.column("temperature_c").to_pylist() if t is not None]
+    cert = Certificate(
+        identity=CameraIdentity.from_camera_id(images.column("camera_id")[0].as_py()), camera=camera,
+        sigmas={"f": 0.41, "cx": 0.3, "cy": 0.28, "k1": 0.002}, estimated=("f", "cx", "cy", "k1"),
+        conditions=Conditions(date="2016-03-14", temperature_range=(min(temps), max(temps)), n_images=16,
+                              strips=3, transversal_strip=True, n_gcp=6, priors={"gnss_position_m": 0.05}),
+    )
+    res = adjust_fixed_io(images, obs, camera, AdjustConfig(), gcps, gobs, None)
+    adjustment = {**res.summary(), "converged": res.converged, "iterations": res.iterations,
+                  "check_ids": list(res.check_ids), "check_errors_m": np.asarray(res.check_errors).tolist(),
+                  "check_sigma_m": np.asarray(res.check_sigma).tolist(), "control_ids": list(res.control_ids),
+                  "control_errors_m": np.asarray(res.control_errors).tolist(), "recorded_eo_corrections": None}
+    ground = float(np.median(res.points.column("Z").to_numpy()))
+    gsd = (float(np.median(res.poses.column("Z").to_numpy())) - ground) / camera.f
+    dsm = write_dsm(dsm_from_points(res.points, sim.crs, gsd_m=gsd), folder.parent / "dsm.tif")
+    ok = np.isfinite(res.residuals).all(axis=1)
+    e, s = np.asarray(res.check_errors, float), np.asarray(res.check_sigma, float)
+    measured = np.isfinite(e).all(axis=1) & (s > 0).all(axis=1)  # as the assess step: points with a prediction
+    assessment = {"check_points": accuracy_ratio(e[measured], s[measured]).to_dict(),
+                  "reprojection": reprojection_stats(obs.filter(pa.array(ok)), res.residuals[ok], images).to_dict()}
+    diag = diagnose(images, obs, camera, AdjustConfig(free=(), thermal=(), adaptive=False), gcps, gobs,
+                    DiagnoseConfig(twins=0, null_draws=0))
+    diagnosis = {**diag.to_dict(), "summary": diag.summary()}
+    flight = {"name": "flight-r", "folder": str(folder), "mode": "observations", "crs": sim.crs,
+              "date": "2016-03-14", "n_images": images.num_rows, "temperature_range": [min(temps), max(temps)],
+              "skipped_images": [], "facts": {}}
+    mosaic = {"gsd_m": gsd, "ground_height_m": ground, "dsm_cell_m": 1.0, "frames": 0}
+    return {"flight": flight, "images": images, "certificate": cert, "adjustment": adjustment, "poses": res.poses,
+            "points": res.points, "dsm": dsm, "mosaic": mosaic, "assessment": assessment, "diagnosis": diagnosis,
+            "gcps": gcps, "reference_dsm": folder / "reference" / "dsm.tif"}
+
+
+def _write(flight, out, **kwargs):
+    from aerocal.report.flight_report import write_flight_report
+
+    f = flight
+    return write_flight_report(out, f["flight"], f["images"], f["certificate"], f["adjustment"], f["poses"],
+                               f["points"], f["dsm"], f["mosaic"], f["assessment"], f["diagnosis"], f["gcps"],
+                               **{"reference_dsm": f["reference_dsm"], **kwargs})
+
+
+#: what a machine key, a repr or a missing value looks like on a page
+RAW_KEY = re.compile(r"\b[a-z][a-z0-9]*(?:_[a-z0-9]+)+\b")
+DANGLING = re.compile(r"(?:^|\s)[-–](?:\s|$)")
+
+
+def _reader_problems(text: str) -> list[str]:
+    found = [f"raw key {k!r}" for k in RAW_KEY.findall(text)]
+    found += [f"{w!r}" for w in ("None", "nan", "NaN", "inf") if re.search(rf"\b{w}\b", text)]
+    found += [f"{c!r}" for c in ("{", "}", "[", "]", "+-", "()") if c in text]
+    found += ["dangling dash" for _ in DANGLING.findall(text)]
+    return found
+
+
+def test_flight_report_reads_as_a_report(processed_flight, tmp_path):
+    from aerocal.report.flight_report import SECTIONS
+
+    steps = {"ingest": 0.8, "adjust": 1.6, "mosaic": 11.1, "diagnose": 11.5, "report": 2.0}
+    doc = _write(processed_flight, tmp_path / "run", step_seconds=steps)
+    run = tmp_path / "run"
+    assert sorted(p.name for p in run.iterdir()) == ["report.html", "summary.json"]
+    page = _read(run / "report.html")
+    text = page.visible()
+
+    # every section, in order, with its heading
+    assert page.sections == [i for i, _ in SECTIONS]
+    assert page.headings == [h for _, h in SECTIONS]
+    # every figure drawn (the flight has a reference DSM), each an embedded PNG with content
+    assert set(page.figures) == {"overview", "tie_points", "distortion", "temperature_io", "block",
+                                 "image_residuals", "dem_difference"}, page.figures
+    assert len(page.srcs) == len(page.figures)
+    for src in page.srcs:
+        assert src.startswith("data:image/png;base64,"), src[:40]
+        img = cv2.imdecode(np.frombuffer(base64.b64decode(src.split(",", 1)[1]), np.uint8), cv2.IMREAD_COLOR)
+        assert img is not None and img.shape[1] > 300 and img.std() > 10
+    # the check-point table holds the adjustment's errors (metres, to the millimetre) and RMSE
+    adj = processed_flight["adjustment"]
+    table = page.tables["check-points"]
+    header, rows, total = table[0], table[1:-1], table[-1]
+    col = {name: header.index(name) for name in ("Error E (m)", "Error N (m)", "Error Up (m)")}
+    assert [r[0] for r in rows] == adj["check_ids"], f"seed {SEED}: {adj['check_ids']}"
+    measured = 0
+    for row, err in zip(rows, adj["check_errors_m"], strict=True):
+        if np.isfinite(err).all():
+            assert [float(row[col[c]]) for c in col] == [round(v, 3) for v in err], (row, err)
+            measured += 1
+        else:  # seen in one image: no intersection, said in words
+            assert [row[col[c]] for c in col] == ["not measured"] * 3 and row[0] in text, row
+    assert measured >= 3, f"seed {SEED}: {measured} check points measured"
+    assert total[0] == "RMSE" and [float(total[col[c]]) for c in col] == [round(v, 3) for v in adj["check_rmse_m"]]
+    assert [r[0] for r in page.tables["control-points"][1:-1]] == adj["control_ids"]
+    # words a person reads, no machine key, repr or missing value anywhere on the page
+    assert _reader_problems(text) == [], _reader_problems(text)
+    assert "Focal length f" in text and "Prior standard deviation: GNSS position 0.0500 m" in text
+    assert "Strips 3, with a transversal strip" in text
+    assert "Step times were not given" not in text and "Total of the steps above 27.0 s" in text
+    assert "No orthomosaic: the flight holds no image pixels" in text
+    # summary.json keeps the machine keys and the figures' numbers
+    saved = json.loads((run / "summary.json").read_text())
+    assert saved == json.loads(json.dumps(doc))
+    assert saved["summary"]["check_rmse_m"] == adj["check_rmse_m"]
+    assert saved["summary"]["dsm_minus_reference_m"]["mean_m"] == saved["figures"]["dem_difference"]["mean_m"]
+    assert saved["notes"] == [] and saved["step_seconds"] == steps
+    overview = saved["figures"]["overview"]
+    assert overview["check_points"] == len(adj["check_ids"]) and overview["control_points"] == len(adj["control_ids"])
+    assert overview["overlap_max"] >= 4, f"seed {SEED}: a calibration block sees its centre from many images"
+
+
+def test_flight_report_says_why_a_figure_is_missing(processed_flight, tmp_path):
+    """Without a reference DSM, check points or step times the page says so in words where they would be."""
+    from aerocal.adjust.control import ControlScreening, GcpVerdict
+
+    f = dict(processed_flight)
+    adj = dict(f["adjustment"])
+    adj.update(check_ids=[], check_errors_m=[], check_sigma_m=[], check_rmse_m=None)
+    f["adjustment"] = adj
+    f["reference_dsm"] = None
+    f["assessment"] = {"check_points": {"n": 0, "verdict": "fewer than 2 check points: accuracy not assessed"}}
+    gid = f["gcps"].column("gcp_id")[0].as_py()
+    screening = ControlScreening(f["gcps"], pa.table({}), [
+        GcpVerdict(gid, "control", "demoted", 5, [12.0, -3.0, 0.4], 410.0, 11.3, [], "15 m off in plan"),
+        GcpVerdict("CHK99", "check", "not tested", 1, None, None, None, [], "seen in one image"),
+    ], "gnss", ["heights of 0.0 read as unknown"]).to_dict()
+    doc = _write(f, tmp_path, control_screening=screening)
+    text = _read(tmp_path / "report.html").visible()
+    assert _reader_problems(text) == [], _reader_problems(text)
+    assert "the flight folder has no reference DSM (reference/dsm.tif" in text
+    assert "The flight has no check point: the accuracy of its products is not measured" in text
+    assert "Reprojection residuals over the image: not drawn, the assessment holds no binned residuals" in text
+    assert "Step times were not given to the report" in text
+    assert f"{gid} control demoted 5 12.000 -3.000 0.400 15 m off in plan" in text
+    assert "CHK99 check not tested 1 not tested not tested not tested seen in one image" in text
+    assert "Heights of 0.0 read as unknown." in text
+    assert len(doc["notes"]) == 2 and "dsm_minus_reference_m" not in doc["summary"]
+
+
+def test_overlap_counts_cover_each_footprint_once():
+    """One nadir frame over flat ground sees a rectangle of w H / f by h H / f metres: that many cells count 1,
+    none 2; two frames a footprint apart along E count 2 nowhere either, half a footprint apart on half of
+    it."""
+    from aerocal.geometry import nadir_R_cw
+    from aerocal.mosaic import FrameGeometry
+    from aerocal.report import overlap_counts
+
+    cam = Camera(640, 480, f=1600.0, cx=320.0, cy=240.0)
+    H = 400.0
+    width_m, height_m = 640 * H / 1600.0, 480 * H / 1600.0
+    one = FrameGeometry(1, cam, nadir_R_cw(0.0), np.array([1000.0, 2000.0, H + 50.0]))
+    counts, (w, e, s, n) = overlap_counts([one], ground_height_m=50.0, cells=200)
+    cell = (e - w) / counts.shape[1]
+    assert counts.max() == 1
+    assert abs((counts == 1).sum() * cell**2 / (width_m * height_m) - 1) < 0.03
+    along = [FrameGeometry(i, cam, nadir_R_cw(0.0), np.array([1000.0 + k, 2000.0, H + 50.0]))
+             for i, k in ((1, 0.0), (2, 0.5 * width_m))]
+    counts, (w, e, s, n) = overlap_counts(along, ground_height_m=50.0, cells=200)
+    cell = (e - w) / counts.shape[1]
+    assert abs((counts == 2).sum() * cell**2 / (0.5 * width_m * height_m) - 1) < 0.05
+
+
+def test_templates_ship_in_the_package():
+    """The templates load from the installed package's folder, and pyproject's package-data ships each."""
+    from aerocal.report.html import environment
+
+    folder = importlib.resources.files("aerocal.report") / "templates"
+    names = sorted(p.name for p in folder.iterdir() if p.name.endswith(".j2"))
+    assert {"flight_report.html.j2", "report.html.j2", "base.html.j2"} <= set(names)
+    template = environment().get_template("flight_report.html.j2")
+    assert Path(template.filename).resolve() == Path(str(folder / "flight_report.html.j2")).resolve()
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    patterns = pyproject["tool"]["setuptools"]["package-data"]["aerocal.report"]
+    assert all(any(fnmatch.fnmatch(f"templates/{n}", p) for p in patterns) for n in names), (names, patterns)
+    deps = [d.split(">")[0].split("=")[0].strip().lower() for d in pyproject["project"]["dependencies"]]
+    assert "jinja2" in deps

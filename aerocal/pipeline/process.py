@@ -213,7 +213,8 @@ def process(
         ass = steps["assess"] = assess_step(runner, ing, observations, adj)
         dia = steps["diagnose"] = diagnose_step(runner, ing, observations, cert_ref, config.diagnose,
                                                 adjustments.block, adj)
-        rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report)
+        seconds = {name: res.seconds for name, res in steps.items() if not res.skipped}
+        rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report, seconds)
         for res in (adj, mos, ass, dia, rep):
             outputs.update(res.outputs)
 

@@ -13,6 +13,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import BoundaryNorm, ListedColormap
+from matplotlib.figure import Figure as MplFigure
+from matplotlib.patches import Rectangle
 
 
 @dataclass
@@ -27,9 +32,6 @@ class Figure:
 
 
 def _canvas(width_in: float = 7.0, height_in: float = 5.0):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure as MplFigure
-
     fig = MplFigure(figsize=(width_in, height_in), dpi=100, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
@@ -136,8 +138,6 @@ def image_residual_figure(binned, exaggeration: float | None = None,
 
 
 def _rect(w: float, h: float):
-    from matplotlib.patches import Rectangle
-
     return Rectangle((0, 0), w, h, fill=False, edgecolor="0.4")
 
 
@@ -239,3 +239,159 @@ def dem_difference_figure(diff, title: str = "DSM minus reference") -> Figure:
     fig.suptitle(title)
     return Figure("dem_difference", title, _png(fig), f"Tested DSM minus reference ({diff.selection}).",
                   diff.to_dict())
+
+
+def overview_figure(
+    centres_en: np.ndarray,
+    overlap: np.ndarray | None = None,
+    overlap_extent: tuple[float, float, float, float] | None = None,
+    mosaic: np.ndarray | None = None,
+    mosaic_extent: tuple[float, float, float, float] | None = None,
+    control: Sequence[tuple[str, float, float]] = (),
+    check: Sequence[tuple[str, float, float]] = (),
+    title: str = "Overview",
+    caption: str = "",
+) -> Figure:
+    """The flight seen from above: the orthomosaic thumbnail (``mosaic`` (H, W) grey values, NaN where
+    empty, over ``mosaic_extent`` (west, east, south, north) metres), the number of images that see each
+    ground cell (``overlap`` (rows, cols) counts, row 0 north, over ``overlap_extent``), camera centres
+    (N, 2+ E, N metres), control points (triangles) and check points (circles) as (id, E, N)."""
+    fig = _canvas(8.0, 6.6)
+    ax = fig.add_subplot()
+    c = np.asarray(centres_en, dtype=float)
+    numbers: dict = {"n_images": int(len(c))}
+    if mosaic is not None and mosaic_extent is not None:
+        ax.imshow(np.ma.masked_invalid(mosaic), cmap="gray", extent=mosaic_extent, interpolation="bilinear",
+                  zorder=0)
+        numbers["mosaic_extent_m"] = [float(v) for v in mosaic_extent]
+    if overlap is not None and overlap_extent is not None:
+        top = max(int(overlap.max()), 1)
+        steps = [1, 2, 3, 4, 5, 6, 9, 12, 16, 20, 30, 50, 100]
+        bounds = [b for b in steps if b <= top] + [top + 1]
+        bounds = sorted(set(bounds))
+        base = colormaps["viridis"].resampled(max(len(bounds) - 2, 1))
+        colours = ["#d62728"] + [base(i) for i in range(len(bounds) - 2)]  # one image only: red
+        cmap = ListedColormap(colours[: len(bounds) - 1])
+        shown = np.ma.masked_where(overlap <= 0, overlap)
+        im = ax.imshow(shown, cmap=cmap, norm=BoundaryNorm(bounds, cmap.N), extent=overlap_extent,
+                       interpolation="nearest", alpha=0.45 if mosaic is not None else 0.8, zorder=1)
+        cb = fig.colorbar(im, ax=ax, shrink=0.8, label="images seeing the ground")
+        cb.set_ticks([0.5 * (a + b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)])
+        cb.set_ticklabels([str(a) if b - a == 1 else f"{a}-{b - 1}" for a, b in zip(bounds[:-1], bounds[1:],
+                                                                                    strict=True)])
+        seen = overlap[overlap > 0]
+        numbers.update({"overlap_extent_m": [float(v) for v in overlap_extent],
+                        "overlap_median": float(np.median(seen)) if seen.size else 0.0,
+                        "overlap_max": int(overlap.max()),
+                        "overlap_fraction_below_3": float(np.mean(seen < 3)) if seen.size else 0.0})
+    ax.plot(c[:, 0], c[:, 1], "k.", markersize=4, label="camera centres", zorder=3)
+    for points, marker, colour, label in ((control, "^", "tab:blue", "control points"),
+                                          (check, "o", "tab:orange", "check points")):
+        if not len(points):
+            continue
+        e = np.array([p[1] for p in points], dtype=float)
+        n = np.array([p[2] for p in points], dtype=float)
+        ax.plot(e, n, marker, mfc=colour, mec="k", markersize=8, linestyle="none", label=label, zorder=4)
+        for name, x, y in points:
+            ax.annotate(str(name), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, zorder=5,
+                        bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.7})
+    numbers.update({"control_points": len(control), "check_points": len(check)})
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("E (m)")
+    ax.set_ylabel("N (m)")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(axis="x", labelrotation=30)
+    ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
+    ax.set_title(title)
+    return Figure("overview", title, _png(fig), caption, numbers)
+
+
+def tie_point_figure(
+    points_en: np.ndarray, n_obs: np.ndarray, centres_en: np.ndarray | None = None,
+    title: str = "Tie points", caption: str = "",
+) -> Figure:
+    """Tie points (N, 2+ E, N metres) coloured by the number of images that measured each (``n_obs``), with
+    the camera centres; beside it the histogram of ``n_obs``."""
+    p = np.asarray(points_en, dtype=float)
+    k = np.asarray(n_obs, dtype=float)
+    fig = _canvas(10.0, 5.0)
+    ax, ax_h = fig.subplots(1, 2, width_ratios=[1.6, 1.0])
+    order = np.argsort(k)  # the best-seen points on top
+    hi = max(float(np.percentile(k, 98)), 3.0)
+    sc = ax.scatter(p[order, 0], p[order, 1], c=k[order], s=2, cmap="viridis", vmin=2, vmax=hi,
+                    rasterized=True)
+    fig.colorbar(sc, ax=ax, shrink=0.8, label="images measuring the point")
+    if centres_en is not None and len(centres_en):
+        c = np.asarray(centres_en, dtype=float)
+        ax.plot(c[:, 0], c[:, 1], "k.", markersize=3, label="camera centres")
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("E (m)")
+    ax.set_ylabel("N (m)")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(axis="x", labelrotation=30)
+    top = int(k.max())
+    ax_h.hist(k, bins=np.arange(1.5, top + 1.5, 1.0 if top < 40 else max(top // 30, 1)), color="0.5")
+    ax_h.set_xlabel("images measuring the point")
+    ax_h.set_ylabel("tie points")
+    fig.suptitle(title)
+    numbers = {"n_points": int(len(p)), "images_per_point_median": float(np.median(k)),
+               "images_per_point_mean": float(np.mean(k)),
+               "images_per_point_counts": {str(int(v)): int(n) for v, n in zip(*np.unique(k, return_counts=True),
+                                                                               strict=True)}}
+    return Figure("tie_points", title, _png(fig), caption, numbers)
+
+
+def distortion_displacement(camera, uv: np.ndarray) -> np.ndarray:
+    """How far (pixels, (N, 2)) the lens model moves each ideal pixel ``uv`` (N, 2): the recorded pixel of
+    the ray that an ideal pinhole with the same f, cx, cy would put at ``uv``, minus ``uv``. Radial (k1..k3),
+    tangential (p1, p2) and affinity/skew (b1, b2) together."""
+    uv = np.asarray(uv, dtype=float)
+    xy = np.stack([(uv[..., 0] - camera.cx) / camera.f, (uv[..., 1] - camera.cy) / camera.f], axis=-1)
+    return camera.normalised_to_pixels(camera.distort(xy)) - uv
+
+
+def distortion_figure(camera, title: str = "Lens distortion", caption: str = "") -> Figure:
+    """The certificate's distortion: displacement vectors over the frame (exaggerated, with a scale arrow)
+    and the displacement's length against the distance from the principal point (pixels)."""
+    w, h = float(camera.width), float(camera.height)
+    u, v = np.meshgrid(np.linspace(0.0, w, 13), np.linspace(0.0, h, 10))
+    uv = np.column_stack([u.ravel(), v.ravel()])
+    d = distortion_displacement(camera, uv)
+    length = np.hypot(d[:, 0], d[:, 1])
+    biggest = max(float(length.max()), 1e-9)
+    fig = _canvas(10.0, 4.6)
+    ax, ax_r = fig.subplots(1, 2, width_ratios=[1.3, 1.0])
+    k = _nice(0.09 * max(w, h) / biggest)
+    ax.quiver(uv[:, 0], uv[:, 1], d[:, 0] * k, d[:, 1] * k, angles="xy", scale_units="xy", scale=1.0,
+              color="tab:purple", width=0.004)
+    ax.add_patch(_rect(w, h))
+    ax.plot([camera.cx], [camera.cy], "k+", markersize=10)
+    ref = _nice(biggest)
+    ax.annotate("", xy=(0.05 * w + ref * k, -0.06 * h), xytext=(0.05 * w, -0.06 * h),
+                arrowprops={"arrowstyle": "->", "color": "tab:purple", "lw": 1.5}, annotation_clip=False)
+    ax.text(0.05 * w, -0.09 * h, f"{ref:g} px (drawn x{k:g})", color="tab:purple")
+    ax.set_xlim(-0.08 * w, 1.08 * w)
+    ax.set_ylim(1.08 * h, -0.16 * h)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    ax.set_title("displacement over the frame")
+    corner = float(np.hypot(max(camera.cx, w - camera.cx), max(camera.cy, h - camera.cy)))
+    r = np.linspace(0.0, corner, 60)
+    radial = distortion_displacement(camera, np.column_stack([camera.cx + r, np.full_like(r, camera.cy)]))
+    rd = np.hypot(radial[:, 0], radial[:, 1]) * np.sign(radial[:, 0] + 1e-300)
+    ax_r.plot(r, rd, "-", color="tab:purple", label="along +x from the principal point")
+    ax_r.axhline(0.0, color="0.6", lw=0.8)
+    ax_r.axvline(min(w, h) / 2, color="0.6", ls=":", lw=0.8)
+    ax_r.set_xlabel("distance from the principal point (px)")
+    ax_r.set_ylabel("displacement (px, + outwards)")
+    ax_r.grid(alpha=0.3)
+    ax_r.legend(fontsize=8)
+    ax_r.set_title("radial profile")
+    fig.suptitle(title)
+    corners = distortion_displacement(camera, camera.corners())
+    numbers = {"max_displacement_px": biggest,
+               "corner_displacement_px": [_f(np.hypot(x, y)) for x, y in corners],
+               "exaggeration": k, "scale_arrow_px": ref}
+    return Figure("distortion", title, _png(fig), caption, numbers)

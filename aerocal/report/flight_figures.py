@@ -13,17 +13,33 @@ E, N, Up metres in the flight's projected CRS; differences are always *tested mi
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
+import rasterio
+from pyproj import CRS
+from rasterio.enums import Resampling
+from scipy import ndimage
 
+from aerocal.assess import BinnedResiduals, compare_dems
+from aerocal.camera import Camera
+from aerocal.mosaic import FrameGeometry
 from aerocal.report.figures import (
     Figure,
     dem_difference_figure,
+    distortion_figure,
     image_residual_figure,
     io_at_temperatures,
+    overview_figure,
     temperature_io_figure,
+    tie_point_figure,
 )
+
+#: the overview's ground grid has at most this many cells along its longer side
+OVERVIEW_CELLS = 160
+#: the orthomosaic thumbnail of the overview has at most this many pixels along its longer side
+THUMBNAIL_PX = 900
 
 #: DSM cells at most this far (metres) from a cell holding a tie point count as measured, not interpolated
 MEASURED_WITHIN_M = 2.0
@@ -36,8 +52,6 @@ class FigureSkipped(Exception):
 def image_residuals_from_assessment(assessment: Mapping) -> Figure:
     """Mean reprojection residual per image region from an assessment's ``reprojection`` statistics
     (:meth:`aerocal.assess.ReprojectionStats.to_dict`, whose ``binned`` grid it draws)."""
-    from aerocal.assess import BinnedResiduals
-
     rep = assessment.get("reprojection") or {}
     binned = rep.get("binned")
     if not binned or not np.asarray(binned.get("count", []), dtype=float).sum():
@@ -102,8 +116,6 @@ def _inside(dsm, reference) -> np.ndarray:
 
 def _near_tie_points(dsm, tie_points_en: np.ndarray, within_m: float) -> np.ndarray:
     """Cells of ``dsm`` within ``within_m`` metres of a cell that holds a tie point (E, N metres)."""
-    from scipy import ndimage
-
     col, row = dsm.grid_coords(tie_points_en[:, 0], tie_points_en[:, 1])
     c, r = np.rint(col).astype(int), np.rint(row).astype(int)
     rows, cols = dsm.shape
@@ -116,8 +128,6 @@ def _near_tie_points(dsm, tie_points_en: np.ndarray, within_m: float) -> np.ndar
 
 
 def _same_crs(a: str, b: str) -> bool:
-    from pyproj import CRS
-
     return CRS.from_user_input(a) == CRS.from_user_input(b)
 
 
@@ -129,8 +139,6 @@ def dem_difference_for_flight(
     the DSM's cells inside the reference grid. With the adjusted tie points (``tie_points_en`` (N, 2+) E, N
     metres) the numbers add ``measured_cells``: the same statistics on the cells within
     ``measured_within_m`` of a tie point, where the DSM's heights are measured rather than interpolated."""
-    from aerocal.assess import compare_dems
-
     if not _same_crs(dsm.crs, reference.crs):
         raise FigureSkipped(f"DSM minus reference: not drawn, {reference_name} is in {reference.crs} and the "
                             f"flight's DSM in {dsm.crs}; warp the reference to the flight's CRS (gdalwarp -t_srs).")
@@ -152,4 +160,120 @@ def dem_difference_for_flight(
         if m.n:
             caption += (f" On the {m.n} cells {sel} (measured heights, the rest is interpolated): mean "
                         f"{m.mean:.3g} m, NMAD {m.nmad:.3g} m.")
+    return dataclasses.replace(fig, caption=caption)
+
+
+def overlap_counts(
+    frames: Sequence[FrameGeometry], dsm=None, ground_height_m: float | None = None,
+    cells: int = OVERVIEW_CELLS,
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """How many frames see each ground cell: ``(counts (rows, cols), (west, east, south, north))``, row 0
+    north, metres of the flight's CRS.
+
+    The grid covers the frames' footprints on the plane at the ground height (``ground_height_m``, default
+    the DSM's median height) with at most ``cells`` cells along its longer side; every cell centre is lifted
+    to the DSM's height there (the ground height where the DSM is empty or absent) and projected into every
+    frame with its interior orientation and distortion: a cell counts for a frame when it lands inside it.
+    """
+    if ground_height_m is None:
+        ground_height_m = float(np.nanmedian(dsm.heights)) if dsm is not None else 0.0
+    prints = np.vstack([f.ground_footprint([ground_height_m]) for f in frames])
+    w, s = prints.min(axis=0)
+    e, n = prints.max(axis=0)
+    cell = max(e - w, n - s, 1e-6) / cells
+    cols, rows = max(int(np.ceil((e - w) / cell)), 1), max(int(np.ceil((n - s) / cell)), 1)
+    east = w + (np.arange(cols) + 0.5) * cell
+    north = n - (np.arange(rows) + 0.5) * cell
+    E, N = np.meshgrid(east, north)
+    Z = np.full(E.shape, float(ground_height_m))
+    if dsm is not None:
+        z = dsm.height_at(E, N)
+        col, row = dsm.grid_coords(E, N)
+        on = (col >= -0.5) & (col <= dsm.shape[1] - 0.5) & (row >= -0.5) & (row <= dsm.shape[0] - 0.5)
+        Z = np.where(on & np.isfinite(z), z, Z)
+    X = np.column_stack([E.ravel(), N.ravel(), Z.ravel()])
+    counts = np.zeros(len(X), dtype=np.int32)
+    for f in frames:
+        counts += f.camera.in_image(f.project(X)).astype(np.int32)
+    return counts.reshape(E.shape), (float(w), float(w + cols * cell), float(n - rows * cell), float(n))
+
+
+def mosaic_thumbnail(path: str | Path, max_px: int = THUMBNAIL_PX) -> tuple[np.ndarray, tuple[float, ...]]:
+    """The orthomosaic's first band, averaged down to at most ``max_px`` pixels along its longer side and
+    stretched to 0..1 between its 2nd and 98th percentiles (NaN where it has no data), with its extent
+    ``(west, east, south, north)`` metres."""
+    with rasterio.open(path) as ds:
+        k = max(ds.width, ds.height) / max_px
+        shape = (max(int(ds.height / k), 1), max(int(ds.width / k), 1)) if k > 1 else (ds.height, ds.width)
+        band = ds.read(1, out_shape=shape, resampling=Resampling.average, masked=True).astype(float)
+        west, south, east, north = ds.bounds
+    grey = band.filled(np.nan)
+    valid = grey[np.isfinite(grey)]
+    if valid.size:
+        lo, hi = np.percentile(valid, [2, 98])
+        grey = np.clip((grey - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    return grey, (west, east, south, north)
+
+
+def overview_for_flight(
+    frames: Sequence[FrameGeometry], dsm=None, ground_height_m: float | None = None,
+    orthomosaic: str | Path | None = None, control: Sequence[tuple[str, float, float]] = (),
+    check: Sequence[tuple[str, float, float]] = (), no_mosaic_reason: str = "",
+) -> Figure:
+    """The overview map: orthomosaic thumbnail (when ``orthomosaic`` is a GeoTIFF), image-overlap counts
+    (:func:`overlap_counts`), camera centres, control and check points ((id, E, N) metres). Without an
+    orthomosaic the caption says why (``no_mosaic_reason``, a sentence)."""
+    if not len(frames):
+        raise FigureSkipped("Overview map: not drawn, the adjustment holds no oriented image.")
+    counts, extent = overlap_counts(frames, dsm, ground_height_m)
+    mosaic, mosaic_extent = (None, None) if orthomosaic is None else mosaic_thumbnail(orthomosaic)
+    centres = np.array([f.C[:2] for f in frames], dtype=float)
+    seen = counts[counts > 0]
+    caption = (f"{len(frames)} camera centres (dots) over the number of images that see each "
+               f"ground cell (colour; median {np.median(seen):.0f}, at most {counts.max()}; red: seen by one "
+               "image only, where nothing on the ground can be triangulated).")
+    if len(control) or len(check):
+        caption += f" Triangles: {len(control)} control points; circles: {len(check)} check points."
+    if mosaic is not None:
+        caption += " Background: the orthomosaic."
+    elif no_mosaic_reason:
+        caption += " " + no_mosaic_reason
+    return overview_figure(centres, counts, extent, mosaic, mosaic_extent, control, check,
+                           title="Overview: camera centres, image overlap and ground control", caption=caption)
+
+
+def tie_points_for_flight(points, centres_en: np.ndarray | None = None) -> Figure:
+    """Tie-point coverage from the adjusted ``points`` table (X, Y metres, ``n_obs``, ``error`` px)."""
+    if points is None or points.num_rows == 0:
+        raise FigureSkipped("Tie points: not drawn, the adjustment holds no tie point.")
+    en = np.column_stack([points.column("X").to_numpy(), points.column("Y").to_numpy()])
+    n_obs = points.column("n_obs").to_numpy(zero_copy_only=False).astype(float)
+    if not np.isfinite(n_obs).any():
+        raise FigureSkipped("Tie points: not drawn, the adjusted points do not record how many images "
+                            "measured them.")
+    n_obs = np.nan_to_num(n_obs, nan=2.0)
+    caption = (f"{len(en)} adjusted tie points coloured by how many images measured each (median "
+               f"{np.median(n_obs):.0f}); gaps are ground the matching found nothing on, and points seen by two "
+               "images only are the weakest.")
+    fig = tie_point_figure(en, n_obs, centres_en, title="Tie-point coverage", caption=caption)
+    err = points.column("error").to_numpy(zero_copy_only=False).astype(float)
+    if np.isfinite(err).any():
+        fig.numbers["mean_reprojection_error_px"] = float(np.nanmean(err))
+    return fig
+
+
+def distortion_for_camera(camera: Camera) -> Figure:
+    """The lens distortion of a certificate's camera (:func:`aerocal.report.figures.distortion_figure`)."""
+    fig = distortion_figure(camera, title="Lens distortion of the certificate's camera")
+    n = fig.numbers
+    terms = [name for name in ("k1", "k2", "k3", "p1", "p2", "b1", "b2") if getattr(camera, name) != 0.0]
+    if not terms:
+        caption = ("The certificate's camera has no distortion term: an ideal pinhole, every arrow has "
+                   "zero length.")
+    else:
+        caption = (f"How far the lens model ({', '.join(terms)}) moves each pixel from where an ideal "
+                   f"pinhole camera with the same focal length and principal point would put it: at most "
+                   f"{n['max_displacement_px']:.3g} px over the frame (arrows drawn x{n['exaggeration']:g}); "
+                   "right, the displacement along the line from the principal point (+) to the right edge, "
+                   "positive outwards; the dotted line is half the shorter image side.")
     return dataclasses.replace(fig, caption=caption)
