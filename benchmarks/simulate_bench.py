@@ -40,7 +40,7 @@ def main() -> None:
         f"| target | < 30 s: {'met' if t_city < 30 else 'not met'} |",
     ]
     try:
-        from aerocal.simulate.render import RenderConfig, render_frame
+        from aerocal.simulate.raycast import RenderConfig, render_frame
 
         small = simulate_flight("conte-calibration", seed=1, max_images=2)
         ex = small.exposures[0]

@@ -45,7 +45,7 @@ class DemoConfig:
 def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
     """Write the demo flight (observations mode plus ``config.frames`` rendered frames) to ``folder``."""
     from aerocal.simulate import simulate_flight, write_flight
-    from aerocal.simulate.rendering import render_flight_images
+    from aerocal.simulate.rendered_frames import render_flight_images
     from aerocal.simulate.simulator import spec_summary
 
     if folder.exists():

@@ -14,7 +14,7 @@ import numpy as np
 
 from aerocal.camera import Camera
 from aerocal.geometry import attitude_to_R_cw
-from aerocal.simulate.flight import FlightPlanConfig, Trajectory
+from aerocal.simulate.flight_plan import FlightPlanConfig, Trajectory
 from aerocal.simulate.sensors import SensorConfig, TemperatureCurve
 
 #: where the measured images live in a development checkout (../shared beside the repository)
@@ -90,7 +90,7 @@ def seneca_camera(true: bool) -> Camera:
 
 def seneca_spec(source: str | Path | None = None):
     """The ``seneca`` FlightSpec (stations in ``extra["stations"]``)."""
-    from aerocal.simulate.flight import footprint_m
+    from aerocal.simulate.flight_plan import footprint_m
     from aerocal.simulate.presets import FlightSpec, SceneSpec
 
     st = stations_from_images(source or DEFAULT_SENECA)

@@ -11,7 +11,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from aerocal.camera import Camera
-from aerocal.simulate.flight import FlightPlanConfig
+from aerocal.simulate.flight_plan import FlightPlanConfig
 from aerocal.simulate.sensors import SensorConfig, TemperatureCurve
 
 

@@ -1,6 +1,6 @@
 """Sensors of a simulated flight: GNSS, IMU, lever arm, boresight, clock offset, sensor temperature.
 
-The true trajectory (:mod:`aerocal.simulate.flight`) is what the camera did; these functions make what
+The true trajectory (:mod:`aerocal.simulate.flight_plan`) is what the camera did; these functions make what
 the aircraft *recorded*, with noise and with the exterior-orientation effects of the catalogue
 (:mod:`aerocal.effects`) applied, and the sensor temperature curve that drives the thermal effects.
 """

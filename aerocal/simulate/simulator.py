@@ -38,7 +38,7 @@ from aerocal.geometry import (
 )
 from aerocal.io import write_json_atomic
 from aerocal.simulate.exposure import Exposure
-from aerocal.simulate.flight import Trajectory, footprint_m, plan_flight
+from aerocal.simulate.flight_plan import Trajectory, footprint_m, plan_flight
 from aerocal.simulate.observations import Measurements, observe_points, place_control, sample_surface_points
 from aerocal.simulate.presets import FlightSpec, get_preset
 
@@ -345,7 +345,7 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{out.name}.", dir=out.parent))
     try:
         if as_recorded:
-            from aerocal.simulate.rendering import render_flight_images
+            from aerocal.simulate.rendered_frames import render_flight_images
 
             render_flight_images(sim, tmp / "images", progress=progress)
             return _finish_flight(sim, tmp, out)
@@ -371,7 +371,7 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
             "tie_sigma_px": sim.spec.sensors.tie_sigma_px,
         })
         if mode == "images":
-            from aerocal.simulate.rendering import render_flight_images
+            from aerocal.simulate.rendered_frames import render_flight_images
 
             render_flight_images(sim, tmp / "images", progress=progress)
         return _finish_flight(sim, tmp, out)
@@ -397,7 +397,7 @@ def _finish_flight(sim: SimulatedFlight, tmp: Path, out: Path) -> Path:
 
 def spec_summary(sim: SimulatedFlight) -> dict:
     """Figures a user checks after simulating (for the CLI)."""
-    from aerocal.simulate.flight import overlaps
+    from aerocal.simulate.flight_plan import overlaps
 
     fwd, side = overlaps(sim.trajectory, sim.spec.camera_nominal, sim.spec.plan.height_agl_m)
     t = sim.images.column("temperature_c").to_numpy()

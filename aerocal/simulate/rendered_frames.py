@@ -16,7 +16,7 @@ import numpy as np
 
 from aerocal.geometry import R_cw_to_dji_gimbal
 from aerocal.simulate.image_files import FrameMetadata, write_flir_rjpeg, write_frame, zenmuse_xt2_camera_info
-from aerocal.simulate.render import RenderConfig, render_frame
+from aerocal.simulate.raycast import RenderConfig, render_frame
 
 #: target disc radius in ground sampling distances (a 2.5 px radius disc is located to ~0.05 px)
 TARGET_RADIUS_GSD = 2.5
