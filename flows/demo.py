@@ -22,6 +22,9 @@ from typing import Any
 import numpy as np
 from prefect import flow
 
+from aerocal.simulate import simulate_flight, write_flight
+from aerocal.simulate.rendered_frames import render_flight_images
+from aerocal.simulate.simulator import spec_summary
 from flows.config import ProcessConfig
 from flows.environment import demo_environment
 from flows.flight import FlowInputError, process_flight
@@ -44,10 +47,6 @@ class DemoConfig:
 
 def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
     """Write the demo flight (observations mode plus ``config.frames`` rendered frames) to ``folder``."""
-    from aerocal.simulate import simulate_flight, write_flight
-    from aerocal.simulate.rendered_frames import render_flight_images
-    from aerocal.simulate.simulator import spec_summary
-
     if folder.exists():
         if not (folder / "flight.json").exists():
             raise FlowInputError(

@@ -129,7 +129,7 @@ def flow_errors(run_dir: Path) -> Iterator[None]:
     line saying what is kept and how to resume (exit :data:`INTERRUPTED`), and a defect as one line naming
     the run folder's traceback file (exit :data:`FAILED`). Call after :func:`flows.environment.quiet_prefect`:
     this imports Prefect."""
-    # these import Prefect (about 1 s): only around a flow run
+    # lazy: these import Prefect (~2.9 s CPU at start-up): only around a flow run, never for --help
     from flows.flight import FAILURE_LOG
     from tasks.resume import interrupts_noted
 
