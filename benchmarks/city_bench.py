@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import json
 import os
 import resource
@@ -30,7 +31,27 @@ from pathlib import Path
 
 import numpy as np
 
+from aerocal.camera import Camera
+from aerocal.certificate import Certificate
+from aerocal.dsm import read_dsm
+from aerocal.enhance import EnhanceConfig, stretch_params
+from aerocal.ingest import ingest_folder, read_raw
+from aerocal.matching import (
+    FeatureConfig,
+    MatchConfig,
+    candidate_pairs_from_footprints,
+    exhaustive_pairs,
+    extract_features,
+    local_client,
+    match_pairs_detailed,
+)
+from aerocal.mosaic import build_mosaic, frames_from_poses
+from aerocal.simulate import simulate_flight, write_flight
 from benchmarks.common import peak_rss_mb, record
+from flows.environment import quiet_prefect
+from flows.flight import process_flight
+from tasks.flight import MatchStepConfig, _enhanced, match_images
+from tasks.resume import StepContext
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -42,8 +63,6 @@ def children_peak_mb() -> float:
 
 def rendered_flight(preset: str = "conte-city", seed: int = 0) -> Path:
     """The rendered flight folder, simulated and rendered on first use."""
-    from aerocal.simulate import simulate_flight, write_flight
-
     out = DATA / f"{preset}-images-s{seed}"
     if (out / "flight.json").exists():
         return out
@@ -70,8 +89,6 @@ def scratch_folder(prefix: str):
 
 def subset_folder(folder: Path, n: int, work: Path) -> Path:
     """A flight folder of the ``n`` frames nearest the block centre (hard links to the cached frames)."""
-    from aerocal.ingest import ingest_folder
-
     res = ingest_folder(folder)
     im = res.images
     x, y = im.column("gnss_x").to_numpy(), im.column("gnss_y").to_numpy()
@@ -100,8 +117,6 @@ def subset_folder(folder: Path, n: int, work: Path) -> Path:
 
 
 def end_to_end(folder: Path, work: Path) -> tuple[dict, float]:
-    from flows.flight import process_flight
-
     t0 = time.perf_counter()
     summary = process_flight(folder, work / "run", "none", database_url=f"sqlite:///{work / 'aerocal.db'}",
                              artifact_root=str(work / "artifacts"))
@@ -110,11 +125,6 @@ def end_to_end(folder: Path, work: Path) -> tuple[dict, float]:
 
 def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int]:
     """(features s, matches s, keypoints, verified matches) of the flight with a ``workers`` cluster."""
-    from aerocal.camera import Camera
-    from aerocal.ingest import ingest_folder
-    from aerocal.matching import local_client
-    from tasks.flight import MatchStepConfig, match_images
-
     res = ingest_folder(folder)
     cam = Camera.from_dict(json.loads((folder / "camera.json").read_text())["camera"])
     flight = json.loads((folder / "flight.json").read_text()) | {"folder": str(folder)}
@@ -129,22 +139,6 @@ def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int
 
 def pairs_recall(folder: Path) -> dict:
     """Footprint vs exhaustive candidate pairs on the flight: time and recall of verified matches."""
-    import functools
-
-    from aerocal.camera import Camera
-    from aerocal.enhance import EnhanceConfig, stretch_params
-    from aerocal.ingest import ingest_folder, read_raw
-    from aerocal.matching import (
-        FeatureConfig,
-        MatchConfig,
-        candidate_pairs_from_footprints,
-        exhaustive_pairs,
-        extract_features,
-        local_client,
-        match_pairs_detailed,
-    )
-    from tasks.flight import _enhanced
-
     res = ingest_folder(folder)
     images = res.images
     cam = Camera.from_dict(json.loads((folder / "camera.json").read_text())["camera"])
@@ -176,19 +170,12 @@ def pairs_recall(folder: Path) -> dict:
 
 def mosaic_workers(run_dir: Path, folder: Path, workers: int, work: Path) -> float:
     """Seconds to mosaic the whole flight from the run's poses and DSM with a ``workers`` cluster."""
-    from aerocal.certificate import Certificate
-    from aerocal.dsm import read_dsm
-    from aerocal.matching import local_client
-    from aerocal.mosaic import build_mosaic, frames_from_poses
-    from tasks.resume import StepContext
-
     summary = json.loads((run_dir / "run.json").read_text())
     cert = Certificate.from_dict(json.loads((run_dir / "certificate.json").read_text()))
     dsm = read_dsm(run_dir / "dsm.tif")
     ctx = StepContext(f"sqlite:///{work / 'aerocal.db'}", str(work / "artifacts"), "benchmark")
     with ctx.database.session() as session:
         poses = ctx.store.read_table(ctx.store.get(session, summary["outputs"]["poses"]), "poses")
-    from aerocal.ingest import ingest_folder
 
     images = ingest_folder(folder).images  # the same image ids as the run's ingest
     paths = dict(zip(images.column("image_id").to_pylist(), images.column("path").to_pylist(), strict=True))
@@ -210,7 +197,6 @@ def main(argv: list[str] | None = None) -> None:
     parts = set(args.parts.split(","))
     if "mosaic" in parts and "e2e" not in parts:
         ap.error("--parts mosaic needs e2e (it mosaics from the end-to-end run's poses and DSM)")
-    from flows.environment import quiet_prefect
 
     with scratch_folder("work-") as work:
         quiet_prefect(work / "prefect")

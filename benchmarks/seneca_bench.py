@@ -38,18 +38,36 @@ and calibrating again (the step cache keys on inputs and configuration, not code
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import io
 import json
 import os
+import re
 import resource
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+import pyarrow as pa
 
+from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
+from aerocal.camera import Camera
+from aerocal.certificate import Certificate
+from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+from aerocal.diagnose.io_uncertainty import IOUncertainty
+from aerocal.ingest import ingest_folder
+from aerocal.matching import FeatureConfig
 from benchmarks.common import peak_rss_mb, record
+from flows.config import ProcessConfig
+from flows.environment import quiet_prefect
+from flows.flight import process_flight
+from tasks.flight import MatchStepConfig
+from tasks.products import recorded_eo_text
+from tasks.resume import StepContext
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT.parent / "shared" / "data" / "seneca" / "images"
@@ -79,9 +97,6 @@ def children_peak_mb() -> float:
 
 def build_flight(work: Path, quick: bool = False) -> tuple[Path, dict]:
     """The flight folder under ``work`` (image links, camera.json, flight.json) and what was left out."""
-    from aerocal.camera import Camera
-    from aerocal.ingest import ingest_folder
-
     res = ingest_folder(IMAGES)
     im, extra = res.images, res.extra
     w, h = im.column("width").to_numpy(), im.column("height").to_numpy()
@@ -133,8 +148,6 @@ def _stats(values: np.ndarray) -> str:
 
 
 def _rejected(selection: list[str]) -> str:
-    import re
-
     for s in selection or []:
         m = re.match(r"rejected (\d+) of (\d+)", s)
         if m:
@@ -146,10 +159,7 @@ def tie_point_figure(names: list[str], per_image: np.ndarray, used: np.ndarray, 
                      path: Path) -> Path:
     """Bars of tie points per image (matched and used by the block adjustment) over the image order, the
     sensor temperature on a twin axis."""
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     x = np.arange(len(names))
     fig, ax = plt.subplots(figsize=(12, 4.5))
@@ -177,16 +187,6 @@ def tie_point_figure(names: list[str], per_image: np.ndarray, used: np.ndarray, 
 
 def rediagnose(work: Path) -> list[str]:
     """The diagnose step of the run kept in ``work`` done again by this code, timed: result lines."""
-    import dataclasses
-
-    import pyarrow as pa
-
-    from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
-    from aerocal.certificate import Certificate
-    from aerocal.diagnose.engine import DiagnoseConfig, diagnose
-    from aerocal.diagnose.io_uncertainty import IOUncertainty
-    from tasks.resume import StepContext
-
     measured_path = work / "measured.json"
     if not measured_path.is_file():
         raise SystemExit(f"{measured_path} not found: run the benchmark with --work {work} first")
@@ -255,7 +255,6 @@ def main(argv: list[str] | None = None) -> None:
         return
     if not IMAGES.is_dir():
         raise SystemExit(f"{IMAGES} not found: the seneca images are needed")
-    from flows.environment import quiet_prefect
 
     work = args.work.resolve() if args.work else Path(tempfile.mkdtemp(prefix="aerocal-seneca-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -264,21 +263,11 @@ def main(argv: list[str] | None = None) -> None:
     measured_path = work / "measured.json"
     done = False
     try:
-        from aerocal.camera import Camera
-        from aerocal.certificate import Certificate
-        from tasks.products import recorded_eo_text
-        from tasks.resume import StepContext
-
         if measured_path.exists():
             measured = json.loads(measured_path.read_text())
         else:
-            from flows.flight import process_flight
-
             folder, built = build_flight(work, args.quick)
             t0 = time.perf_counter()
-            from aerocal.matching import FeatureConfig
-            from flows.config import ProcessConfig
-            from tasks.flight import MatchStepConfig
 
             config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES)))
             summary = process_flight(folder, work / "run", "none", config=config, database_url=db,

@@ -21,21 +21,21 @@ import time
 
 import numpy as np
 
+from aerocal.adjust import adjust, adjust_fixed_io, select_images
+from aerocal.camera import LinearThermalModel
+from aerocal.ingest import ingest_folder
+from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
+from benchmarks.colmap_bench import _flight
 from benchmarks.common import record
+from flows.config import ProcessConfig, with_flight_sigmas
+from tasks.flight import match_images
 
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=None, help="only the N frames nearest the block centre")
     args = ap.parse_args(argv)
-    from aerocal.adjust import adjust, adjust_fixed_io, select_images
-    from aerocal.camera import LinearThermalModel
-    from aerocal.ingest import ingest_folder
-    from aerocal.subset import SubsetConfig, propose_subset
-    from benchmarks.colmap_bench import _flight
-    from flows.config import ProcessConfig, with_flight_sigmas
-    from tasks.flight import match_images
 
     with scratch_folder("work-thinning-") as work:
         full = rendered_flight()

@@ -38,8 +38,17 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: the project's packages
     sys.path.insert(0, str(ROOT))
 
+import matplotlib  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+
 from aerocal.certificate import Certificate  # noqa: E402
 from aerocal.io import atomic_path, write_text_atomic  # noqa: E402
+from aerocal.matching import FeatureConfig  # noqa: E402
+from benchmarks.seneca_bench import MAX_FEATURES, build_flight  # noqa: E402
+from flows.config import ProcessConfig  # noqa: E402
+from flows.environment import quiet_prefect  # noqa: E402
+from flows.flight import process_flight  # noqa: E402
+from tasks.flight import MatchStepConfig  # noqa: E402
 
 OUT = ROOT / "studies" / "output"
 
@@ -47,16 +56,9 @@ OUT = ROOT / "studies" / "output"
 def process(work: Path, quick: bool) -> Path:
     """Build the seneca flight folder under ``work`` and process it as ``aerocal process`` does; the run
     folder."""
-    from benchmarks.seneca_bench import MAX_FEATURES, build_flight
-    from flows.config import ProcessConfig
-    from flows.environment import quiet_prefect
-    from flows.flight import process_flight
-
     run_dir = work / "run"
     if (run_dir / "diagnosis.json").is_file():
         return run_dir
-    from aerocal.matching import FeatureConfig
-    from tasks.flight import MatchStepConfig
 
     quiet_prefect(work / "prefect")
     folder, _ = build_flight(work, quick)
@@ -220,10 +222,8 @@ def twin_figure(r: dict, path: Path) -> Path | None:
             if v is not None and np.isfinite(v) and twin["twin_mean"].get(k) not in (None, 0)]
     if not rows:
         return None
-    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     mean = np.array([twin["twin_mean"][k] for k in rows])
     real = np.array([twin["real"][k] for k in rows]) / mean
