@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 import json
 import os
 import resource
@@ -31,11 +30,12 @@ from pathlib import Path
 
 import numpy as np
 
+from aerocal import tables
 from aerocal.camera import Camera
 from aerocal.certificate import Certificate
 from aerocal.dsm import read_dsm
-from aerocal.enhance import EnhanceConfig, stretch_params
-from aerocal.ingest import ingest_folder, read_raw
+from aerocal.ingest import ingest_folder
+from aerocal.io import write_json_atomic
 from aerocal.matching import (
     FeatureConfig,
     MatchConfig,
@@ -46,12 +46,11 @@ from aerocal.matching import (
     match_pairs_detailed,
 )
 from aerocal.mosaic import build_mosaic, frames_from_poses
+from aerocal.pipeline import process
+from aerocal.pipeline.config import MatchStepConfig
+from aerocal.pipeline.match_step import frame_loader, match_images
 from aerocal.simulate import simulate_flight, write_flight
 from benchmarks.common import peak_rss_mb, record
-from flows.environment import quiet_prefect
-from flows.flight import process_flight
-from tasks.flight import MatchStepConfig, _enhanced, match_images
-from tasks.resume import StepContext
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -117,10 +116,13 @@ def subset_folder(folder: Path, n: int, work: Path) -> Path:
 
 
 def end_to_end(folder: Path, work: Path) -> tuple[dict, float]:
+    """The run summary of the whole flight through :func:`aerocal.pipeline.process` (``run.json`` written
+    beside the products), and its seconds."""
     t0 = time.perf_counter()
-    summary = process_flight(folder, work / "run", "none", database_url=f"sqlite:///{work / 'aerocal.db'}",
-                             artifact_root=str(work / "artifacts"))
-    return summary, time.perf_counter() - t0
+    run = process(folder, certificate="none", out_dir=work / "run")
+    seconds = time.perf_counter() - t0
+    write_json_atomic(work / "run" / "run.json", run.summary)
+    return run.summary, seconds
 
 
 def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int]:
@@ -139,13 +141,11 @@ def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int
 
 def pairs_recall(folder: Path) -> dict:
     """Footprint vs exhaustive candidate pairs on the flight: time and recall of verified matches."""
+
     res = ingest_folder(folder)
     images = res.images
     cam = Camera.from_dict(json.loads((folder / "camera.json").read_text())["camera"])
-    paths = images.column("path").to_pylist()
-    ecfg = EnhanceConfig()
-    loader = functools.partial(_enhanced, params=stretch_params(paths, percent=ecfg.percent, loader=read_raw),
-                               config=ecfg)
+    loader = frame_loader(images.column("path").to_pylist())
     terrain = float(np.mean(res.gcps.column("Z").to_numpy()))
     out = {}
     with local_client(n_workers=2) as client:
@@ -170,12 +170,9 @@ def pairs_recall(folder: Path) -> dict:
 
 def mosaic_workers(run_dir: Path, folder: Path, workers: int, work: Path) -> float:
     """Seconds to mosaic the whole flight from the run's poses and DSM with a ``workers`` cluster."""
-    summary = json.loads((run_dir / "run.json").read_text())
     cert = Certificate.from_dict(json.loads((run_dir / "certificate.json").read_text()))
     dsm = read_dsm(run_dir / "dsm.tif")
-    ctx = StepContext(f"sqlite:///{work / 'aerocal.db'}", str(work / "artifacts"), "benchmark")
-    with ctx.database.session() as session:
-        poses = ctx.store.read_table(ctx.store.get(session, summary["outputs"]["poses"]), "poses")
+    poses = tables.read(run_dir / "poses.parquet", "poses")
 
     images = ingest_folder(folder).images  # the same image ids as the run's ingest
     paths = dict(zip(images.column("image_id").to_pylist(), images.column("path").to_pylist(), strict=True))
@@ -197,9 +194,7 @@ def main(argv: list[str] | None = None) -> None:
     parts = set(args.parts.split(","))
     if "mosaic" in parts and "e2e" not in parts:
         ap.error("--parts mosaic needs e2e (it mosaics from the end-to-end run's poses and DSM)")
-
     with scratch_folder("work-") as work:
-        quiet_prefect(work / "prefect")
         full = args.source or rendered_flight()
         folder = subset_folder(full, args.frames, work) if args.frames else full
         n = len(list((folder / "images").iterdir()))

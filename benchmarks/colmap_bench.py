@@ -10,7 +10,7 @@ Both pipelines run in this process, one after the other, on the same frames, GCP
   (its local and global bundle adjustments). The largest model is georeferenced on the control GCPs
   triangulated in it (:func:`aerocal.orient.georeference`, 7-parameter similarity) and the check
   points are triangulated from their image measurements with COLMAP's refined camera.
-* **aerocal**: ingest, ``tasks.flight.match_images`` (enhance, SIFT on a local Dask cluster of 2 workers,
+* **aerocal**: ingest, ``aerocal.pipeline.match_step.match_images`` (enhance, SIFT on a local Dask cluster of 2 workers,
   footprint pairs, verification, tracks), ``orient_from_priors``, then the adjustments of
   ``process_flight``: self-calibration on the calibration sub-block (the whole block up to 44 images)
   and the full-block adjustment with that IO fixed, GNSS/IMU priors and control GCPs weighted, Huber
@@ -56,13 +56,12 @@ from aerocal.geometry import estimate_similarity
 from aerocal.ingest import ingest_folder, read_raw
 from aerocal.mosaic import frames_from_poses
 from aerocal.orient import georeference, orient_from_priors
+from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
+from aerocal.pipeline.match_step import match_images, terrain_height
 from aerocal.poses import poses_arrays, poses_table
 from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
 from benchmarks.common import record
-from flows.config import ProcessConfig, with_flight_sigmas
-from flows.environment import quiet_prefect
-from tasks.flight import _terrain_height, match_images
 
 AXES = ("E", "N", "Up")
 
@@ -147,7 +146,7 @@ def frames_to_png(paths: list[str], out: Path, method: str = "none") -> list[str
 def footprint_diagonal_m(images, camera, gcps, flight: dict) -> float:
     """Ground diagonal of a frame's footprint (metres) at the terrain height the matcher also uses."""
     z = images.column("gnss_z").to_numpy(zero_copy_only=False).astype(float)
-    height = float(np.nanmean(z)) - _terrain_height(images, gcps, flight)
+    height = float(np.nanmean(z)) - terrain_height(images, gcps, flight)
     return height * float(np.hypot(camera.width, camera.height)) / camera.f
 
 
@@ -299,7 +298,7 @@ def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: floa
 
 # ---------------------------------------------------------------------------------------- aerocal
 def run_aerocal(folder: Path) -> PipelineRun:
-    """aerocal's steps of ``process_flight`` up to the full-block adjustment, with the flow's defaults."""
+    """aerocal's pipeline steps up to the full-block adjustment (:mod:`aerocal.pipeline`), with its defaults."""
     run = PipelineRun("aerocal")
     clock = _Stopwatch(run)
     config = ProcessConfig()
@@ -393,9 +392,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--colmap-fixed-camera", action="store_true",
                     help="hold the nominal camera fixed in COLMAP's mapping (a departure from its defaults)")
     args = ap.parse_args(argv)
-
     with scratch_folder("work-colmap-") as work:
-        quiet_prefect(work / "prefect")
         full = args.source or rendered_flight()
         folder = subset_folder(full, args.frames, work) if args.frames else full
         n = len(list((folder / "images").iterdir()))

@@ -1,4 +1,4 @@
-"""seneca (real), end to end through ``process_flight``, measured.
+"""seneca (real), end to end through the pipeline of ``aerocal process``, measured.
 
 Data: ``../shared/data/seneca/images``, 166 of the 167 nadir JPEGs of a senseFly Swinglet CAM (Canon
 PowerShot ELPH 300 HS, 1800x1350) whose camera cooled from 37 to 23 degC; GNSS and autopilot attitude in
@@ -18,13 +18,13 @@ The flight folder is built in a temporary directory, the images are not copied:
   over the images); consumer GNSS and autopilot attitude sigmas (``gnss_sigma_m`` 2.5 m horizontal, 5 m
   vertical; ``imu_sigma_deg`` 5/5/10 deg), the values of ``studies/seneca.py``.
 
-Then ``flows.flight.process_flight`` (the code of ``aerocal process FLIGHT_DIR OUT_DIR``) runs with its
-default configuration but for the SIFT cap (:data:`MAX_FEATURES`) and ``certificate="none"``
-(self-calibration), SQLite and artifacts in the
-temporary directory, Prefect's temporary local server, a local Dask cluster of 2 workers per step that
-needs one. Recorded: time per step and wall time, peak memory of this process and of its children (the
-Dask workers), images registered, tie points per image, reprojection RMS and sigma0 of the calibration and
-of the block adjustment, blunders rejected, the certificate's f, cx, cy with sigmas and the thermal slope,
+Then :func:`aerocal.pipeline.process` (the code of ``aerocal process FLIGHT_DIR OUT_DIR``, here without
+Prefect or a database) runs with its default configuration but for the SIFT cap (:data:`MAX_FEATURES`) and
+``certificate="none"`` (self-calibration), a local Dask cluster of 2 workers per step that needs one; the
+tables the report and ``--rediagnose`` read are kept in ``kept/`` of the work folder. Recorded: time per
+step and wall time, peak memory of this process and of its children (the Dask workers), images registered,
+tie points per image, reprojection RMS and sigma0 of the calibration and of the block adjustment,
+blunders rejected, the certificate's f, cx, cy with sigmas and the thermal slope,
 the diagnosis. Figure: ``benchmarks/output/seneca_tie_points.png`` (tie points per image over the image
 order, sensor temperature on a twin axis); the per-image numbers in ``seneca_per_image.csv`` beside it.
 
@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import io
 import json
 import os
 import re
@@ -54,20 +53,19 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pyarrow as pa
 
+from aerocal import tables
 from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
 from aerocal.camera import Camera
 from aerocal.certificate import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.ingest import ingest_folder
+from aerocal.io import write_json_atomic
 from aerocal.matching import FeatureConfig
+from aerocal.pipeline import process
+from aerocal.pipeline.config import MatchStepConfig, ProcessConfig
+from aerocal.pipeline.report_step import recorded_eo_text
 from benchmarks.common import peak_rss_mb, record
-from flows.config import ProcessConfig
-from flows.environment import quiet_prefect
-from flows.flight import process_flight
-from tasks.flight import MatchStepConfig
-from tasks.products import recorded_eo_text
-from tasks.resume import StepContext
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT.parent / "shared" / "data" / "seneca" / "images"
@@ -177,12 +175,54 @@ def tie_point_figure(names: list[str], per_image: np.ndarray, used: np.ndarray, 
     h1, l1 = ax.get_legend_handles_labels()
     h2, l2 = tw.get_legend_handles_labels()
     ax.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=8)
-    ax.set_title("seneca: tie points per image (process_flight)")
+    ax.set_title("seneca: tie points per image (aerocal process)")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+#: what :func:`keep` writes: name -> (step, output, kind); kind ``None`` for arrays and JSON
+KEPT = {
+    "images": ("ingest", "images", "images"),
+    "observations": ("match", "observations", "observations"),
+    "gcps": ("control", "gcps", "gcps"),
+    "gcp_observations": ("control", "gcp_observations", "gcp_observations"),
+    "calibration": ("calibrate", "calibration", None),
+    "adjustment": ("adjust", "adjustment", None),
+    "residuals": ("adjust", "residuals", None),
+    "obs_weight": ("adjust", "obs_weight", None),
+    "poses": ("adjust", "poses", "poses"),
+    "points": ("adjust", "points", "points"),
+}
+
+
+def keep(run, work: Path) -> None:
+    """Write the run's tables the report and ``--rediagnose`` read to ``work/kept`` (Parquet, .npy, JSON)."""
+    folder = work / "kept"
+    for name, (step, output, kind) in KEPT.items():
+        values = run.runner.inputs({name: run.steps[step][output]})
+        if kind is not None:
+            tables.write(values.table(name), folder / f"{name}.parquet", kind)
+        elif name in ("residuals", "obs_weight"):
+            folder.mkdir(parents=True, exist_ok=True)
+            np.save(folder / f"{name}.npy", values.array(name), allow_pickle=False)
+        else:
+            write_json_atomic(folder / f"{name}.json", values.json(name))
+
+
+def read_kept(work: Path) -> dict:
+    """What :func:`keep` wrote, by name."""
+    folder, out = work / "kept", {}
+    for name, (_, _, kind) in KEPT.items():
+        if kind is not None:
+            out[name] = tables.read(folder / f"{name}.parquet", kind)
+        elif (folder / f"{name}.npy").is_file():
+            out[name] = np.load(folder / f"{name}.npy", allow_pickle=False)
+        else:
+            out[name] = json.loads((folder / f"{name}.json").read_text())
+    return out
 
 
 def rediagnose(work: Path) -> list[str]:
@@ -191,27 +231,15 @@ def rediagnose(work: Path) -> list[str]:
     if not measured_path.is_file():
         raise SystemExit(f"{measured_path} not found: run the benchmark with --work {work} first")
     summary = json.loads(measured_path.read_text())["summary"]
-    steps = summary["steps"]
     cert = Certificate.from_dict(json.loads((Path(summary["out_dir"]) / "certificate.json").read_text()))
-    ctx = StepContext(f"sqlite:///{work / 'aerocal.db'}", str(work / "artifacts"), "benchmark")
-    with ctx.database.session() as session:
-        def art(sha):
-            return ctx.store.get(session, sha)
-
-        ing, adj = steps["ingest"]["outputs"], steps["adjust"]["outputs"]
-        images = ctx.store.read_table(art(ing["images"]), "images")
-        gcps = ctx.store.read_table(art(ing["gcps"]), "gcps")
-        gcp_obs = ctx.store.read_table(art(ing["gcp_observations"]), "gcp_observations")
-        obs = ctx.store.read_table(art(steps["match"]["outputs"]["observations"]), "observations")
-        weight = np.load(io.BytesIO(ctx.store.read_bytes(art(adj["obs_weight"]))))
-        residuals = np.load(io.BytesIO(ctx.store.read_bytes(art(adj["residuals"]))))
-        adjustment = json.loads(ctx.store.read_bytes(art(adj["adjustment"])))
-        poses = ctx.store.read_table(art(adj["poses"]), "poses")
-        points = ctx.store.read_table(art(adj["points"]), "points")
+    kept = read_kept(work)
+    images, gcps, gcp_obs, obs = kept["images"], kept["gcps"], kept["gcp_observations"], kept["observations"]
+    weight, residuals, adjustment = kept["obs_weight"], kept["residuals"], kept["adjustment"]
+    poses, points = kept["poses"], kept["points"]
     flight = json.loads((work / "seneca" / "flight.json").read_text())
     h, v = flight["gnss_sigma_m"]
     config = AdjustConfig(free=(), gnss_sigma_m=(h, h, v), attitude_sigma_deg=tuple(flight["imu_sigma_deg"]))
-    # as tasks.products.diagnose_step: the block adjustment's screening and tie-point sigma, least squares
+    # as aerocal.pipeline.diagnose_step: the block adjustment's screening and tie-point sigma, least squares
     scale = float(adjustment.get("tie_sigma_scale", 1.0))
     keep = screened_rows(obs, residuals, weight, scale, config.reject_chi2)
     obs = scale_tie_sigma(obs.take(pa.array(keep, pa.int64())), scale)
@@ -255,11 +283,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     if not IMAGES.is_dir():
         raise SystemExit(f"{IMAGES} not found: the seneca images are needed")
-
     work = args.work.resolve() if args.work else Path(tempfile.mkdtemp(prefix="aerocal-seneca-"))
     work.mkdir(parents=True, exist_ok=True)
-    quiet_prefect(work / "prefect")
-    db, artifacts = f"sqlite:///{work / 'aerocal.db'}", str(work / "artifacts")
     measured_path = work / "measured.json"
     done = False
     try:
@@ -268,10 +293,10 @@ def main(argv: list[str] | None = None) -> None:
         else:
             folder, built = build_flight(work, args.quick)
             t0 = time.perf_counter()
-
             config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES)))
-            summary = process_flight(folder, work / "run", "none", config=config, database_url=db,
-                                     artifact_root=artifacts)
+            run = process(folder, config, certificate="none", out_dir=work / "run")
+            summary = run.summary
+            keep(run, work)
             measured = {"summary": summary, "wall_s": time.perf_counter() - t0, "peak_main_mb": peak_rss_mb(),
                         "peak_children_mb": children_peak_mb(),
                         "built": {**built, "camera": built["camera"].to_dict()}}
@@ -284,17 +309,10 @@ def main(argv: list[str] | None = None) -> None:
         adj = json.loads((run_dir / "adjustment.json").read_text())
         # the calibration's own certificate (with its review), not the nominal camera a rejected one leaves
         cert = Certificate.from_dict(json.loads((run_dir / "calibration_certificate.json").read_text()))
-        ctx = StepContext(db, artifacts, "benchmark")
         steps = summary["steps"]
-        with ctx.database.session() as session:
-            def art(sha):
-                return ctx.store.get(session, sha)
-
-            images = ctx.store.read_table(art(steps["ingest"]["outputs"]["images"]), "images")
-            obs = ctx.store.read_table(art(steps["match"]["outputs"]["observations"]), "observations")
-            cal = json.loads(ctx.store.read_bytes(art(steps["calibrate"]["outputs"]["calibration"])))
-            residuals = np.load(io.BytesIO(ctx.store.read_bytes(art(summary["outputs"]["residuals"]))))
-            poses = ctx.store.read_table(art(summary["outputs"]["poses"]), "poses")
+        kept = read_kept(work)
+        images, obs, cal = kept["images"], kept["observations"], kept["calibration"]
+        residuals, poses = kept["residuals"], kept["poses"]
 
         order = np.argsort(images.column("time").to_numpy(), kind="stable")
         ids = images.column("image_id").to_numpy()[order]
@@ -330,8 +348,8 @@ def main(argv: list[str] | None = None) -> None:
             f"- nominal camera (camera.json): f {built['camera'].f:.1f} px (EXIF 4.3 mm / 3.43 um), principal "
             f"point at the centre; flight.json: height_agl_m {built['height_agl_m']:.1f} m (take-off ground "
             f"{built['ground_m']:.1f} m ellipsoidal), GNSS sigma {GNSS_SIGMA_M} m, IMU sigma {IMU_SIGMA_DEG} deg",
-            f"- `process_flight`, default configuration but SIFT capped at {MAX_FEATURES} keypoints per image, "
-            "certificate `none` (self-calibration), SQLite, local Dask cluster of 2 workers, full-size images",
+            f"- `aerocal.pipeline.process`, default configuration but SIFT capped at {MAX_FEATURES} keypoints per "
+            "image, certificate `none` (self-calibration), local Dask cluster of 2 workers, full-size images",
             "",
             "| step | status | time |",
             "|---|---|---|",

@@ -24,12 +24,12 @@ import numpy as np
 from aerocal.adjust import adjust, adjust_fixed_io, select_images
 from aerocal.camera import LinearThermalModel
 from aerocal.ingest import ingest_folder
+from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
+from aerocal.pipeline.match_step import match_images
 from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
 from benchmarks.colmap_bench import _flight
 from benchmarks.common import record
-from flows.config import ProcessConfig, with_flight_sigmas
-from tasks.flight import match_images
 
 
 def main(argv: list[str] | None = None) -> None:

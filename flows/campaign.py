@@ -27,14 +27,17 @@ from prefect.client.schemas.schedules import CronSchedule
 from prefect.deployments.runner import EntrypointType
 from sqlalchemy.engine import make_url
 
-from flows.config import ProcessConfig
+from aerocal.pipeline import FolderDataset, ProcessConfig
+from aerocal.pipeline.certificates import identity_of
+from aerocal.pipeline.ingest_step import ingest_step
+from aerocal.pipeline.runner import JsonOutput
 from flows.environment import resolve_storage
-from flows.flight import FlowInputError, process_flight
+from flows.process import FlowInputError, process_flight
 from storage.flights import create_campaign, get_campaign, register_flight
 from storage.models import Artifact, Campaign
 from storage.runs import finish_run, start_run
-from tasks.flight import IngestStepConfig, ingest_step, register_manifest
-from tasks.resume import StepContext
+from storage.steps import StepContext
+from tasks.runner import StoreRunner
 
 FOLDERS_KIND = "campaign-folders"
 
@@ -96,11 +99,11 @@ def add_flights(
             folder = Path(d).resolve()
             if not folder.is_dir():
                 raise FlowInputError(f"{folder} is not a folder; give flight folders")
-            ing = ingest_step(ctx, folder, register_manifest(ctx, folder), IngestStepConfig())
+            runner, dataset = StoreRunner(ctx, prefect_tasks=False), FolderDataset(folder)
+            ing = ingest_step(runner, dataset, runner.put(JsonOutput(dataset.manifest(), "flight-manifest")))
+            docs = runner.inputs({"flight": ing["flight"], "camera": ing["camera"]})
+            flight, key = docs.json("flight"), identity_of(docs.json("camera")).key
             with ctx.database.session() as session:
-                flight = json.loads(ctx.store.read_bytes(ctx.store.get(session, ing["flight"])))
-                cam = json.loads(ctx.store.read_bytes(ctx.store.get(session, ing["camera"])))["identity"]
-                key = "|".join(str(cam.get(k) or "unknown") for k in ("make", "model", "serial", "lens"))
                 register_flight(
                     session,
                     flight["name"],

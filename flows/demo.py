@@ -2,7 +2,7 @@
 
 :func:`demo` simulates ``conte-calibration`` (the NEC TS9260 thermal camera over a synthetic city) in
 observations mode with a hidden focal-length temperature effect, renders a handful of frames near the
-block centre so that the orthomosaic has pixels, and runs :func:`flows.flight.process_flight` with every
+block centre so that the orthomosaic has pixels, and runs :func:`flows.process.process_flight` with every
 step: ingest, orient, self-calibration with the certificate stored, full-block adjustment with fixed IO
 and thermal correction, DSM and orthomosaic, assessment, diagnosis and the HTML report.
 
@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 from prefect import flow
 
+from aerocal.pipeline import ProcessConfig
 from aerocal.simulate import simulate_flight, write_flight
 from aerocal.simulate.rendered_frames import render_flight_images
 from aerocal.simulate.simulator import spec_summary
-from flows.config import ProcessConfig
 from flows.environment import demo_environment
-from flows.flight import FlowInputError, process_flight
+from flows.process import FlowInputError, process_flight
 
 
 @dataclasses.dataclass(frozen=True)

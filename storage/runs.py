@@ -6,23 +6,20 @@ end of each step, so a crash loses at most the step in progress).
 
 from __future__ import annotations
 
-import dataclasses
-import enum
 import functools
 import json
-import math
 import os
 import socket
 import subprocess
-from collections.abc import Mapping
-from datetime import date, datetime
+from datetime import datetime
 from importlib import metadata
-from pathlib import Path, PurePath
+from pathlib import Path
 from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
+from aerocal.io import plain_json
 from storage.errors import NotFoundError, StorageError
 from storage.models import RUN_STATUSES, Campaign, Certificate, Flight, Run, utcnow
 
@@ -50,30 +47,12 @@ def current_code_version() -> str:
 
 
 def to_json(value: Any) -> Any:
-    """``value`` as plain JSON types: dataclasses and mappings become objects, paths and dates strings,
-    numpy scalars and arrays numbers and lists, enums their value; NaN and infinities become ``None``.
-    """
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: to_json(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if isinstance(value, Mapping):
-        return {str(k): to_json(v) for k, v in value.items()}
-    if isinstance(value, list | tuple | set | frozenset):
-        return [to_json(v) for v in value]
-    if isinstance(value, enum.Enum):
-        return to_json(value.value)
-    if isinstance(value, PurePath):
-        return str(value)
-    if isinstance(value, datetime | date):
-        return value.isoformat()
-    if isinstance(value, bool) or value is None or isinstance(value, str | int):
-        return value
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if hasattr(value, "tolist"):  # numpy
-        return to_json(value.tolist())
-    raise StorageError(
-        f"configuration value of type {type(value).__name__} cannot be stored as JSON: {value!r}"
-    )
+    """``value`` as plain JSON types (:func:`aerocal.io.plain_json`); a value of another type raises
+    :class:`StorageError` naming it."""
+    try:
+        return plain_json(value)
+    except TypeError as exc:
+        raise StorageError(f"configuration {exc}") from None
 
 
 def get_run(session: Session, run_id: str) -> Run:

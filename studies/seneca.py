@@ -5,9 +5,10 @@ HS, 1800x1350, rolling shutter) ~70 m above farm fields; GNSS and autopilot atti
 the camera's temperature in the Canon maker notes. The flight folder is the one of
 :func:`benchmarks.seneca_bench.build_flight` (image links, the nominal camera, consumer GNSS/IMU sigmas).
 
-The study is a thin caller of the product: it runs :func:`flows.flight.process_flight` (the code of
-``aerocal process FLIGHT --certificate none``) and writes what the run itself decided, from its own outputs,
-so that the study and ``aerocal process`` give the same answer on the same images:
+The study is a thin caller of the product: it runs :func:`aerocal.pipeline.process` (the code of
+``aerocal process FLIGHT --certificate none``, here without Prefect or a database) and writes what the run
+itself decided, from its own outputs, so that the study and ``aerocal process`` give the same answer on the
+same images:
 
 1. the self-calibration under the decision rule (:mod:`aerocal.calibration`): per parameter the formal t,
    the t calibrated by the block's overdispersion (pure-noise per-image focal hypotheses), the held-out gain
@@ -41,14 +42,12 @@ if str(ROOT) not in sys.path:  # run as a script: the project's packages
 import matplotlib  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
+from aerocal import pipeline  # noqa: E402
 from aerocal.certificate import Certificate  # noqa: E402
-from aerocal.io import atomic_path, write_text_atomic  # noqa: E402
+from aerocal.io import atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
 from aerocal.matching import FeatureConfig  # noqa: E402
+from aerocal.pipeline.config import MatchStepConfig, ProcessConfig  # noqa: E402
 from benchmarks.seneca_bench import MAX_FEATURES, build_flight  # noqa: E402
-from flows.config import ProcessConfig  # noqa: E402
-from flows.environment import quiet_prefect  # noqa: E402
-from flows.flight import process_flight  # noqa: E402
-from tasks.flight import MatchStepConfig  # noqa: E402
 
 OUT = ROOT / "studies" / "output"
 
@@ -59,12 +58,10 @@ def process(work: Path, quick: bool) -> Path:
     run_dir = work / "run"
     if (run_dir / "diagnosis.json").is_file():
         return run_dir
-
-    quiet_prefect(work / "prefect")
     folder, _ = build_flight(work, quick)
     config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES)))
-    process_flight(folder, run_dir, "none", config=config, database_url=f"sqlite:///{work / 'aerocal.db'}",
-                   artifact_root=str(work / "artifacts"))
+    run = pipeline.process(folder, config, certificate="none", out_dir=run_dir)
+    write_json_atomic(run_dir / "run.json", run.summary)
     return run_dir
 
 
@@ -169,7 +166,7 @@ def markdown(r: dict, title: str) -> str:
     lines = [
         f"# {title}",
         "",
-        "Written by `studies/seneca.py` from the outputs of `aerocal process` (`flows.flight.process_flight`, "
+        "Written by `studies/seneca.py` from the outputs of `aerocal process` (`aerocal.pipeline.process`, "
         "certificate `none`) on the same images: the study reports what the product decided.",
         "",
         f"- run {r['run']['run_id']}; block adjustment: reprojection RMS "

@@ -1,8 +1,7 @@
-"""Prefect tasks: thin wrappers around the engine's functions, with retries, cache keys and artifacts.
+"""The platform's parts of the flight pipeline (:mod:`aerocal.pipeline`): thin wrappers with retries, storage
+and records.
 
-Modules: :mod:`tasks.resume` (content-addressed steps that resume after a crash), :mod:`tasks.retries`
-(which failures are retried), :mod:`tasks.flight` (manifest, ingest, enhance + match, orient),
-:mod:`tasks.calibration` (sub-block, self-calibration, certificate issue and selection),
-:mod:`tasks.block` (full-block adjustment with fixed IO), :mod:`tasks.products` (DSM + orthomosaic,
-assessment, diagnosis, report).
+Modules: :mod:`tasks.runner` (every step a Prefect task, stored and reused through :mod:`storage.steps`),
+:mod:`tasks.certificates` (the database as the certificate store), :mod:`tasks.run_records` (what a run
+records as it goes), :mod:`tasks.retries` (which failures are retried).
 """

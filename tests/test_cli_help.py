@@ -45,7 +45,7 @@ GROUPS = {
 PANELS = ("Process flights", "Campaigns and schedules", "Certificates and storage", "Simulation and diagnosis")
 
 #: modules help must not import: Prefect, SQLAlchemy, the flows, the storage layer (its errors included)
-HEAVY = ("prefect", "sqlalchemy", "flows.flight", "flows.campaign", "flows.demo", "storage.errors", "storage.database")
+HEAVY = ("prefect", "sqlalchemy", "flows.process", "flows.campaign", "flows.demo", "storage.errors", "storage.database")
 
 #: every command of the tree by its path, e.g. ("certificates", "export")
 LEAVES = [(name,) for name in COMMANDS] + [(group, sub) for group, subs in GROUPS.items() for sub in subs]

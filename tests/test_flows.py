@@ -32,7 +32,7 @@ def flight(tmp_path_factory):
     """A 20-image thermal calibration flight in observations mode with a hidden focal-length slope, and
     beside it a reference DSM (as a LiDAR survey would give): the scene's surface over the flight."""
     from aerocal.simulate import simulate_flight, write_flight
-    from tasks.products import REFERENCE_DSM
+    from aerocal.pipeline.dataset import REFERENCE_DSM
 
     sim = simulate_flight("conte-calibration", seed=SEED, effects={"thermal_focal": 0.06}, max_images=20)
     folder = write_flight(sim, tmp_path_factory.mktemp("flights") / "flight-a", mode="observations")
@@ -46,7 +46,7 @@ def _json(ctx_store, session, sha):
 
 def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path):
     from aerocal.certificate import Certificate
-    from flows.flight import process_flight
+    from flows.process import process_flight
     from storage.certificates import get_certificate
     from storage.database import connect
     from storage.provenance import ancestors, provenance
@@ -220,8 +220,8 @@ def check_report_shows_every_figure(run_dir):
 
 
 def test_crashed_run_resumes_after_the_last_completed_step(prefect_server, flight, tmp_path, monkeypatch):
-    import tasks.block
-    from flows.flight import process_flight
+    import aerocal.pipeline.adjust_step
+    from flows.process import process_flight
     from storage.database import connect
     from storage.runs import list_runs
 
@@ -230,7 +230,7 @@ def test_crashed_run_resumes_after_the_last_completed_step(prefect_server, fligh
     def crash(*args, **kwargs):
         raise RuntimeError("power cut during the block adjustment")
 
-    monkeypatch.setattr(tasks.block, "adjust_fixed_io", crash)
+    monkeypatch.setattr(aerocal.pipeline.adjust_step, "adjust_fixed_io", crash)
     with pytest.raises(RuntimeError, match="power cut"):
         process_flight(flight, tmp_path / "run", "none", database_url=url, artifact_root=art)
     monkeypatch.undo()
@@ -269,8 +269,13 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
     from aerocal.simulate import simulate_flight, write_flight
     from storage.migrations import upgrade
     from storage.runs import start_run
-    from tasks.flight import MatchStepConfig, ingest_step, match_step, register_manifest
-    from tasks.resume import StepContext
+    from aerocal.pipeline import FolderDataset
+    from aerocal.pipeline.config import MatchStepConfig
+    from aerocal.pipeline.ingest_step import ingest_step
+    from aerocal.pipeline.match_step import match_step
+    from aerocal.pipeline.runner import JsonOutput
+    from storage.steps import StepContext
+    from tasks.runner import StoreRunner
 
     sim = simulate_flight("conte-calibration", seed=5, max_images=4)
     folder = write_flight(sim, tmp_path / "flight", mode="images")
@@ -280,8 +285,9 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
     with ctx.database.session() as session:
         start_run(session, ctx.run_id, "test")
         session.commit()
-    ing = ingest_step(ctx, folder, register_manifest(ctx, folder))
-    matched = match_step(ctx, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
+    runner, dataset = StoreRunner(ctx, prefect_tasks=False), FolderDataset(folder)
+    ing = ingest_step(runner, dataset, runner.put(JsonOutput(dataset.manifest(), "flight-manifest")))
+    matched = match_step(runner, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
     assert not matched.reused
     with ctx.database.session() as session:
         obs = ctx.store.read_table(ctx.store.get(session, matched["observations"]), "observations")
@@ -292,12 +298,12 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
     assert per_image.min() > 100, f"observations per image {per_image.tolist()}"
     track_len = np.bincount(obs.column("track_id").to_numpy())
     assert track_len[track_len > 0].min() >= 2
-    again = match_step(ctx, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
+    again = match_step(runner, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
     assert again.reused and again.outputs == matched.outputs
-    from tasks import resume
+    from aerocal.pipeline import runner as runner_module
 
-    monkeypatch.setattr(resume, "code_version", lambda: "another version of the code")
-    other = match_step(ctx, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
+    monkeypatch.setattr(runner_module, "code_version", lambda: "another version of the code")
+    other = match_step(runner, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
     assert not other.reused, "a step cached by other code was reused"
 
 
@@ -308,9 +314,13 @@ def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
     from aerocal.subset import SubsetConfig
     from storage.migrations import upgrade
     from storage.runs import start_run
-    from tasks.calibration import CalibrationStepConfig, calibrate_step
-    from tasks.flight import ingest_step, register_manifest
-    from tasks.resume import StepContext
+    from aerocal.pipeline import FolderDataset
+    from aerocal.pipeline.calibrate_step import calibrate_step
+    from aerocal.pipeline.config import CalibrationStepConfig
+    from aerocal.pipeline.ingest_step import ingest_step
+    from aerocal.pipeline.runner import JsonOutput
+    from storage.steps import StepContext
+    from tasks.runner import StoreRunner
 
     url = f"sqlite:///{tmp_path / 'aerocal.db'}"
     upgrade(url)
@@ -318,11 +328,12 @@ def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
     with ctx.database.session() as session:
         start_run(session, ctx.run_id, "test")
         session.commit()
-    ing = ingest_step(ctx, flight, register_manifest(ctx, flight))
+    runner, dataset = StoreRunner(ctx, prefect_tasks=False), FolderDataset(flight)
+    ing = ingest_step(runner, dataset, runner.put(JsonOutput(dataset.manifest(), "flight-manifest")))
     config = CalibrationStepConfig(
         whole_flight_max_images=10, subset=SubsetConfig(strip_counts=(2, 3), images_per_strip=(3, 4))
     )
-    cal = calibrate_step(ctx, ing, ing["observations"], config)
+    cal = calibrate_step(runner, ing, ing["observations"], config)
     with ctx.database.session() as session:
         doc = json.loads(ctx.store.read_bytes(ctx.store.get(session, cal["calibration"])))
         cert_art = ctx.store.get(session, cal["certificate"])

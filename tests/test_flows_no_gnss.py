@@ -40,7 +40,7 @@ def bare_flight(tmp_path_factory):
 
 def test_flight_without_gnss_is_oriented_by_sfm_and_georeferenced_on_control(prefect_server, bare_flight,
                                                                                tmp_path):
-    from flows.flight import process_flight
+    from flows.process import process_flight
     from storage.database import connect
     from storage.provenance import provenance
 

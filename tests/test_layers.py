@@ -69,6 +69,40 @@ def test_processing_never_imports_the_simulator():
     assert not offenders, f"processing modules import the simulator: {offenders}"
 
 
+def _imported_modules(path: Path) -> set[str]:
+    """Full dotted names of every module ``path`` imports (lazy imports included)."""
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+            names.update(f"{node.module}.{a.name}" for a in node.names)
+    return names
+
+
+def test_studies_and_benchmarks_use_the_pipeline_not_the_platform():
+    """Studies and benchmarks run flights through :mod:`aerocal.pipeline` and the engine's public names: never
+    Prefect tasks or flows, nor the storage layer (but the storage benchmark, which measures it)."""
+    offenders = {}
+    for folder in ("studies", "benchmarks"):
+        for path in (ROOT / folder).rglob("*.py"):
+            allowed = {"storage"} if path.name == "storage_bench.py" else set()
+            bad = {m.split(".")[0] for m in _imported_modules(path)} & ({"flows", "tasks", "storage"} - allowed)
+            private = {m for m in _imported_modules(path)
+                       if m.startswith("aerocal.") and m.rsplit(".", 1)[-1].startswith("_")}
+            if bad or private:
+                offenders[str(path.relative_to(ROOT))] = sorted(bad | private)
+    assert not offenders, f"studies/benchmarks reach past the pipeline: {offenders}"
+
+
+def test_tasks_are_thin_wrappers():
+    """A module under tasks/ is a thin wrapper (config, one engine call, retries, storage), never a pipeline."""
+    long = {str(p.relative_to(ROOT)): n for p in (ROOT / "tasks").rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > 150}
+    assert not long, f"tasks modules over 150 lines: {long}"
+
+
 #: where every function-local import must say why it is not at module level (aerocal/report/ joins when its
 #: rewrite lands)
 LOCAL_IMPORT_ROOTS = ("aerocal", "storage", "flows/cli")

@@ -13,7 +13,7 @@ Modules: :mod:`.features` (detection on tiles), :mod:`.pairs` (footprint overlap
 :mod:`.cluster` (Dask), :mod:`.config` (the configuration dataclasses).
 """
 
-from aerocal.matching.cluster import local_client
+from aerocal.matching.cluster import dask_client, local_client
 from aerocal.matching.config import FeatureConfig, MatchConfig
 from aerocal.matching.features import detect, extract_features, image_features, keypoints_table, tile_boxes
 from aerocal.matching.pairs import (
@@ -42,6 +42,7 @@ __all__ = [
     "MatchConfig",
     "MatchResult",
     "build_tracks",
+    "dask_client",
     "candidate_pairs_from_footprints",
     "convex_overlap_area",
     "detect",

@@ -138,3 +138,16 @@ def run_all(
         if progress is not None:
             progress(done, total)
     return results
+
+
+def dask_client(address: str | None, n_workers: int, serial: bool) -> contextlib.AbstractContextManager:
+    """The Dask client a step's tile work runs on, as a context manager: the scheduler at ``address`` when one
+    is given, else ``None`` (serial, in this process) when ``serial`` or ``n_workers <= 0``, else a fresh
+    :func:`local_client` of ``n_workers`` closed on exit."""
+    if address:
+        from distributed import Client  # lazy: the engine works without Dask installed
+
+        return Client(address)
+    if serial or n_workers <= 0:
+        return contextlib.nullcontext(None)
+    return local_client(n_workers=n_workers)

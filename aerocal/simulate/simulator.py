@@ -38,6 +38,7 @@ from aerocal.geometry import (
     quat_wxyz_from_matrix,
 )
 from aerocal.io import write_json_atomic
+from aerocal.pipeline.dataset import MemoryDataset
 from aerocal.simulate.exposure import Exposure
 from aerocal.simulate.flight_plan import Trajectory, footprint_m, overlaps, plan_flight
 from aerocal.simulate.measured import trajectory
@@ -314,6 +315,30 @@ def _write_reference_dsm(sim: SimulatedFlight, path: Path) -> None:
     write_dsm(surface.window(sim.bounds, margin_cells=50), path)
 
 
+def as_dataset(sim: SimulatedFlight, name: str | None = None) -> MemoryDataset:
+    """The flight as the folder :func:`write_flight` would write in observations mode, without writing it: a
+    dataset :func:`aerocal.pipeline.process` runs on in memory."""
+    return MemoryDataset(name or sim.spec.name, sim.images, sim.observations, sim.gcps, sim.gcp_observations,
+                         camera_document(sim), flight_metadata(sim, "observations"), sim.crs)
+
+
+def camera_document(sim: SimulatedFlight) -> dict:
+    """The flight's ``camera.json``: the camera identity and the manufacturer's nominal camera."""
+    return {"identity": dict(sim.spec.identity), "camera": sim.spec.camera_nominal.to_dict()}
+
+
+def flight_metadata(sim: SimulatedFlight, mode: str) -> dict:
+    """The flight's ``flight.json``: what a pilot would hand over (plan, sensor sigmas; no truth)."""
+    return {
+        "name": sim.spec.name, "description": sim.spec.description, "crs": sim.crs, "mode": mode,
+        "modality": sim.spec.modality, "n_images": sim.images.num_rows,
+        "height_agl_m": sim.spec.plan.height_agl_m, "start_time": sim.spec.start_time,
+        "gnss_sigma_m": [sim.spec.sensors.gnss_sigma_h_m, sim.spec.sensors.gnss_sigma_v_m],
+        "imu_sigma_deg": list(sim.spec.sensors.imu_sigma_deg),
+        "tie_sigma_px": sim.spec.sensors.tie_sigma_px,
+    }
+
+
 def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observations",
                  progress=None, as_recorded: bool = False) -> Path:
     """Write the flight folder atomically: everything goes to a temporary sibling, renamed at the end.
@@ -345,16 +370,8 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
             gcsv, odm = _gcp_files(sim)
             (tmp / "gcps.csv").write_text(gcsv)
             (tmp / "gcp_list.txt").write_text(odm)
-        write_json_atomic(tmp / "camera.json", {"identity": sim.spec.identity,
-                                                "camera": sim.spec.camera_nominal.to_dict()})
-        write_json_atomic(tmp / "flight.json", {
-            "name": sim.spec.name, "description": sim.spec.description, "crs": sim.crs, "mode": mode,
-            "modality": sim.spec.modality, "n_images": sim.images.num_rows,
-            "height_agl_m": sim.spec.plan.height_agl_m, "start_time": sim.spec.start_time,
-            "gnss_sigma_m": [sim.spec.sensors.gnss_sigma_h_m, sim.spec.sensors.gnss_sigma_v_m],
-            "imu_sigma_deg": list(sim.spec.sensors.imu_sigma_deg),
-            "tie_sigma_px": sim.spec.sensors.tie_sigma_px,
-        })
+        write_json_atomic(tmp / "camera.json", camera_document(sim))
+        write_json_atomic(tmp / "flight.json", flight_metadata(sim, mode))
         if mode == "images":
             render_flight_images(sim, tmp / "images", progress=progress)
         return _finish_flight(sim, tmp, out)

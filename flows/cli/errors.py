@@ -31,8 +31,8 @@ BAD_INPUT = 2
 INTERRUPTED = 130
 
 #: The errors below are named by module and class and compared by name along the raised error's class
-#: hierarchy, so that this module imports none of them just to be ready for an error: ``flows.flight`` and
-#: ``tasks.flight`` import Prefect (about 1 s), the simulator takes 0.6 s, the diagnosis 1 s, and
+#: hierarchy, so that this module imports none of them just to be ready for an error: ``flows.process``
+#: imports Prefect (about 1 s), the pipeline and the simulator take 0.6 s, the diagnosis 1 s, and
 #: ``storage.errors`` 0.3 s (it imports the engine's certificate schema); ``aerocal --help`` would pay for
 #: them. ``tests/test_cli_help.py`` checks that each still exists.
 
@@ -42,8 +42,7 @@ STORAGE_ERRORS: frozenset[tuple[str, str]] = frozenset({("storage.errors", "Stor
 
 #: errors that mean the user's input is wrong (exit code :data:`BAD_INPUT`)
 INPUT_ERRORS: frozenset[tuple[str, str]] = frozenset({
-    ("flows.flight", "FlowInputError"),
-    ("tasks.flight", "FlightInputError"),
+    ("aerocal.pipeline.dataset", "FlightInputError"),
     ("aerocal.effects", "EffectError"),
     ("aerocal.simulate.presets", "PresetError"),
     ("aerocal.simulate.simulator", "SimulationError"),
@@ -129,9 +128,9 @@ def flow_errors(run_dir: Path) -> Iterator[None]:
     line saying what is kept and how to resume (exit :data:`INTERRUPTED`), and a defect as one line naming
     the run folder's traceback file (exit :data:`FAILED`). Call after :func:`flows.environment.quiet_prefect`:
     this imports Prefect."""
-    # lazy: these import Prefect (~2.9 s CPU at start-up): only around a flow run, never for --help
-    from flows.flight import FAILURE_LOG
-    from tasks.resume import interrupts_noted
+    # lazy: flows.process imports Prefect (about 1 s), only around a flow run
+    from aerocal.pipeline.interrupts import interrupts_noted
+    from flows.process import FAILURE_LOG
 
     try:
         with user_errors(interrupted=RESUME_NOTE), interrupts_noted():

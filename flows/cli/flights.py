@@ -97,8 +97,8 @@ def print_run(summary: dict[str, Any]) -> None:
     if summary.get("diagnosis"):
         console.print(f"diagnosis: {summary['diagnosis']}")
     if summary.get("recorded_eo"):
-        # lazy: tasks import Prefect (~1.6 s CPU at start-up); --help must not pay it
-        from tasks.products import recorded_eo_text
+        # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
+        from aerocal.pipeline.report_step import recorded_eo_text
 
         console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
     if summary.get("recorded_eo_corrections"):
@@ -208,8 +208,10 @@ def match(
         fail(f"{folder}: no such folder; give a flight folder with images/", BAD_INPUT)
     quiet_prefect()
     with user_errors():
-        # lazy: tasks import Prefect (~1.6 s CPU at start-up); --help must not pay it
-        from tasks.flight import FlightInputError, MatchStepConfig, match_images
+        # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
+        from aerocal.pipeline.config import MatchStepConfig
+        from aerocal.pipeline.dataset import FlightInputError
+        from aerocal.pipeline.match_step import match_images
 
         res = ingest_folder(folder)
         if res.images.num_rows == 0:
@@ -270,8 +272,8 @@ def process(
     quiet_prefect()
     run_dir = default_run_dir(flight_dir, out)
     with flow_errors(run_dir):
-        # lazy: flows.flight imports Prefect (~2.9 s CPU at start-up); --help must not pay it
-        from flows.flight import process_flight
+        # lazy: flows.process imports Prefect (~2.9 s CPU at start-up); --help must not pay it
+        from flows.process import process_flight
 
         with console.status(f"processing {flight_dir} ..."):
             summary = process_flight(
@@ -342,10 +344,10 @@ def calibrate(
     require_folder(flight_dir)
     quiet_prefect()
     with flow_errors(default_run_dir(flight_dir, out)):
-        # lazy: flows.flight imports Prefect (~2.9 s CPU at start-up); --help must not pay it
+        # lazy: flows.process imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from aerocal.certificate import Certificate
-        from flows.config import ProcessConfig
-        from flows.flight import calibrate_camera
+        from aerocal.pipeline import ProcessConfig
+        from flows.process import calibrate_camera
 
         cfg = ProcessConfig()
         cfg.calibration = dataclasses.replace(cfg.calibration, **settings)

@@ -1,12 +1,11 @@
-"""Content-addressed steps that resume: cache keys, step records, and the run's bookkeeping.
+"""Content-addressed steps that resume: step records in the artifact store, and the run's bookkeeping.
 
 Every step of a flow run goes through :func:`run_step`:
 
 1. its **cache key** is the SHA-256 of the step name, the SHA-256 of each input artifact (by input name)
-   and the step's configuration as JSON (:func:`cache_key`), plus :data:`STEP_FORMAT` and the version of
-   the code that computes steps (:func:`code_version`: a step computed by other code is computed again, since
-   the cache cannot tell whether the change matters; a diagnosis cached before a fix had been reused
-   silently);
+   and the step's configuration as JSON, plus the key recipe and the version of the code that computes steps
+   (:func:`aerocal.pipeline.runner.cache_key`: a step computed by other code is computed again, since the
+   cache cannot tell whether the change matters; a diagnosis cached before a fix had been reused silently);
 2. the database is asked for a **step record** registered for (step name, cache key): a small JSON
    artifact of kind ``"step"`` whose ``schema_name`` is ``aerocal.step/<step>/<cache key>`` and whose
    content lists the step's output artifacts (name -> SHA-256) and the run that computed them;
@@ -34,17 +33,13 @@ the lookup uses the indexed ``kind`` column and the ``schema_name`` column.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import functools
-import hashlib
 import io
 import json
-import signal
-import sys
-import threading
+import shutil
 import time
-from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -52,15 +47,28 @@ import numpy as np
 import pyarrow as pa
 import sqlalchemy as sa
 
+from aerocal.io import atomic_path
+from aerocal.pipeline.interrupts import check_interrupted
+from aerocal.pipeline.runner import (
+    EXTRA,
+    STEP_FORMAT,
+    ArrayOutput,
+    Compute,
+    FileOutput,
+    JsonOutput,
+    Output,
+    StepResult,
+    TableOutput,
+    cache_key,
+    configuration_json,
+    json_bytes,
+)
 from storage.artifacts import ArtifactStore
 from storage.database import Database, connect
 from storage.errors import CorruptArtifactError, NotFoundError
 from storage.models import Artifact
 from storage.provenance import record_lineage
-from storage.runs import record_timing, to_json
-
-#: version of the cache-key recipe and step-record layout; changing it invalidates every record
-STEP_FORMAT = "aerocal.step/1"
+from storage.runs import record_timing
 
 #: kind of the artifacts that record a completed step
 STEP_KIND = "step"
@@ -92,74 +100,21 @@ def _database(url: str) -> Database:
     return connect(url)
 
 
-# ------------------------------------------------------------------------------------------- outputs
-@dataclass
-class TableOutput:
-    """An Arrow table of an :mod:`aerocal.tables` kind, stored as Parquet."""
-
-    table: pa.Table
-    kind: str
-
-
-@dataclass
-class JsonOutput:
-    """A JSON document (any value :func:`storage.runs.to_json` converts), stored as ``.json``."""
-
-    value: Any
-    kind: str
-
-
-@dataclass
-class FileOutput:
-    """A file written by the step (GeoTIFF, HTML, ...), copied into the store; a ``temporary`` file (and
-    its folder, when left empty) is removed once stored."""
-
-    path: Path
-    kind: str
-    temporary: bool = False
-
-
-@dataclass
-class ArrayOutput:
-    """A numpy array, stored as ``.npy``."""
-
-    array: np.ndarray
-    kind: str
-
-
-Output = TableOutput | JsonOutput | FileOutput | ArrayOutput
-
-
-@dataclass
-class StepResult:
-    """What a step produced: output name -> SHA-256, whether it was reused and which run computed it."""
-
-    step: str
-    key: str
-    outputs: dict[str, str]
-    reused: bool
-    computed_by: str
-    seconds: float
-    extra: dict[str, Any] = field(default_factory=dict)
-
-    def __getitem__(self, name: str) -> str:
-        return self.outputs[name]
-
-
-class StepInputs:
-    """Read access to a step's input artifacts by name (each read verified against its SHA-256)."""
+class StoredInputs:
+    """Read access to a step's input artifacts by name (each read verified against its SHA-256): the
+    :class:`aerocal.pipeline.runner.StepInputs` of the platform."""
 
     def __init__(self, ctx: StepContext, inputs: Mapping[str, str]) -> None:
-        self.ctx, self.shas = ctx, dict(inputs)
+        self.ctx, self.refs = ctx, dict(inputs)
 
     def _artifact(self, name: str) -> Artifact:
-        if name not in self.shas:
-            raise KeyError(f"step input {name!r} not given; inputs are {sorted(self.shas)}")
+        if name not in self.refs:
+            raise KeyError(f"step input {name!r} not given; inputs are {sorted(self.refs)}")
         with self.ctx.database.session() as session:
-            return self.ctx.store.get(session, self.shas[name])
+            return self.ctx.store.get(session, self.refs[name])
 
     def has(self, name: str) -> bool:
-        return name in self.shas
+        return name in self.refs
 
     def table(self, name: str, kind: str | None = None) -> pa.Table:
         art = self._artifact(name)
@@ -173,44 +128,6 @@ class StepInputs:
 
     def path(self, name: str) -> Path:
         return self.ctx.store.verify(self._artifact(name))
-
-
-# ---------------------------------------------------------------------------------------- cache key
-def configuration_json(config: Any) -> Any:
-    """A configuration (dataclass, mapping, scalar) as plain JSON types, for keys and run records."""
-    if dataclasses.is_dataclass(config) and not isinstance(config, type):
-        config = {f.name: getattr(config, f.name) for f in dataclasses.fields(config)}
-    return to_json(config)
-
-
-#: the packages whose code computes step outputs (the engine and the step wrappers), for :func:`code_version`
-CODE_PACKAGES = ("aerocal", "tasks")
-
-
-@functools.cache
-def code_version() -> str:
-    """SHA-256 (hex) of the source of :data:`CODE_PACKAGES`: every ``.py`` file's path (relative to the project
-    root) and bytes, in path order. Read once per process (about 200 files, a few milliseconds)."""
-    root = Path(__file__).resolve().parents[1]
-    digest = hashlib.sha256()
-    for package in CODE_PACKAGES:
-        for path in sorted((root / package).rglob("*.py")):
-            digest.update(path.relative_to(root).as_posix().encode() + b"\0")
-            digest.update(path.read_bytes())
-    return digest.hexdigest()
-
-
-def cache_key(step: str, inputs: Mapping[str, str], config: Any = None) -> str:
-    """SHA-256 (hex) of the step name, its inputs' SHA-256 by name, its configuration as JSON and the code
-    version (:func:`code_version`)."""
-    doc = {
-        "format": STEP_FORMAT,
-        "code": code_version(),
-        "step": step,
-        "inputs": dict(sorted(inputs.items())),
-        "config": configuration_json(config),
-    }
-    return hashlib.sha256(json.dumps(doc, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def record_schema(step: str, key: str) -> str:
@@ -239,12 +156,12 @@ def find_step_record(ctx: StepContext, step: str, key: str) -> dict[str, Any] | 
     return None
 
 
-def _put(store: ArtifactStore, session, out: Output, run_id: str) -> Artifact:
+def put_output(store: ArtifactStore, session, out: Output, run_id: str) -> Artifact:
+    """Store a step's output as an artifact of its kind (Parquet, JSON, ``.npy`` or the file itself)."""
     if isinstance(out, TableOutput):
         return store.put_table(session, out.table, out.kind, run_id=run_id)
     if isinstance(out, JsonOutput):
-        data = json.dumps(configuration_json(out.value), sort_keys=True, indent=1).encode()
-        return store.put_bytes(session, data, out.kind, "json", run_id=run_id)
+        return store.put_bytes(session, json_bytes(out.value), out.kind, "json", run_id=run_id)
     if isinstance(out, ArrayOutput):
         buf = io.BytesIO()
         np.save(buf, np.ascontiguousarray(out.array), allow_pickle=False)
@@ -261,65 +178,19 @@ def _put(store: ArtifactStore, session, out: Output, run_id: str) -> Artifact:
     )
 
 
-#: set by :func:`interrupt_handler` when Ctrl-C arrives, checked at every step boundary (:func:`run_step`)
-_INTERRUPTED = threading.Event()
-
-
-def interrupt_handler(signum: int, frame: object) -> None:
-    """SIGINT: note it, then raise KeyboardInterrupt as Python's default handler does.
-
-    A KeyboardInterrupt raised while Python runs a finalizer or a weakref callback (SQLAlchemy's, at garbage
-    collection) is printed as "Exception ignored in ..." and lost: the run went on to the end and exited 0
-    (Ctrl-C 0.1 s into an ``aerocal process`` run, 2 times in 2). The note makes the next step boundary raise it
-    again."""
-    _INTERRUPTED.set()
-    raise KeyboardInterrupt
-
-
-@contextlib.contextmanager
-def interrupts_noted() -> Iterator[None]:
-    """:func:`interrupt_handler` as the SIGINT handler for the block (main thread only; elsewhere the block
-    runs as it is), the previous handler restored after it."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    _INTERRUPTED.clear()
-    previous = signal.signal(signal.SIGINT, interrupt_handler)
-    previous_hook = sys.unraisablehook
-
-    def quiet_lost_interrupt(unraisable: object) -> None:
-        # the lost KeyboardInterrupt is raised again at the next step boundary: no "Exception ignored" traceback
-        if not (_INTERRUPTED.is_set() and unraisable.exc_type is KeyboardInterrupt):  # type: ignore[attr-defined]
-            previous_hook(unraisable)  # type: ignore[arg-type]
-
-    sys.unraisablehook = quiet_lost_interrupt
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        sys.unraisablehook = previous_hook
-        _INTERRUPTED.clear()  # a later run in this process (a served flow) starts without it
-
-
-def check_interrupted() -> None:
-    """Raise KeyboardInterrupt if Ctrl-C arrived (:func:`interrupt_handler`) and was swallowed since."""
-    if _INTERRUPTED.is_set():
-        raise KeyboardInterrupt
-
-
 def run_step(
     ctx: StepContext,
     step: str,
     inputs: Mapping[str, str],
     config: Any,
-    compute: Callable[[StepInputs], Mapping[str, Output]],
+    compute: Compute,
 ) -> StepResult:
     """Reuse the completed ``step`` for these inputs and configuration, or compute and record it.
 
     ``inputs``: input name -> SHA-256 of a stored artifact. ``compute(inputs)`` returns output name ->
     output; it runs only when no intact step record exists (see the module docstring). An output named
-    ``_extra`` (a :class:`JsonOutput`) is not stored as an artifact: its value goes into the step record
-    and comes back as :attr:`StepResult.extra` (small figures such as counts).
+    ``_extra`` (a :class:`~aerocal.pipeline.runner.JsonOutput`) is not stored as an artifact: its value goes
+    into the step record and comes back as :attr:`StepResult.extra` (small figures such as counts).
     """
     check_interrupted()
     key = cache_key(step, inputs, config)
@@ -339,14 +210,14 @@ def run_step(
         return StepResult(
             step, key, dict(record["outputs"]), True, record["run_id"], seconds, dict(record.get("extra", {}))
         )
-    produced = compute(StepInputs(ctx, inputs))
+    produced = compute(StoredInputs(ctx, inputs))
     seconds = time.perf_counter() - t0
     extra = {}
-    if "_extra" in produced:
+    if EXTRA in produced:
         produced = dict(produced)
-        extra = configuration_json(produced.pop("_extra").value)
+        extra = configuration_json(produced.pop(EXTRA).value)
     with db.session() as session:
-        arts = {name: _put(store, session, out, ctx.run_id) for name, out in produced.items()}
+        arts = {name: put_output(store, session, out, ctx.run_id) for name, out in produced.items()}
         outputs = {name: a.sha256 for name, a in arts.items()}
         doc = {
             "format": STEP_FORMAT,
@@ -374,9 +245,28 @@ def run_step(
     return StepResult(step, key, outputs, False, ctx.run_id, seconds, extra)
 
 
-def skip_step(ctx: StepContext, step: str, reason: str) -> StepResult:
+def record_skip(ctx: StepContext, step: str, reason: str) -> StepResult:
     """Record that ``step`` does not apply to this flight (e.g. matching in observations mode)."""
     with ctx.database.session() as session:
         record_timing(session, ctx.run_id, f"{step} (skipped: {reason})", 0.0)
         session.commit()
     return StepResult(step, "", {}, False, ctx.run_id, 0.0, {"skipped": reason})
+
+
+def export_artifact(ctx: StepContext, sha: str, target: Path) -> Path:
+    """Copy a stored artifact (verified) to ``target`` (atomically)."""
+    with ctx.database.session() as session:
+        src = ctx.store.verify(ctx.store.get(session, sha))
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(target) as tmp:
+        shutil.copyfile(src, tmp)
+    return target
+
+
+def put_value(ctx: StepContext, output: Output) -> str:
+    """Store a value no step computed (a manifest, a certificate document, a reference DSM) with the run; its
+    SHA-256."""
+    with ctx.database.session() as session:
+        art = put_output(ctx.store, session, output, ctx.run_id)
+        session.commit()
+        return art.sha256

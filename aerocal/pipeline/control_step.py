@@ -1,4 +1,4 @@
-"""Ground-control screening before any adjustment uses the control (:mod:`aerocal.adjust.control`).
+"""The ground-control screening step, before any adjustment uses the control (:mod:`aerocal.adjust.control`).
 
 The step's ``gcps`` and ``gcp_observations`` replace the ingested ones for every later step (calibration,
 block adjustment, assessment, diagnosis, report): a demoted point is in none of them, and ``screening``
@@ -7,38 +7,21 @@ says why it is not.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
-from prefect import task
-
 from aerocal.adjust import AdjustConfig, AdjustmentError
-from aerocal.adjust.control import ControlScreeningConfig, reference_poses, screen_control
+from aerocal.adjust.control import reference_poses, screen_control
 from aerocal.camera import Camera
-from tasks.resume import JsonOutput, StepContext, StepInputs, StepResult, TableOutput, run_step
-from tasks.retries import TASK_RETRIES, TASK_RETRY_DELAYS_S, retry_condition
+from aerocal.pipeline.config import ControlStepConfig
+from aerocal.pipeline.orient_step import INCREMENTAL
+from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
 
-@dataclass(frozen=True)
-class ControlStepConfig:
-    """``screening``: the data snooping's thresholds; ``enabled`` (True): False uses the ground control
-    as ingested (the report then says it was not screened)."""
-
-    screening: ControlScreeningConfig = field(default_factory=ControlScreeningConfig)
-    enabled: bool = True
-
-
-def control_step(
-    ctx: StepContext,
-    ingest: StepResult,
-    observations: str,
-    orient: StepResult,
-    adjust_config: AdjustConfig,
-    config: ControlStepConfig | None = None,
-) -> StepResult:
+def control_step(runner: Runner, ingest: StepResult, observations: str, orient: StepResult,
+                 adjust_config: AdjustConfig, config: ControlStepConfig | None = None) -> StepResult:
     """Screen the GCPs against a block they did not shape. Outputs ``gcps``, ``gcp_observations`` (the
-    screened tables) and ``screening`` (the verdict per point, the datum, notes)."""
+    screened tables) and ``screening`` (the verdict per point, the datum, notes); ``extra``: the datum, the
+    demoted points and one line per point."""
     config = config or ControlStepConfig()
-    oriented_by_sfm = orient.extra.get("method") == "incremental"
+    oriented_by_sfm = orient.extra.get("method") == INCREMENTAL
     inputs = {
         "images": ingest["images"],
         "observations": observations,
@@ -81,13 +64,4 @@ def control_step(
         }
 
     params = {"config": config, "adjust": adjust_config, "sfm": oriented_by_sfm}
-    return run_step(ctx, "control", inputs, params, compute)
-
-
-control_task = task(
-    control_step,
-    name="screen-control",
-    retries=TASK_RETRIES,
-    retry_delay_seconds=TASK_RETRY_DELAYS_S,
-    retry_condition_fn=retry_condition,
-)
+    return runner.run("control", inputs, params, compute)

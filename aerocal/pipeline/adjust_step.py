@@ -1,0 +1,75 @@
+"""The full-block adjustment with IO fixed from the certificate, image measurements corrected for the sensor
+temperature where the certificate has a linear thermal model (Daakir 2019: tie points and GCP measurements are
+corrected, not pixels; :func:`aerocal.adjust.adjust_fixed_io`)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from aerocal.adjust import AdjustConfig, adjust_fixed_io
+from aerocal.camera import LinearThermalModel
+from aerocal.certificate import Certificate
+from aerocal.eo_checks import correct_gnss_offset
+from aerocal.pipeline.config import BlockStepConfig
+from aerocal.pipeline.runner import ArrayOutput, JsonOutput, Runner, StepInputs, StepResult, TableOutput
+
+
+def linear_thermal(cert: Certificate) -> LinearThermalModel | None:
+    """The certificate's linear thermal model, or ``None``."""
+    model = None if cert.thermal is None else cert.thermal.model
+    return model if isinstance(model, LinearThermalModel) else None
+
+
+def adjust_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
+                config: BlockStepConfig | None = None, adjust_config: AdjustConfig | None = None) -> StepResult:
+    """Adjust the whole flight with the certificate's IO.
+
+    Outputs: ``poses``, ``points`` (tables), ``adjustment`` (summary, check-point and control residuals,
+    predicted check-point sigmas; metres, E N Up; ``recorded_eo_corrections``: the GNSS time lag and offset
+    tested on the recorded positions and removed where they passed, with the notes), ``residuals``
+    ((M, 2) pixels, predicted minus observed, aligned with the observations table) and ``obs_weight``
+    ((M,) the weight of each observation at the solution: 0 for a blunder the screening rejected, NaN for one
+    the block left out).
+    """
+    config = config or BlockStepConfig()
+    acfg = adjust_config or config.adjust
+    inputs = {"images": ingest["images"], "observations": observations, "gcps": ingest["gcps"],
+              "gcp_observations": ingest["gcp_observations"], "certificate": certificate}
+
+    def compute(inp: StepInputs) -> dict:
+        cert = Certificate.from_dict(inp.json("certificate"))
+        thermal = linear_thermal(cert) if config.thermal_correction else None
+        images, obs = inp.table("images"), inp.table("observations")
+        gcps, gobs = inp.table("gcps"), inp.table("gcp_observations")
+        corrections = None
+        if config.recorded_eo_images and acfg.gnss_sigma_m is not None:
+            eo = correct_gnss_offset(images, obs, cert.camera, dataclasses.replace(acfg, free=()), gcps, gobs,
+                                     config.recorded_eo_images)
+            images = eo.images
+            corrections = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
+                           "time_sigma_s": eo.time_sigma_s, "notes": eo.notes}
+        res = adjust_fixed_io(images, obs, cert.camera, acfg, gcps, gobs, thermal)
+        summary = res.summary()
+        summary.update({
+            "certificate_id": cert.id,
+            "thermal_correction": thermal is not None,
+            "converged": res.converged,
+            "iterations": res.iterations,
+            "check_ids": list(res.check_ids),
+            "check_errors_m": np.asarray(res.check_errors).tolist(),
+            "check_sigma_m": np.asarray(res.check_sigma).tolist(),
+            "control_ids": list(res.control_ids),
+            "control_errors_m": np.asarray(res.control_errors).tolist(),
+            "recorded_eo_corrections": corrections,
+        })
+        return {
+            "poses": TableOutput(res.poses, "poses"),
+            "points": TableOutput(res.points, "points"),
+            "adjustment": JsonOutput(summary, "adjustment"),
+            "residuals": ArrayOutput(np.asarray(res.residuals, dtype=float), "residuals"),
+            "obs_weight": ArrayOutput(np.asarray(res.obs_weight, dtype=float), "obs_weight"),
+        }
+
+    return runner.run("adjust", inputs, {"config": config, "adjust": acfg}, compute)

@@ -1,0 +1,152 @@
+"""Where a flight's certificate comes from: a certificate store, the flight's own self-calibration, or the
+nominal camera.
+
+:class:`CertificateStore` is what the pipeline asks of a store: the certificate that applies to a flight
+(:func:`aerocal.certificate_selection.choose_certificate`'s rules) and issuing a new one.
+:class:`MemoryCertificates` keeps them in a list (a notebook, a study, a test); the
+platform's store is the database (``tasks.certificates.DatabaseCertificates``).
+
+Before a stored certificate is reused it is reviewed against this flight's nominal camera
+(:func:`aerocal.decision.review_camera`: image size, f within its band, principal point, distortion, thermal
+slopes); one that fails is not used, and the reason says why. A certificate whose review rejected it is
+stored as rejected, and the flight goes on with the nominal camera (:func:`nominal_certificate`).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import uuid
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from aerocal.camera import Camera
+from aerocal.camera_identity import CameraIdentity
+from aerocal.certificate import Certificate, ParameterSignificance, Provenance
+from aerocal.certificate_selection import NoCertificateError, choose_certificate
+from aerocal.decision import NOMINAL_PARAMETERS, Review, nominal_sigma, review_camera
+
+
+@dataclass(frozen=True)
+class Issued:
+    """A certificate as the store holds it: id, version per camera, status (``accepted`` / ``rejected``), the
+    stored document (with its version), the camera's make and model, and whether it was stored before this call."""
+
+    id: str
+    version: int
+    status: str
+    document: dict[str, Any]
+    camera_label: str
+    issued_before: bool = False
+
+
+class CertificateStore(Protocol):
+    """What the pipeline asks of a certificate store (see the module docstring)."""
+
+    def choose(self, camera: CameraIdentity, flight_date: str, temperature_range: Sequence[float] | None, *,
+               pin: str | None = None, max_age_days: float | None = None) -> tuple[dict[str, Any], str]:
+        """The document of the certificate that applies and why; raises :class:`NoCertificateError`."""
+        ...
+
+    def issue(self, document: dict[str, Any]) -> Issued:
+        """Store a new certificate (once: a document whose id is stored already comes back as stored)."""
+        ...
+
+@dataclass
+class MemoryCertificates:
+    """A certificate store in memory: the certificates issued (documents with their versions)."""
+
+    documents: list[dict[str, Any]] = field(default_factory=list)
+
+    def certificates(self) -> list[Certificate]:
+        return [Certificate.from_dict(d) for d in self.documents]
+
+    def choose(self, camera, flight_date, temperature_range, *, pin=None, max_age_days=None):
+        chosen, reason = choose_certificate(self.certificates(), camera, flight_date, temperature_range, pin=pin,
+                                            max_age_days=max_age_days)
+        return next(d for d in self.documents if d["id"] == chosen.id), reason
+
+    def issue(self, document):
+        for stored in self.documents:
+            if stored["id"] == document["id"]:
+                return self._issued(stored, True)
+        cert = Certificate.from_dict(document)
+        same = [d for d in self.documents if Certificate.from_dict(d).identity == cert.identity]
+        latest = max(same, key=lambda d: d.get("version") or 0, default=None)
+        stored = {**document, "version": (latest.get("version") or 0) + 1 if latest else 1,
+                  "supersedes": latest["id"] if latest else None}
+        self.documents.append(stored)
+        return self._issued(stored, False)
+
+    @staticmethod
+    def _issued(document: dict, before: bool) -> Issued:
+        cert = Certificate.from_dict(document)
+        status = cert.review.status if cert.review is not None else "accepted"
+        return Issued(cert.id, int(document.get("version") or 1), status, document,
+                      f"{cert.identity.make} {cert.identity.model}", before)
+
+
+def identity_of(cam_doc: dict) -> CameraIdentity:
+    """The camera identity of an ingested camera document ("unknown" for a missing part)."""
+    return CameraIdentity.from_mapping(cam_doc.get("identity") or {})
+
+
+def nominal_certificate(cam_doc: dict, run_id: str, why: str) -> dict:
+    """A certificate document of the flight's nominal camera (nothing estimated, each nominal value with its own
+    uncertainty for the diagnosis), for the block adjustment of a flight whose own calibration was rejected or
+    not made; kept with the run, never issued to the store."""
+    camera = Camera.from_dict(cam_doc["camera"])
+    source = cam_doc.get("source") or "camera.json"
+    held = {n: ParameterSignificance(0.0, False, "nominal value, not calibrated", prior_sigma=nominal_sigma(n, camera))
+            for n in NOMINAL_PARAMETERS}
+    cert = Certificate(identity=identity_of(cam_doc), camera=camera, significance=held,
+                       provenance=Provenance(flow_run=run_id),
+                       review=Review(notes=(f"the nominal camera of the flight ({source}): {why}",)))
+    return cert.to_dict()
+
+
+def choose_stored(store: CertificateStore, cam_doc: dict, flight: dict, pin: str | None,
+                  max_age_days: float | None) -> tuple[dict | None, str]:
+    """The stored certificate that applies to the flight (or the one pinned by id), reviewed against the
+    flight's nominal camera, as ``(document, reason)``; ``(None, why)`` when none qualifies (with a pin the
+    store's :class:`NoCertificateError` propagates, and so does a failed review)."""
+    try:
+        document, reason = store.choose(identity_of(cam_doc), flight["date"], flight.get("temperature_range"),
+                                        pin=pin, max_age_days=max_age_days)
+    except NoCertificateError as exc:
+        if pin:
+            raise
+        return None, f"no stored certificate applies ({exc})"
+    parsed = Certificate.from_dict(document)
+    slopes = {}
+    if parsed.thermal is not None:
+        slopes = {k: getattr(parsed.thermal.model, k, None) for k in ("df_dt", "dcx_dt", "dcy_dt")}
+    review = review_camera(parsed.camera, Camera.from_dict(cam_doc["camera"]), dict(parsed.sigmas), slopes)
+    if not review.accepted:
+        why = f"stored certificate {parsed.id} not reused: {'; '.join(review.problems)}"
+        if pin:
+            raise NoCertificateError(f"pinned {why}")
+        return None, why
+    return document, reason
+
+
+def issue_calibration(store: CertificateStore, document: dict, cam_doc: dict, run_id: str,
+                      computed_by: str) -> tuple[str, dict, str]:
+    """Issue the flight's own certificate (once) and say which document the block adjustment uses:
+    ``(certificate id, document, reason)``. A certificate its review rejected is stored as rejected (never
+    selected for a flight) and the block uses the nominal camera; the reason says so."""
+    stored = store.issue(document)
+    reason = ("made by this flight's self-calibration" + (f" (run {computed_by}), issued before"
+                                                           if stored.issued_before else "")
+              + f"; version {stored.version} of camera {stored.camera_label}")
+    use = stored.document
+    if stored.status != "accepted":
+        problems = "; ".join((use.get("review") or {}).get("problems") or [])
+        reason += f", stored as REJECTED ({problems}): the block uses the nominal camera instead"
+        use = nominal_certificate(cam_doc, run_id, f"this flight's calibration {stored.id} was rejected")
+    return stored.id, use, reason
+
+
+def new_run_id() -> str:
+    """A run id for a run outside the platform: the time (UTC) and a short random suffix."""
+    return f"{dt.datetime.now(dt.UTC):%Y%m%dT%H%M%S}-{uuid.uuid4().hex[:8]}"

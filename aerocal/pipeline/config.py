@@ -1,0 +1,202 @@
+"""The configuration of a flight's processing: one typed dataclass per step, and :class:`ProcessConfig`.
+
+A run records the whole configuration (:meth:`ProcessConfig.to_json`) and the adjustment settings in effect
+(:func:`effective_adjustments`: the flight's declared sigmas, the robust loss and tie thinning of matched
+blocks, no GNSS/IMU priors for a block oriented by SfM).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+from aerocal.adjust import AdjustConfig, ThinningConfig
+from aerocal.adjust.control import ControlScreeningConfig
+from aerocal.calibration import CalibrationConfig
+from aerocal.diagnose.engine import DiagnoseConfig
+from aerocal.dsm import DsmConfig
+from aerocal.enhance import EnhanceConfig
+from aerocal.matching import FeatureConfig, MatchConfig
+from aerocal.mosaic import MosaicConfig
+from aerocal.orient import IncrementalConfig
+from aerocal.pipeline.dataset import IngestSettings
+from aerocal.pipeline.runner import configuration_json
+
+#: values of ``certificate`` that are not certificate ids: ``auto`` (the stored certificate that applies, else
+#: self-calibrate) and ``none`` (always self-calibrate)
+CERTIFICATE_MODES = ("auto", "none")
+
+#: the ingest step's configuration (kept under this name for flow configurations)
+IngestStepConfig = IngestSettings
+
+#: the calibration step's configuration is the engine's
+CalibrationStepConfig = CalibrationConfig
+
+
+@dataclass(frozen=True)
+class MatchStepConfig:
+    """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
+    :class:`aerocal.matching.FeatureConfig`, :class:`aerocal.matching.MatchConfig`); ``min_overlap`` of
+    candidate footprints (0.1); ``dask_workers`` of the local cluster when no address is given (2);
+    flights without a recorded position and attitude for every image are matched exhaustively (all
+    pairs) up to ``exhaustive_max_images`` (150, ~11,000 pairs). Flights of at most
+    ``serial_max_megapixels`` (10) in all are matched in this process without a local cluster: 16 rendered
+    640 x 480 frames (4.9 MP) took 5.8 s serially and 11.3 s on a fresh 2-worker cluster, whose start and
+    worker imports cost ~8 s (crossover near 13 MP on this 2-core machine)."""
+
+    enhance: EnhanceConfig | None = None
+    features: FeatureConfig | None = None
+    match: MatchConfig | None = None
+    min_overlap: float = 0.1
+    dask_workers: int = 2
+    exhaustive_max_images: int = 150
+    serial_max_megapixels: float = 10.0
+
+
+@dataclass(frozen=True)
+class OrientStepConfig:
+    """Initial orientation. With a recorded position and attitude for every image the poses are those
+    records (:func:`aerocal.orient.orient_from_priors`). Without them, and when the frames were matched,
+    incremental SfM on our matches (:func:`aerocal.orient.orient_incremental`, options ``incremental``,
+    default :class:`aerocal.orient.IncrementalConfig`) georeferenced on the control GCPs
+    (:func:`aerocal.orient.georeference`); images it cannot register are left out of the block and named."""
+
+    incremental: IncrementalConfig | None = None
+
+
+@dataclass(frozen=True)
+class ControlStepConfig:
+    """``screening``: the data snooping's thresholds; ``enabled`` (True): False uses the ground control
+    as ingested (the report then says it was not screened)."""
+
+    screening: ControlScreeningConfig = field(default_factory=ControlScreeningConfig)
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class BlockStepConfig:
+    """``adjust``: the full-block adjustment (IO is fixed whatever ``adjust.free`` says; default GNSS
+    sigmas 0.10/0.10/0.15 m, GCPs weighted by their survey sigmas); ``thermal_correction`` (True): apply
+    the certificate's linear thermal model to the measurements; ``recorded_eo_images`` (200): test the
+    recorded positions for a GNSS time lag (and, with 3 control GCPs, a horizontal offset) on this many
+    central images and remove what passes before adjusting (:func:`aerocal.eo_checks.correct_gnss_offset`;
+    0 = use the positions as recorded)."""
+
+    adjust: AdjustConfig = field(default_factory=AdjustConfig)
+    thermal_correction: bool = True
+    recorded_eo_images: int = 200
+
+
+@dataclass(frozen=True)
+class MosaicStepConfig:
+    """DSM and orthomosaic settings (:class:`aerocal.dsm.DsmConfig`, :class:`aerocal.mosaic.MosaicConfig`;
+    ``None`` = their defaults); ``dask_workers`` of the local cluster for the mosaic tiles (2; 0 = serial);
+    mosaics of at most ``serial_max_frames`` frames (4) run here without a cluster, since starting the
+    worker processes (a few seconds) costs more than the tiles."""
+
+    dsm: DsmConfig | None = None
+    mosaic: MosaicConfig | None = None
+    dask_workers: int = 2
+    serial_max_frames: int = 4
+
+
+@dataclass(frozen=True)
+class ReportStepConfig:
+    """``title`` of the report (default "Flight report: <flight name>"); ``extra`` key figures added to
+    the summary; DSM cells within ``measured_within_m`` (2 m) of a tie point count as measured in the
+    DSM-minus-reference statistics."""
+
+    title: str | None = None
+    extra: dict = field(default_factory=dict)
+    measured_within_m: float = 2.0
+
+
+@dataclass
+class ProcessConfig:
+    """Everything :func:`aerocal.pipeline.process` can be told (defaults documented per step class).
+
+    * ``max_certificate_age_days``: a stored certificate older than this (days between its calibration
+      and the flight) is not reused (default ``None``: no age limit).
+    * ``use_flight_sigmas``: GNSS and IMU sigmas declared by the flight (``flight.json``:
+      ``gnss_sigma_m`` [horizontal, vertical], ``imu_sigma_deg``) replace the adjustments' a-priori
+      sigmas (default True); the run records the effective values.
+    * ``matched_robust_loss``: robust loss of the adjustments when the observations come from image
+      matching ("huber", default: a few wrong matches survive geometric verification and, unweighted,
+      can make a tie point's normal matrix singular); observations given by the flight keep the
+      adjustment configurations' own loss.
+    * ``matched_tie_thinning``: :class:`aerocal.adjust.thinning.ThinningConfig` of the full-block
+      adjustment when the observations come from image matching (default: its defaults, 4 tracks per cell
+      of 8 x 6 per image; ``None``: every track adjusted). The tracks left out are intersected afterwards
+      from the adjusted poses, so the DSM still gets every tie point (``AdjustConfig.tie_thinning``).
+      The self-calibration and the diagnosis adjust every track: on the real seneca flight the thinned
+      calibration sub-block lost the focal length's temperature slope (t 0.7 instead of 7.0) and its
+      certificate moved 43 px in f; a certificate serves many flights, so its precision is worth the
+      seconds (33 s against 10 s there, same machine, idle).
+    * ``diagnose``: :class:`aerocal.diagnose.engine.DiagnoseConfig` (``None``: its defaults, the reference
+      temperature from the certificate's thermal model).
+    """
+
+    ingest: IngestStepConfig = field(default_factory=IngestStepConfig)
+    match: MatchStepConfig = field(default_factory=MatchStepConfig)
+    orient: OrientStepConfig = field(default_factory=OrientStepConfig)
+    control: ControlStepConfig = field(default_factory=ControlStepConfig)
+    calibration: CalibrationStepConfig = field(default_factory=CalibrationStepConfig)
+    block: BlockStepConfig = field(default_factory=BlockStepConfig)
+    mosaic: MosaicStepConfig = field(default_factory=MosaicStepConfig)
+    diagnose: DiagnoseConfig | None = None
+    report: ReportStepConfig = field(default_factory=ReportStepConfig)
+    max_certificate_age_days: float | None = None
+    use_flight_sigmas: bool = True
+    matched_robust_loss: str = "huber"
+    matched_tie_thinning: ThinningConfig | None = field(default_factory=ThinningConfig)
+
+    def to_json(self) -> dict:
+        """The configuration as plain JSON (what a run records)."""
+        return configuration_json(self)
+
+
+@dataclass(frozen=True)
+class Adjustments:
+    """The adjustment settings in effect for a flight: the self-calibration's and the full block's."""
+
+    calibration: AdjustConfig
+    block: AdjustConfig
+
+    def to_json(self) -> dict:
+        return {"calibration_adjust": configuration_json(self.calibration),
+                "block_adjust": configuration_json(self.block)}
+
+
+def with_flight_sigmas(config: AdjustConfig, flight: dict) -> AdjustConfig:
+    """``config`` with the GNSS (E, N, Up metres) and IMU (degrees) sigmas the flight declares."""
+    changes: dict[str, Any] = {}
+    gnss = flight.get("gnss_sigma_m")
+    if gnss and config.gnss_sigma_m is not None:
+        h, v = float(gnss[0]), float(gnss[-1])
+        changes["gnss_sigma_m"] = (h, h, v)
+    imu = flight.get("imu_sigma_deg")
+    if imu:
+        changes["attitude_sigma_deg"] = tuple(float(x) for x in imu)
+    return dataclasses.replace(config, **changes) if changes else config
+
+
+def effective_adjustments(config: ProcessConfig, flight: dict, matched: bool) -> Adjustments:
+    """The adjustments' settings for this flight: its declared sigmas (``use_flight_sigmas``), and for
+    ``matched`` observations (image mode) the robust loss and the block's tie thinning of ``config``."""
+    cal, blk = config.calibration.adjust, config.block.adjust
+    if config.use_flight_sigmas:
+        cal, blk = with_flight_sigmas(cal, flight), with_flight_sigmas(blk, flight)
+    if matched and config.matched_robust_loss != "none":
+        cal = dataclasses.replace(cal, robust_loss=config.matched_robust_loss)
+        blk = dataclasses.replace(blk, robust_loss=config.matched_robust_loss)
+    if matched and config.matched_tie_thinning is not None:
+        blk = dataclasses.replace(blk, tie_thinning=config.matched_tie_thinning)
+    return Adjustments(cal, blk)
+
+
+def without_recorded_eo(adjustments: Adjustments) -> Adjustments:
+    """No GNSS/IMU priors: a block oriented by SfM starts from poses that are not measurements; the datum comes
+    from the control GCPs."""
+    return Adjustments(dataclasses.replace(adjustments.calibration, gnss_sigma_m=None, attitude_sigma_deg=None),
+                       dataclasses.replace(adjustments.block, gnss_sigma_m=None, attitude_sigma_deg=None))

@@ -1,0 +1,269 @@
+"""Where a flight's inputs come from: a folder on disk or tables in memory (the idea of OpenSfM's DataSet).
+
+A :class:`FlightDataset` gives the ingest step everything processing reads of a flight: the images, image
+observations (observations mode), ground control and its image measurements as :mod:`aerocal.tables`
+tables, the camera document (identity and nominal camera), the flight's metadata, and a *manifest*: what
+identifies its content, so that a changed input re-runs ingest and everything after it.
+
+* :class:`FolderDataset`: a flight folder, in one of two kinds:
+
+  - **observations mode** (``observations/observations.parquet`` exists, as the simulator writes it): the
+    image measurements are given; ``camera.json`` and ``flight.json`` say the rest; frames in ``images/``,
+    if any, are used for the mosaic only;
+  - **image mode**: :func:`aerocal.ingest.ingest_folder` reads images, metadata, EO and GCP files; the
+    enhance + match step then measures the tie points.
+
+* :class:`MemoryDataset`: the tables and documents themselves (a simulated flight, a notebook's tables);
+  nothing is read from disk, and there are no frames (the mosaic step makes the DSM only). A simulated
+  flight is one: :func:`aerocal.simulate.simulator.as_dataset`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from aerocal import tables
+from aerocal.camera import Camera
+from aerocal.camera_identity import CameraIdentity
+from aerocal.certificate import validate_camera
+from aerocal.ingest import ingest_folder
+from aerocal.ingest.inferred import certificate_identity
+from aerocal.io import file_sha256
+
+#: stem of the simulator's truth files and folder, which processing never reads (nor hashes)
+TRUTH_STEM = "truth"
+
+#: the tables of an observations-mode flight, in ``observations/<kind>.parquet``
+OBSERVATION_TABLES = ("images", "observations", "gcps", "gcp_observations")
+
+#: a reference surface for the DSM (e.g. a LiDAR DSM) in the flight folder: a single-band north-up GeoTIFF
+#: of heights in metres, in the flight's CRS
+REFERENCE_DSM = Path("reference") / "dsm.tif"
+
+
+class FlightInputError(ValueError):
+    """A flight's input lacks what processing needs; the message names the file, the field and the fix."""
+
+
+@dataclass(frozen=True)
+class IngestSettings:
+    """Ingest settings: ``gcp_file`` / ``eo_file`` override the folder's own files, ``crs`` the automatic
+    UTM zone (image mode only); ``flight_name`` defaults to the folder's (or dataset's) name."""
+
+    gcp_file: str | None = None
+    eo_file: str | None = None
+    crs: str | None = None
+    flight_name: str | None = None
+
+
+@dataclass
+class IngestedFlight:
+    """What a dataset holds, read: the tables by kind (``images``, ``gcps``, ``gcp_observations`` and, in
+    observations mode, ``observations``), the camera document (``identity``, ``camera`` and ``source``), the
+    flight's metadata as its ``flight.json`` says it (plan, sigmas, height above ground), its CRS, the mode
+    (``"observations"`` or ``"images"``), ingest's problems (one line each), the images left out and the
+    flight facts ingest inferred."""
+
+    tables: dict[str, pa.Table]
+    camera: dict[str, Any]
+    metadata: dict[str, Any]
+    crs: str | None
+    mode: str
+    problems: list[str] = field(default_factory=list)
+    skipped_images: list[str] = field(default_factory=list)
+    facts: dict[str, str] | None = None
+
+
+class FlightDataset(Protocol):
+    """A flight's inputs (see the module docstring)."""
+
+    #: the flight's name (the folder's name by default)
+    name: str
+    #: the folder frames and the reference DSM are found in, or ``None`` (a dataset in memory)
+    folder: Path | None
+
+    @property
+    def observations_mode(self) -> bool:
+        """True when the image measurements are given (no matching)."""
+        ...
+
+    def manifest(self) -> dict[str, Any]:
+        """What identifies the dataset's content (a changed input changes it)."""
+        ...
+
+    def read(self, settings: IngestSettings) -> IngestedFlight:
+        """Read everything; raises :class:`FlightInputError` naming what is wrong."""
+        ...
+
+
+def observations_mode(flight_dir: str | Path) -> bool:
+    """True when the folder holds measured image observations (``observations/observations.parquet``)."""
+    return (Path(flight_dir) / "observations" / "observations.parquet").is_file()
+
+
+def blocking_report(result) -> str:
+    """The message of a flight that cannot be processed: every blocking problem of ingest, one per line."""
+    lines = [f"{result.sources.get('images', 'flight')}: cannot be processed ({len(result.blocking)} problem(s); "
+             "`aerocal ingest FOLDER` shows the whole report):"]
+    lines += [f"  - {p}" for p in result.blocking]
+    return "\n".join(lines)
+
+
+def camera_document(path: Path) -> dict:
+    """An observations-mode ``camera.json``, checked as a certificate's camera is (finite, plausible values)."""
+    try:
+        doc = json.loads(path.read_text())
+        validate_camera(Camera.from_dict(doc["camera"]))
+    except json.JSONDecodeError as exc:
+        raise FlightInputError(f"{path}:{exc.lineno}: not valid JSON ({exc.msg}); fix the file there") from None
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise FlightInputError(f"{path}: 'camera' is not a valid camera ({exc}); fix the file") from None
+    return doc
+
+
+def with_shared_identity(cam_doc: dict) -> dict:
+    """A camera document whose identity records no serial gets the serial-less identity an image-mode flight of
+    that camera gets (``no-serial WxH``, :func:`aerocal.ingest.inferred.certificate_identity`): a thermal camera
+    that writes no serial into its files must still be processable, and its certificate found again."""
+    ident = cam_doc.get("identity") or {}
+    serial = str(ident.get("serial") or "") if isinstance(ident, dict) else ""
+    if not isinstance(ident, dict) or serial.strip().lower() not in ("", "unknown") \
+            or not isinstance(cam_doc.get("camera"), dict):
+        return cam_doc
+    given = CameraIdentity.from_parts(ident.get("make"), ident.get("model"), "", ident.get("lens"))
+    shared = certificate_identity([], given, Camera.from_dict(cam_doc["camera"]))
+    if shared is None:
+        return cam_doc
+    return {**cam_doc, "identity": shared.as_dict()}
+
+
+class FolderDataset:
+    """A flight folder (observations mode or image mode; see the module docstring)."""
+
+    def __init__(self, folder: str | Path, name: str | None = None) -> None:
+        self.folder = Path(folder).resolve()
+        if not self.folder.is_dir():
+            raise FlightInputError(f"{self.folder} is not a folder; give a flight folder (images/ or "
+                                   "observations/, eo.csv, gcp files, camera.json)")
+        self.name = name or self.folder.name
+
+    def __repr__(self) -> str:
+        return f"FolderDataset({str(self.folder)!r})"
+
+    @property
+    def observations_mode(self) -> bool:
+        return observations_mode(self.folder)
+
+    def manifest(self) -> dict[str, Any]:
+        """Every file of the folder (relative path -> SHA-256 and size), truth and hidden files left out."""
+        files = {}
+        for p in sorted(self.folder.rglob("*")):
+            rel = p.relative_to(self.folder)
+            hidden = any(part.startswith(".") for part in rel.parts)
+            if not p.is_file() or hidden or rel.parts[0].split(".")[0] == TRUTH_STEM:
+                continue
+            files[rel.as_posix()] = {"sha256": file_sha256(p), "size": p.stat().st_size}
+        if not files:
+            raise FlightInputError(f"{self.folder} holds no files; give a flight folder")
+        return {"schema": "aerocal.flight-manifest/1", "mode": "observations" if self.observations_mode else "images",
+                "files": files}
+
+    def read(self, settings: IngestSettings) -> IngestedFlight:
+        return self._read_observations() if self.observations_mode else self._read_images(settings)
+
+    def _read_observations(self) -> IngestedFlight:
+        meta_path, cam_path = self.folder / "flight.json", self.folder / "camera.json"
+        meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
+        tabs = {}
+        for kind in OBSERVATION_TABLES:
+            path = self.folder / "observations" / f"{kind}.parquet"
+            if not path.exists():
+                raise FlightInputError(f"{path} is missing; an observations-mode flight needs "
+                                       f"{', '.join(OBSERVATION_TABLES)}")
+            tabs[kind] = tables.read(path, kind)
+        if not cam_path.exists():
+            raise FlightInputError(f"{cam_path} is missing; write the camera identity and nominal model there")
+        cam_doc = with_shared_identity(camera_document(cam_path))
+        crs = (tabs["images"].schema.metadata or {}).get(b"aerocal.crs", b"").decode() or meta.get("crs")
+        return IngestedFlight(tabs, cam_doc, meta, crs, "observations")
+
+    def _read_images(self, settings: IngestSettings) -> IngestedFlight:
+        res = ingest_folder(self.folder, gcp_file=settings.gcp_file, eo_file=settings.eo_file, crs=settings.crs)
+        if res.blocking:
+            raise FlightInputError(blocking_report(res))
+        cam_doc = {"identity": CameraIdentity.coerce(res.camera_identity).as_dict(),
+                   "camera": res.camera.to_dict(), "source": res.camera_source}
+        tabs = {"images": res.images, "gcps": res.gcps, "gcp_observations": res.gcp_observations}
+        # flight.json as ingest checked it, with what the images tell where it is silent
+        meta = {**res.plan, "height_agl_m": res.height_agl_m,
+                "gnss_sigma_m": None if res.gnss_sigma_m is None else list(res.gnss_sigma_m)}
+        return IngestedFlight(tabs, cam_doc, meta, res.crs, "images", [str(p) for p in res.problems],
+                              list(res.skipped_images), res.flight_facts)
+
+
+def _table_sha256(table: pa.Table) -> str:
+    buf = io.BytesIO()
+    pq.write_table(table, buf)
+    return hashlib.sha256(buf.getvalue()).hexdigest()
+
+
+@dataclass
+class MemoryDataset:
+    """A flight given as tables (observations mode): ``images``, ``observations``, ``gcps`` and
+    ``gcp_observations`` (:mod:`aerocal.tables` kinds), the camera document (``{"identity": {make, model,
+    serial, lens}, "camera": Camera.to_dict()}``) and the flight's metadata as a ``flight.json`` would hold it
+    (``height_agl_m``, ``gnss_sigma_m`` [horizontal, vertical], ``imu_sigma_deg``, ``start_time``, ``crs``)."""
+
+    name: str
+    images: pa.Table
+    observations: pa.Table
+    gcps: pa.Table
+    gcp_observations: pa.Table
+    camera: dict[str, Any]
+    metadata: dict[str, Any] = field(default_factory=dict)
+    crs: str | None = None
+    folder: Path | None = None
+
+    @property
+    def observations_mode(self) -> bool:
+        return True
+
+    def manifest(self) -> dict[str, Any]:
+        """SHA-256 of each table's Parquet bytes and of the documents."""
+        return {
+            "schema": "aerocal.memory-manifest/1",
+            "mode": "observations",
+            "tables": {kind: _table_sha256(getattr(self, kind)) for kind in OBSERVATION_TABLES},
+            "camera": self.camera,
+            "metadata": self.metadata,
+            "crs": self.crs,
+        }
+
+    def read(self, settings: IngestSettings) -> IngestedFlight:
+        tabs = {}
+        for kind in OBSERVATION_TABLES:
+            try:
+                tabs[kind] = tables.validate(getattr(self, kind), kind)
+            except ValueError as exc:
+                raise FlightInputError(f"dataset {self.name}: table {kind!r} is not valid ({exc})") from None
+        try:
+            validate_camera(Camera.from_dict(self.camera["camera"]))
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:
+            raise FlightInputError(f"dataset {self.name}: 'camera' is not a valid camera ({exc})") from None
+        crs = self.crs or (self.images.schema.metadata or {}).get(b"aerocal.crs", b"").decode() \
+            or self.metadata.get("crs")
+        return IngestedFlight(tabs, with_shared_identity(dict(self.camera)), dict(self.metadata), crs,
+                              "observations")
+
+
+def as_dataset(flight: str | Path | FlightDataset) -> FlightDataset:
+    """A dataset for a folder path, or the dataset itself."""
+    return FolderDataset(flight) if isinstance(flight, str | Path) else flight

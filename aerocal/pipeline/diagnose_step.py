@@ -1,0 +1,63 @@
+"""The diagnosis step: residual analysis against the catalogue of unmodelled effects, IO fixed from the
+certificate (:func:`aerocal.diagnose.engine.diagnose`), with the flight's twin."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pyarrow as pa
+
+from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
+from aerocal.certificate import Certificate
+from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+from aerocal.diagnose.io_uncertainty import IOUncertainty
+from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
+
+
+def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
+                  config: DiagnoseConfig | None = None, adjust_config: AdjustConfig | None = None,
+                  adjusted: StepResult | None = None) -> StepResult:
+    """Output ``diagnosis``: the hypotheses tested, the effects named with magnitude and evidence, the gain on
+    check points, the recorded-EO checks, the twin, and a one-line verdict (``summary``).
+
+    With the block adjustment's result (``adjusted``), the observations its blunder screening rejected (weight
+    0 in its ``obs_weight``) are left out and the diagnosis adjusts by least squares at once, instead of
+    screening the same block again (a robust pass and a least-squares re-adjustment of the whole block: on the
+    818-image city flight the block adjustment that does this took 180 s).
+    """
+    inputs = {k: ingest[k] for k in ("images", "gcps", "gcp_observations")}
+    inputs.update(observations=observations, certificate=certificate)
+    if adjusted is not None and "obs_weight" in adjusted.outputs:
+        inputs.update({k: adjusted[k] for k in ("obs_weight", "residuals", "adjustment", "poses", "points")})
+    acfg = adjust_config or AdjustConfig()
+
+    def compute(inp: StepInputs) -> dict:
+        cert = Certificate.from_dict(inp.json("certificate"))
+        t0 = getattr(None if cert.thermal is None else cert.thermal.model, "t0", None)
+        dcfg = config or DiagnoseConfig(reference_temperature=t0)
+        obs = inp.table("observations")
+        run_cfg = dataclasses.replace(acfg, free=(), thermal=(), adaptive=False)
+        screening = None
+        if inp.has("obs_weight"):
+            weight = inp.array("obs_weight")
+            if len(weight) != obs.num_rows:
+                raise ValueError(f"diagnose: the block adjustment's obs_weight has {len(weight)} rows, the "
+                                 f"observations {obs.num_rows}; re-run the adjust step")
+            # its estimate of the tie observations' sigma (1 for an adjustment that made none)
+            tie_scale = float(inp.json("adjustment").get("tie_sigma_scale", 1.0))
+            keep = screened_rows(obs, inp.array("residuals"), weight, tie_scale, acfg.reject_chi2)
+            screening = (f"the block adjustment's screening: {obs.num_rows - len(keep)} of {obs.num_rows} "
+                         "observations left out (blunders, observations it could not place, and observations "
+                         "left alone in their tracks)")
+            obs = scale_tie_sigma(obs.take(pa.array(keep, pa.int64())), tie_scale)
+            screening += f"; tie-point sigma x {tie_scale:.3f} as estimated by the block adjustment"
+            run_cfg = dataclasses.replace(run_cfg, robust_loss="none")
+        result = diagnose(inp.table("images"), obs, cert.camera, run_cfg, inp.table("gcps"),
+                          inp.table("gcp_observations"), dcfg, IOUncertainty.from_certificate(cert),
+                          (inp.table("poses"), inp.table("points")) if inp.has("poses") else None)
+        doc = result.to_dict()
+        doc["summary"] = result.summary()
+        doc["screening"] = screening
+        return {"diagnosis": JsonOutput(doc, "diagnosis")}
+
+    return runner.run("diagnose", inputs, {"diagnose": config or DiagnoseConfig(), "adjust": acfg}, compute)

@@ -1,0 +1,252 @@
+"""A whole flight, from its inputs to the report: :func:`process`.
+
+::
+
+    manifest -> ingest -> enhance + match (image mode) -> orient -> control screening
+        -> certificate: chosen from the store, or (none applies / ``certificate="none"``)
+           calibration sub-block + self-calibration -> certificate issued to the store
+        -> full-block adjustment with fixed IO (+ thermal correction) -> DSM + orthomosaic
+        -> assess -> diagnose -> report
+
+The same function runs a flight in a notebook (``process("flight/")``: every value in memory, certificates in
+a :class:`~aerocal.pipeline.certificates.MemoryCertificates`, no Prefect, no database) and on the platform,
+whose runner stores every step content-addressed in the artifact store and runs it as a Prefect task, whose
+certificate store is the database, and whose recorder writes the run's record (``flows.process``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from aerocal.camera_identity import CameraIdentity
+from aerocal.pipeline.adjust_step import adjust_step
+from aerocal.pipeline.assess_step import assess_step
+from aerocal.pipeline.calibrate_step import calibrate_step
+from aerocal.pipeline.certificates import (
+    CertificateStore,
+    MemoryCertificates,
+    choose_stored,
+    identity_of,
+    issue_calibration,
+)
+from aerocal.pipeline.config import (
+    CERTIFICATE_MODES,
+    Adjustments,
+    ProcessConfig,
+    effective_adjustments,
+    without_recorded_eo,
+)
+from aerocal.pipeline.control_step import control_step
+from aerocal.pipeline.dataset import FlightDataset, FlightInputError, as_dataset
+from aerocal.pipeline.diagnose_step import diagnose_step
+from aerocal.pipeline.ingest_step import ingest_step
+from aerocal.pipeline.match_step import match_step
+from aerocal.pipeline.mosaic_step import mosaic_step
+from aerocal.pipeline.orient_step import INCREMENTAL, orient_step
+from aerocal.pipeline.report_step import report_step
+from aerocal.pipeline.runner import JsonOutput, LocalRunner, Runner, StepResult
+
+#: files written into the run folder: output name of a step -> file name
+EXPORTS = {
+    "report": "report.html",
+    "report_summary": "summary.json",
+    "dsm": "dsm.tif",
+    "orthomosaic": "orthomosaic.tif",
+    "temperature": "temperature.tif",
+    "certificate": "certificate.json",
+    "calibration_certificate": "calibration_certificate.json",
+    "calibration": "calibration.json",
+    "diagnosis": "diagnosis.json",
+    "assessment": "assessment.json",
+    "adjustment": "adjustment.json",
+    "ground_control": "ground_control.json",
+    "poses": "poses.parquet",
+    "points": "points.parquet",
+}
+
+
+class RunRecorder(Protocol):
+    """What the platform records of a run as it goes (the default records nothing)."""
+
+    def flight_ingested(self, flight: dict[str, Any], camera: CameraIdentity) -> None:
+        """The flight's summary and camera, once ingested."""
+        ...
+
+    def configuration(self, adjustments: Adjustments) -> None:
+        """The adjustment settings in effect (again when they change: a block oriented by SfM)."""
+        ...
+
+    def certificate(self, certificate_id: str, reason: str) -> None:
+        """The certificate the run uses and why."""
+        ...
+
+
+class NoRecord:
+    """A :class:`RunRecorder` that records nothing."""
+
+    def flight_ingested(self, flight, camera) -> None:
+        pass
+
+    def configuration(self, adjustments) -> None:
+        pass
+
+    def certificate(self, certificate_id, reason) -> None:
+        pass
+
+
+@dataclass
+class FlightRun:
+    """A processed flight: the run's ``summary`` (flight, certificate and why, steps, accuracy, diagnosis),
+    every step's result by name, the references of the outputs (name -> reference in the runner) and the files
+    written to ``out_dir`` (name -> path)."""
+
+    summary: dict[str, Any]
+    steps: dict[str, StepResult]
+    outputs: dict[str, str]
+    files: dict[str, str] = field(default_factory=dict)
+    runner: Runner | None = None
+
+    def json(self, name: str) -> Any:
+        """An output document (e.g. ``"diagnosis"``, ``"assessment"``, ``"certificate"``) as plain JSON."""
+        return self.runner.inputs({name: self.outputs[name]}).json(name)
+
+    def table(self, name: str):
+        """An output table (``"poses"``, ``"points"``)."""
+        return self.runner.inputs({name: self.outputs[name]}).table(name)
+
+
+def process(
+    flight: str | Path | FlightDataset,
+    config: ProcessConfig | None = None,
+    *,
+    certificate: str = "auto",
+    out_dir: str | Path | None = None,
+    runner: Runner | None = None,
+    certificates: CertificateStore | None = None,
+    recorder: RunRecorder | None = None,
+    dask_address: str | None = None,
+    calibrate_only: bool = False,
+) -> FlightRun:
+    """Process one flight end to end (see the module docstring).
+
+    Args:
+        flight: a flight folder or a :class:`~aerocal.pipeline.dataset.FlightDataset`.
+        config: every step's settings (default :class:`ProcessConfig`).
+        certificate: ``"auto"`` (the stored certificate that applies, else self-calibrate and issue one),
+            ``"none"`` (always self-calibrate) or a certificate id (pinned).
+        out_dir: where the products, report and documents are written (:data:`EXPORTS`); ``None``: nowhere
+            (read them from the returned :class:`FlightRun`).
+        runner: computes the steps (default: a :class:`~aerocal.pipeline.runner.LocalRunner`, in memory).
+        certificates: the certificate store (default: an empty
+            :class:`~aerocal.pipeline.certificates.MemoryCertificates`; pass one to reuse its certificates
+            across flights).
+        recorder: what the platform records of the run as it goes (default: nothing).
+        dask_address: a Dask scheduler for the tile work (default: a local cluster where it pays).
+        calibrate_only: stop after the certificate (a calibration flight).
+
+    Raises:
+        FlightInputError: the flight's input lacks what processing needs (the message names it and the fix).
+        NoCertificateError: a pinned certificate does not apply.
+    """
+    if not certificate:
+        raise FlightInputError("certificate is empty; give auto, none or a certificate id")
+    dataset = as_dataset(flight)
+    config = config or ProcessConfig()
+    runner = runner or LocalRunner()
+    store = certificates if certificates is not None else MemoryCertificates()
+    record = recorder or NoRecord()
+    steps: dict[str, StepResult] = {}
+
+    manifest = runner.put(JsonOutput(dataset.manifest(), "flight-manifest"))
+    ing = steps["ingest"] = ingest_step(runner, dataset, manifest, config.ingest)
+    docs = runner.inputs({"flight": ing["flight"], "camera": ing["camera"]})
+    flight_doc, cam_doc = docs.json("flight"), docs.json("camera")
+    record.flight_ingested(flight_doc, identity_of(cam_doc))
+    matched_mode = not dataset.observations_mode
+    adjustments = effective_adjustments(config, flight_doc, matched_mode)
+    record.configuration(adjustments)
+
+    matched = None
+    if matched_mode:
+        matched = steps["match"] = match_step(runner, ing, config.match, dask_address)
+        observations = matched["observations"]
+    else:
+        steps["match"] = runner.skip("match", "observations mode")
+        observations = ing["observations"]
+    ori = steps["orient"] = orient_step(runner, ing, observations, config.orient, matched)
+    if ori.extra.get("method") == INCREMENTAL:
+        # oriented by SfM: later steps read the registered images with the oriented poses, which are starting
+        # values, not GNSS/IMU measurements; the datum comes from the control GCPs
+        ing = ing.with_outputs(images=ori["images"])
+        adjustments = without_recorded_eo(adjustments)
+        record.configuration(adjustments)
+    ctl = steps["control"] = control_step(runner, ing, observations, ori, adjustments.block, config.control)
+    # every later step sees the screened ground control: a demoted point is neither control nor check
+    ing = ing.with_outputs(gcps=ctl["gcps"], gcp_observations=ctl["gcp_observations"],
+                           control_screening=ctl["screening"])
+
+    document, reason = None, "self-calibration asked for"
+    if certificate == "auto" and not calibrate_only:
+        document, reason = choose_stored(store, cam_doc, flight_doc, None, config.max_certificate_age_days)
+    elif certificate not in CERTIFICATE_MODES:
+        document, reason = choose_stored(store, cam_doc, flight_doc, certificate, config.max_certificate_age_days)
+    outputs: dict[str, str] = {"ground_control": ctl["screening"]}
+    if document is None:
+        why_not = reason
+        cal = steps["calibrate"] = calibrate_step(runner, ing, observations, config.calibration,
+                                                  adjustments.calibration)
+        outputs["calibration"], outputs["calibration_certificate"] = cal["calibration"], cal["certificate"]
+        made = runner.inputs({"certificate": cal["certificate"]}).json("certificate")
+        cert_id, document, reason = issue_calibration(store, made, cam_doc, runner.run_id, cal.computed_by)
+        if certificate == "auto":
+            reason = f"{reason} ({why_not})"
+    else:
+        cert_id = document["id"]
+    record.certificate(cert_id, reason)
+    cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
+
+    if not calibrate_only:
+        adj = steps["adjust"] = adjust_step(runner, ing, observations, cert_ref, config.block, adjustments.block)
+        mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, dask_address)
+        ass = steps["assess"] = assess_step(runner, ing, observations, adj)
+        dia = steps["diagnose"] = diagnose_step(runner, ing, observations, cert_ref, config.diagnose,
+                                                adjustments.block, adj)
+        rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report)
+        for res in (adj, mos, ass, dia, rep):
+            outputs.update(res.outputs)
+
+    summary: dict[str, Any] = {
+        "run_id": runner.run_id,
+        "flight": flight_doc["name"],
+        "mode": flight_doc["mode"],
+        "images_skipped_at_ingest": flight_doc.get("skipped_images") or [],
+        "ingest_problems": flight_doc.get("problems") or [],
+        "flight_facts": flight_doc.get("facts") or {},
+        "certificate_id": cert_id,
+        "certificate_reason": reason,
+        "ground_control": {"datum": ctl.extra.get("datum"), "demoted": ctl.extra.get("demoted", []),
+                           "lines": ctl.extra.get("lines", [])},
+        "steps": {name: res.info() for name, res in steps.items()},
+        "out_dir": None if out_dir is None else str(out_dir),
+        "outputs": outputs,
+    }
+    if "diagnosis" in outputs:
+        docs = runner.inputs({k: outputs[k] for k in ("diagnosis", "assessment", "adjustment")})
+        diag, assess, adjustment = docs.json("diagnosis"), docs.json("assessment"), docs.json("adjustment")
+        summary.update({
+            "diagnosis": diag.get("summary"),
+            "recorded_eo": diag.get("recorded_eo"),
+            "recorded_eo_corrections": (adjustment.get("recorded_eo_corrections") or {}).get("notes"),
+            "twin": (diag.get("twin") or {}).get("summary"),
+            "accuracy": assess.get("check_points"),
+            "adjustment_converged": bool(adjustment.get("converged", True)),
+            "adjustment_iterations": adjustment.get("iterations"),
+        })
+    files = {}
+    if out_dir is not None:
+        files = {name: str(runner.export(outputs[name], Path(out_dir) / fname))
+                 for name, fname in EXPORTS.items() if name in outputs}
+    summary["files"] = files
+    return FlightRun(summary, steps, outputs, files, runner)
