@@ -24,6 +24,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rasterio
+
+from aerocal import tables
+from aerocal.camera import correct_measurements
+from aerocal.targets import locate_targets
 
 AXES = ("E", "N", "U")
 
@@ -83,8 +88,6 @@ class PointResiduals:
 
 
 def _gcp_arrays(gcps, role: str | None) -> tuple[list[str], np.ndarray, np.ndarray]:
-    from aerocal import tables
-
     g = tables.validate(gcps, "gcps")
     ids = g.column("gcp_id").to_pylist()
     roles = g.column("role").to_pylist()
@@ -121,8 +124,6 @@ def intersect_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
 
 def _frame_rays(frame, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World rays of pixels ``uv`` (N, 2) in a :class:`aerocal.mosaic.FrameGeometry`."""
-    from aerocal.camera import correct_measurements
-
     uv = np.atleast_2d(np.asarray(uv, dtype=float))
     if frame.thermal_model is not None:
         uv = correct_measurements(frame.camera, uv, frame.temperature, frame.thermal_model)
@@ -136,8 +137,6 @@ def triangulate_gcps(frames: Sequence, gcp_observations) -> dict[str, np.ndarray
 
     ``frames``: :class:`aerocal.mosaic.FrameGeometry` (adjusted poses with their per-image IO).
     """
-    from aerocal import tables
-
     obs = tables.validate(gcp_observations, "gcp_observations")
     by_id = {f.image_id: f for f in frames}
     gid = obs.column("gcp_id").to_pylist()
@@ -163,10 +162,6 @@ def mosaic_target_residuals(
     square in mosaic pixels). Nodata pixels in the window are replaced by the window's median. Targets
     not found (outside the mosaic, no blob) are left out; ``n`` says how many were found.
     """
-    import rasterio
-
-    from aerocal.targets import locate_targets
-
     ids, xyz, _ = _gcp_arrays(gcps, role)
     mosaic_path = Path(mosaic_path)
     try:
@@ -283,8 +278,6 @@ def reprojection_stats(
     """Statistics of reprojection ``residuals`` (N, 2 pixels, projected - measured) aligned with the rows of
     an ``observations`` table. ``images`` (an images table) gives strips and image size; RMS is the root
     mean square of the residual vector length."""
-    from aerocal import tables
-
     obs = tables.validate(observations, "observations")
     r = np.asarray(residuals, dtype=float)
     if r.shape != (obs.num_rows, 2):
@@ -430,8 +423,6 @@ def loop_closure(frames: Sequence, observations, first_pair: tuple[int, int],
 
     ``frames``: :class:`aerocal.mosaic.FrameGeometry` of the adjusted block.
     """
-    from aerocal import tables
-
     obs = tables.validate(observations, "observations")
     by_id = {f.image_id: f for f in frames}
     for i in (*first_pair, *last_pair):

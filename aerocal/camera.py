@@ -244,6 +244,7 @@ def to_pycolmap(camera: Camera, camera_id: int = 1, drop_skew: bool = False):
     k4..k6 = 0. Skew ``b2`` has no counterpart in any COLMAP model: a non-zero b2 raises unless
     ``drop_skew=True``, which discards it (and is then not a faithful conversion).
     """
+    # lazy: pycolmap costs ~0.7 s to import (measured) and every engine module imports aerocal.camera
     import pycolmap
 
     if camera.b2 != 0.0 and not drop_skew:

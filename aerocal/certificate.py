@@ -48,6 +48,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import hashlib
+import importlib.metadata
 import json
 import math
 import uuid
@@ -301,8 +302,6 @@ class Quality:
 
 def code_version() -> str:
     """The running aerocal version (package metadata), or ``"unknown"`` when it is not installed."""
-    import importlib.metadata
-
     try:
         return importlib.metadata.version("aerocal")
     except importlib.metadata.PackageNotFoundError:

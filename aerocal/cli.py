@@ -15,6 +15,7 @@ from typing import Any
 def __getattr__(name: str) -> Any:
     """``app``: the command tree :data:`flows.cli.app.app`, imported on first use."""
     if name == "app":
+        # lazy: the engine reaches the platform package only here, when the command tree is asked for
         from flows.cli.app import app
 
         return app

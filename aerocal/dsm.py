@@ -44,10 +44,18 @@ the mosaic already meets 1 GSD, and SGBM would have to be measured on real therm
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import rasterio
+from rasterio.transform import from_origin
+from scipy import ndimage
+from scipy.interpolate import griddata
+from scipy.spatial import cKDTree
+
+from aerocal.io import atomic_path
 
 #: Value written for cells without a height in DSM GeoTIFFs (float32).
 NODATA = -9999.0
@@ -123,8 +131,6 @@ class Dsm:
 
     def transform(self):
         """The rasterio (affine) transform of the grid."""
-        from rasterio.transform import from_origin
-
         return from_origin(self.west, self.north, self.cell_m, self.cell_m)
 
     def grid_coords(self, e: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -196,8 +202,6 @@ def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float,
     (isolated points, tested against their nearest neighbours at any distance, do not set the DSM's
     extent).
     """
-    from scipy.spatial import cKDTree
-
     pts = np.asarray(points, dtype=float)
     n = len(pts)
     k = min(config.outlier_neighbours, n - 1)
@@ -210,8 +214,6 @@ def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float,
     z = np.where(np.isfinite(dist), pts[np.minimum(idx, n - 1), 2], np.nan)
     enough = np.sum(np.isfinite(z), axis=1) >= 3
     with np.errstate(all="ignore"):
-        import warnings
-
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             med = np.nanmedian(z, axis=1)
@@ -292,7 +294,6 @@ def dsm_from_points(
     inside = (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
     heights, counts = _cell_medians(r[inside], c[inside], good[inside, 2], (rows, cols))
     has = np.isfinite(heights)
-    from scipy import ndimage
 
     distance = ndimage.distance_transform_edt(~has).astype(np.float32) * np.float32(cell)
     if config.fill and has.sum() >= 3:
@@ -309,8 +310,6 @@ def dsm_from_points(
 
 def _fill(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
     """Linear interpolation on the Delaunay triangulation of the data cells, nearest outside the hull."""
-    from scipy.interpolate import griddata
-
     rr, cc = np.nonzero(has)
     known = np.column_stack([rr, cc]).astype(float)
     values = heights[has]
@@ -329,10 +328,6 @@ def _fill(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
 
 def write_dsm(dsm: Dsm, path: str | Path) -> Path:
     """Write ``dsm`` as a tiled, deflate-compressed float32 GeoTIFF (nodata :data:`NODATA`), atomically."""
-    import rasterio
-
-    from aerocal.io import atomic_path
-
     path = Path(path)
     data = np.where(np.isfinite(dsm.heights), dsm.heights, NODATA).astype(np.float32)
     rows, cols = dsm.shape
@@ -351,8 +346,6 @@ def write_dsm(dsm: Dsm, path: str | Path) -> Path:
 
 def read_dsm(path: str | Path) -> Dsm:
     """Read a single-band north-up GeoTIFF (as :func:`write_dsm` writes) into a :class:`Dsm`."""
-    import rasterio
-
     path = Path(path)
     try:
         src = rasterio.open(path)

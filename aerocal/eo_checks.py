@@ -32,6 +32,8 @@ import pyarrow as pa
 from aerocal.adjust import AdjustConfig, AdjustmentError
 from aerocal.camera import Camera
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+from aerocal.diagnose.hypotheses import velocities
+from aerocal.diagnose.model import image_strips, image_times_s
 
 #: control GCPs the offset needs in the block (a translation of the datum is determined by three points)
 MIN_CONTROL = 3
@@ -60,9 +62,6 @@ def shift_gnss(images: pa.Table, offset: np.ndarray) -> pa.Table:
 def track_velocities(images: pa.Table) -> np.ndarray:
     """Velocity (m/s, E N Up of the flight's CRS) of each recorded position from its neighbours in time within
     its strip (:func:`aerocal.diagnose.hypotheses.velocities`); zero where the image has no neighbour."""
-    from aerocal.diagnose.hypotheses import velocities
-    from aerocal.diagnose.model import image_strips, image_times_s
-
     C = np.column_stack([images.column(c).to_numpy(zero_copy_only=False).astype(float)
                          for c in ("gnss_x", "gnss_y", "gnss_z")])
     secs = image_times_s(images)

@@ -25,6 +25,9 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from pyproj import CRS, Transformer
+from pyproj.exceptions import CRSError
+from scipy.spatial.transform import Rotation
 
 # ----------------------------------------------------------------------------- elementary rotations
 #: Rotation from north-east-down to east-north-up axes (its own inverse).
@@ -152,23 +155,17 @@ def small_rotation(angles_rad: np.ndarray) -> np.ndarray:
 
 def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
     """Rotation vector (radians) of a rotation matrix."""
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(R).as_rotvec()
 
 
 def quat_wxyz_from_matrix(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (or a stack of them)."""
-    from scipy.spatial.transform import Rotation
-
     q = Rotation.from_matrix(R).as_quat()  # x, y, z, w
     q = np.roll(q, 1, axis=-1)
     return np.where(q[..., :1] < 0, -q, q)
 
 
 def matrix_from_quat_wxyz(q: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     q = np.asarray(q, dtype=float)
     return Rotation.from_quat(np.roll(q, -1, axis=-1)).as_matrix()
 
@@ -190,8 +187,6 @@ def utm_crs_for(lon: float, lat: float) -> str:
 @lru_cache(maxsize=64)
 def transformer(src: str, dst: str):
     """A cached pyproj transformer (always x=lon/easting, y=lat/northing order)."""
-    from pyproj import Transformer
-
     return Transformer.from_crs(src, dst, always_xy=True)
 
 
@@ -206,9 +201,6 @@ def projected_to_lonlat(x, y, crs: str):
 
 def validate_crs(crs: str) -> str:
     """Return ``crs`` if pyproj knows it and it is projected in metres; else raise naming it."""
-    from pyproj import CRS
-    from pyproj.exceptions import CRSError
-
     try:
         c = CRS.from_user_input(crs)
     except CRSError as exc:

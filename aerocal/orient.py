@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
+import pycolmap
 
 from aerocal import tables
 from aerocal.adjust.control import (
@@ -30,15 +31,14 @@ from aerocal.adjust.control import (
     plan_only,
     screen_points,
 )
-from aerocal.camera import Camera
+from aerocal.camera import Camera, to_pycolmap
 from aerocal.geometry import (
     R_cw_to_opk,
     Similarity,
     attitude_to_R_cw,
     estimate_similarity,
-    matrix_from_quat_wxyz,
-    quat_wxyz_from_matrix,
 )
+from aerocal.poses import poses_arrays, poses_table
 
 
 class OrientationError(RuntimeError):
@@ -53,21 +53,6 @@ class IncrementalConfig:
     refine_intrinsics: bool = False  # keep the starting camera: flat nadir blocks do not determine it
     multiple_models: bool = False  # one model; images that do not join it stay unregistered
     camera_model: str = "SIMPLE_RADIAL"  # COLMAP model seeded from the starting camera (f, cx, cy, k1)
-
-
-def poses_table(image_ids: np.ndarray, R_cw: np.ndarray, C: np.ndarray, crs: str | None = None) -> pa.Table:
-    q = quat_wxyz_from_matrix(R_cw)
-    return tables.from_columns("poses", {
-        "image_id": np.asarray(image_ids, dtype=np.int32), "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2],
-        "qz": q[:, 3], "X": C[:, 0], "Y": C[:, 1], "Z": C[:, 2]}, crs=crs)
-
-
-def poses_arrays(poses: pa.Table) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(image ids, R_cw (N, 3, 3), C (N, 3)) of a poses table."""
-    p = poses.to_pydict()
-    q = np.column_stack([p["qw"], p["qx"], p["qy"], p["qz"]])
-    return (np.asarray(p["image_id"]), matrix_from_quat_wxyz(q).reshape(-1, 3, 3),
-            np.column_stack([p["X"], p["Y"], p["Z"]]))
 
 
 def has_priors(images: pa.Table) -> bool:
@@ -115,15 +100,11 @@ def images_with_poses(images: pa.Table, poses: pa.Table) -> pa.Table:
 
 
 def _colmap_camera(camera: Camera, model: str):
-    import pycolmap
-
     if model == "SIMPLE_RADIAL":
         params = [camera.f, camera.cx, camera.cy, camera.k1]
     elif model == "PINHOLE":
         params = [camera.f + camera.b1, camera.f, camera.cx, camera.cy]
     else:
-        from aerocal.camera import to_pycolmap
-
         return to_pycolmap(camera, drop_skew=True)
     return pycolmap.Camera(model=model, width=camera.width, height=camera.height, params=params)
 
@@ -143,8 +124,6 @@ def orient_incremental(
     ``observations`` holds the registered measurements of the reconstruction's tracks (track ids are
     COLMAP's point ids).
     """
-    import pycolmap
-
     config = config or IncrementalConfig()
     pycolmap.logging.minloglevel = 2  # COLMAP's own progress lines: our callback reports progress
     keypoints = tables.validate(keypoints, "keypoints", source="keypoints")

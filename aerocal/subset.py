@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
+from aerocal import tables
 from aerocal.adjust.bundle import initial_state
 from aerocal.adjust.problem import AdjustConfig, build_block
 from aerocal.adjust.solver import Problem, State, inverse_spd, schur_complement
@@ -207,8 +208,6 @@ def central_images(images: pa.Table, n: int) -> np.ndarray:
 
 
 def _empty_obs() -> pa.Table:
-    from aerocal import tables
-
     return tables.empty("observations")
 
 

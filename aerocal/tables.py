@@ -26,6 +26,8 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from aerocal.io import atomic_path
+
 CRS_KEY = b"aerocal.crs"
 KIND_KEY = b"aerocal.kind"
 
@@ -254,8 +256,6 @@ def validate(table: pa.Table, kind: str, source: str | Path | None = None) -> pa
 
 def write(table: pa.Table, path: str | Path, kind: str) -> Path:
     """Validate and write ``table`` as Parquet atomically (temporary file, fsync, rename)."""
-    from aerocal.io import atomic_path
-
     table = _tag(validate(table, kind), kind)
     path = Path(path)
     with atomic_path(path) as tmp:

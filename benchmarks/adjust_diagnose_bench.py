@@ -11,15 +11,14 @@ from __future__ import annotations
 
 import time
 
+from aerocal.adjust import AdjustConfig, adjust
+from aerocal.diagnose.engine import DiagnoseConfig, diagnose_baseline
+from aerocal.diagnose.model import fit_baseline
+from aerocal.simulate import simulate_flight
 from benchmarks.common import peak_rss_mb, record
 
 
 def main() -> None:
-    from aerocal.adjust import AdjustConfig, adjust
-    from aerocal.diagnose.engine import DiagnoseConfig, diagnose_baseline
-    from aerocal.diagnose.model import fit_baseline
-    from aerocal.simulate import simulate_flight
-
     sim = simulate_flight("conte-city", seed=1, effects={"thermal_focal": 0.2})
     s = sim.spec.sensors
     priors = dict(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m),

@@ -12,18 +12,20 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import multiprocessing as mp
 import resource
 import time
 
+from aerocal.adjust import AdjustConfig, adjust, adjust_fixed_io
+from aerocal.simulate import simulate_flight
+from aerocal.simulate.presets import PRESETS
 from benchmarks.common import record
 
 FULL = 818  # frames of conte-city
 
 
 def _spec(n: int):
-    from aerocal.simulate.presets import PRESETS
-
     spec = PRESETS["conte-city"]
     if n <= FULL:
         return spec, (n if n < FULL else None)
@@ -33,9 +35,6 @@ def _spec(n: int):
 
 
 def _case(n: int, mode: str, queue) -> None:
-    from aerocal.adjust import AdjustConfig, adjust, adjust_fixed_io
-    from aerocal.simulate import simulate_flight
-
     spec, max_images = _spec(n)
     sim = simulate_flight(spec, seed=0, max_images=max_images)
     s = sim.spec.sensors
@@ -78,7 +77,6 @@ def main(argv: list[str] | None = None) -> None:
         print(lines[-1], flush=True)
     if len(rows) >= 2:
         (a, _), (b, _) = rows[0], rows[-1]
-        import math
 
         expo = math.log(b["seconds"] / a["seconds"]) / math.log(b["images"] / a["images"])
         lines += ["", f"- fixed-IO time grows as images^{expo:.2f} from {a['images']} to {b['images']} images"]

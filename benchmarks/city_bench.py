@@ -30,6 +30,26 @@ from pathlib import Path
 
 import numpy as np
 
+from aerocal import tables
+from aerocal.camera import Camera
+from aerocal.certificate import Certificate
+from aerocal.dsm import read_dsm
+from aerocal.ingest import ingest_folder
+from aerocal.io import write_json_atomic
+from aerocal.matching import (
+    FeatureConfig,
+    MatchConfig,
+    candidate_pairs_from_footprints,
+    exhaustive_pairs,
+    extract_features,
+    local_client,
+    match_pairs_detailed,
+)
+from aerocal.mosaic import build_mosaic, frames_from_poses
+from aerocal.pipeline import process
+from aerocal.pipeline.config import MatchStepConfig
+from aerocal.pipeline.match_step import frame_loader, match_images
+from aerocal.simulate import simulate_flight, write_flight
 from benchmarks.common import peak_rss_mb, record
 
 DATA = Path(__file__).resolve().parent / "data"
@@ -42,8 +62,6 @@ def children_peak_mb() -> float:
 
 def rendered_flight(preset: str = "conte-city", seed: int = 0) -> Path:
     """The rendered flight folder, simulated and rendered on first use."""
-    from aerocal.simulate import simulate_flight, write_flight
-
     out = DATA / f"{preset}-images-s{seed}"
     if (out / "flight.json").exists():
         return out
@@ -70,8 +88,6 @@ def scratch_folder(prefix: str):
 
 def subset_folder(folder: Path, n: int, work: Path) -> Path:
     """A flight folder of the ``n`` frames nearest the block centre (hard links to the cached frames)."""
-    from aerocal.ingest import ingest_folder
-
     res = ingest_folder(folder)
     im = res.images
     x, y = im.column("gnss_x").to_numpy(), im.column("gnss_y").to_numpy()
@@ -102,9 +118,6 @@ def subset_folder(folder: Path, n: int, work: Path) -> Path:
 def end_to_end(folder: Path, work: Path) -> tuple[dict, float]:
     """The run summary of the whole flight through :func:`aerocal.pipeline.process` (``run.json`` written
     beside the products), and its seconds."""
-    from aerocal.io import write_json_atomic
-    from aerocal.pipeline import process
-
     t0 = time.perf_counter()
     run = process(folder, certificate="none", out_dir=work / "run")
     seconds = time.perf_counter() - t0
@@ -114,12 +127,6 @@ def end_to_end(folder: Path, work: Path) -> tuple[dict, float]:
 
 def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int]:
     """(features s, matches s, keypoints, verified matches) of the flight with a ``workers`` cluster."""
-    from aerocal.camera import Camera
-    from aerocal.ingest import ingest_folder
-    from aerocal.matching import local_client
-    from aerocal.pipeline.config import MatchStepConfig
-    from aerocal.pipeline.match_step import match_images
-
     res = ingest_folder(folder)
     cam = Camera.from_dict(json.loads((folder / "camera.json").read_text())["camera"])
     flight = json.loads((folder / "flight.json").read_text()) | {"folder": str(folder)}
@@ -134,19 +141,6 @@ def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int
 
 def pairs_recall(folder: Path) -> dict:
     """Footprint vs exhaustive candidate pairs on the flight: time and recall of verified matches."""
-
-    from aerocal.camera import Camera
-    from aerocal.ingest import ingest_folder
-    from aerocal.matching import (
-        FeatureConfig,
-        MatchConfig,
-        candidate_pairs_from_footprints,
-        exhaustive_pairs,
-        extract_features,
-        local_client,
-        match_pairs_detailed,
-    )
-    from aerocal.pipeline.match_step import frame_loader
 
     res = ingest_folder(folder)
     images = res.images
@@ -176,13 +170,6 @@ def pairs_recall(folder: Path) -> dict:
 
 def mosaic_workers(run_dir: Path, folder: Path, workers: int, work: Path) -> float:
     """Seconds to mosaic the whole flight from the run's poses and DSM with a ``workers`` cluster."""
-    from aerocal import tables
-    from aerocal.certificate import Certificate
-    from aerocal.dsm import read_dsm
-    from aerocal.ingest import ingest_folder
-    from aerocal.matching import local_client
-    from aerocal.mosaic import build_mosaic, frames_from_poses
-
     cert = Certificate.from_dict(json.loads((run_dir / "certificate.json").read_text()))
     dsm = read_dsm(run_dir / "dsm.tif")
     poses = tables.read(run_dir / "poses.parquet", "poses")

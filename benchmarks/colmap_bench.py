@@ -43,8 +43,23 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
+import pycolmap
 
+from aerocal import tables
+from aerocal.adjust import adjust, adjust_fixed_io, select_images
+from aerocal.assess import point_residuals, triangulate_gcps
+from aerocal.camera import Camera, LinearThermalModel, from_pycolmap
+from aerocal.enhance import EnhanceConfig, enhance, stretch_params
+from aerocal.geometry import estimate_similarity
+from aerocal.ingest import ingest_folder, read_raw
+from aerocal.mosaic import frames_from_poses
+from aerocal.orient import georeference, orient_from_priors
+from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
+from aerocal.pipeline.match_step import match_images, terrain_height
+from aerocal.poses import poses_arrays, poses_table
+from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
 from benchmarks.common import record
 
@@ -107,8 +122,6 @@ def _flight(folder: Path) -> dict:
 
 # ----------------------------------------------------------------------------------------- COLMAP
 def pycolmap_version() -> str:
-    import pycolmap
-
     return str(pycolmap.__version__)
 
 
@@ -119,11 +132,6 @@ def frames_to_png(paths: list[str], out: Path, method: str = "none") -> list[str
     min-max linear stretch, what a user feeding COLMAP would do; ``"wallis"`` aerocal's own enhancement
     (dataset-wide 2 % stretch and Wallis filter), to tell the conversion's share from COLMAP's.
     """
-    import cv2
-
-    from aerocal.enhance import EnhanceConfig, enhance, stretch_params
-    from aerocal.ingest import read_raw
-
     config = EnhanceConfig(method=method)
     params = None if method == "none" else stretch_params(paths, percent=config.percent, loader=read_raw)
     out.mkdir(parents=True, exist_ok=True)
@@ -137,28 +145,18 @@ def frames_to_png(paths: list[str], out: Path, method: str = "none") -> list[str
 
 def footprint_diagonal_m(images, camera, gcps, flight: dict) -> float:
     """Ground diagonal of a frame's footprint (metres) at the terrain height the matcher also uses."""
-    from aerocal.pipeline.match_step import terrain_height
-
     z = images.column("gnss_z").to_numpy(zero_copy_only=False).astype(float)
     height = float(np.nanmean(z)) - terrain_height(images, gcps, flight)
     return height * float(np.hypot(camera.width, camera.height)) / camera.f
 
 
 def _apply_similarity(poses, sim, crs):
-    from aerocal.orient import poses_arrays, poses_table
-
     ids, R, C = poses_arrays(poses)
     return poses_table(ids, np.einsum("nij,jk->nik", R, sim.R.T), sim.apply(C), crs)
 
 
 def georeference_colmap(local_poses, camera, images, gcps, gobs, datum: str, gnss_sigma: tuple[float, float]):
     """COLMAP's model in the flight CRS: (poses, similarity, sentence saying how)."""
-    from aerocal import tables
-    from aerocal.assess import triangulate_gcps
-    from aerocal.geometry import estimate_similarity
-    from aerocal.mosaic import frames_from_poses
-    from aerocal.orient import georeference
-
     crs = tables.crs_of(gcps) or tables.crs_of(images)
     g = gcps.to_pydict()
     control = {gid: k for k, gid in enumerate(g["gcp_id"]) if g["role"][k] == "control"}
@@ -196,14 +194,6 @@ def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: floa
     ``refine_camera=False`` departs from COLMAP's defaults: the nominal camera is held fixed in mapping
     and bundle adjustment (what aerocal's notes recommend for flat nadir thermal blocks).
     """
-    import pycolmap
-
-    from aerocal.assess import point_residuals, triangulate_gcps
-    from aerocal.camera import Camera, from_pycolmap
-    from aerocal.ingest import ingest_folder
-    from aerocal.mosaic import frames_from_poses
-    from aerocal.orient import poses_table
-
     pycolmap.logging.minloglevel = 2
     run = PipelineRun("COLMAP" if refine_camera else "COLMAP (camera fixed)")
     clock = _Stopwatch(run)
@@ -309,13 +299,6 @@ def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: floa
 # ---------------------------------------------------------------------------------------- aerocal
 def run_aerocal(folder: Path) -> PipelineRun:
     """aerocal's pipeline steps up to the full-block adjustment (:mod:`aerocal.pipeline`), with its defaults."""
-    from aerocal.adjust import adjust, adjust_fixed_io, select_images
-    from aerocal.camera import LinearThermalModel
-    from aerocal.ingest import ingest_folder
-    from aerocal.orient import orient_from_priors
-    from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
-    from aerocal.pipeline.match_step import match_images
-
     run = PipelineRun("aerocal")
     clock = _Stopwatch(run)
     config = ProcessConfig()
@@ -338,8 +321,6 @@ def run_aerocal(folder: Path) -> PipelineRun:
             ids = images.column("image_id").to_pylist()
             why = f"the whole block ({len(ids)} images)"
         else:
-            from aerocal.subset import SubsetConfig, propose_subset
-
             scfg = dataclasses.replace(SubsetConfig(), height_agl_m=float(flight["height_agl_m"]))
             ids = propose_subset(images, camera, gcps, scfg).image_ids
             why = f"a sub-block of {len(ids)} images"

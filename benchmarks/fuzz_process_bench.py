@@ -19,6 +19,7 @@ import json
 import os
 import shutil
 import signal
+import sqlite3
 import subprocess
 import sys
 import time
@@ -27,8 +28,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from prefect.settings import PREFECT_API_URL
+from prefect.testing.utilities import prefect_test_harness
 
+from aerocal.ingest import ingest_folder
 from aerocal.simulate.faults import FAULTS, AppliedFault, apply_fault
+from benchmarks.common import record
 
 AEROCAL = str(Path(sys.executable).with_name("aerocal"))
 BASE_PRESET, BASE_IMAGES = "conte-calibration", 12
@@ -68,8 +73,6 @@ def make_base(root: Path, seed: int, env: dict) -> Path:
 
 def store_snapshot(db: Path, artifacts: Path) -> tuple[list[tuple], dict[str, int]]:
     """(certificate rows: id, version, status, camera; artifact files and their sizes)."""
-    import sqlite3
-
     rows: list[tuple] = []
     if db.exists():
         with sqlite3.connect(db) as con:
@@ -83,8 +86,6 @@ def store_snapshot(db: Path, artifacts: Path) -> tuple[list[tuple], dict[str, in
 
 
 def ingest_errors(folder: Path) -> int:
-    from aerocal.ingest import ingest_folder
-
     try:
         return len(ingest_folder(folder).errors)
     except Exception:  # a fault may make ingest itself refuse the folder: count it as an error
@@ -160,7 +161,6 @@ def run_kill(base: Path, seed: int, work: Path, env: dict) -> Outcome:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.wait()
     problems = []
-    import sqlite3
 
     if db.exists():
         with sqlite3.connect(db) as con:
@@ -195,11 +195,6 @@ def corpus(n: int, seed: int) -> list[tuple[str, int]]:
 
 
 def main(n_cases: int | None = None) -> None:
-    from prefect.settings import PREFECT_API_URL
-    from prefect.testing.utilities import prefect_test_harness
-
-    from benchmarks.common import record
-
     if n_cases is None:
         n_cases = int(sys.argv[1]) if len(sys.argv) > 1 and sys.argv[1].isdigit() else 220
     root = Path(os.environ.get("AEROCAL_FUZZ_DIR", "/tmp/aerocal-fuzz-process"))

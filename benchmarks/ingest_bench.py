@@ -24,18 +24,21 @@ import tempfile
 import time
 from pathlib import Path
 
+import flyr
 import numpy as np
+import tifffile
 from PIL import Image
 
+from aerocal.ingest import ingest_folder, read_raw
+from aerocal.ingest.metadata_writer import dji_xmp_packet, exif_block, fff_file, jpeg_with_flir, jpeg_with_metadata
+from aerocal.ingest.pixels import read_temperature_c
+from aerocal.simulate.image_files import zenmuse_xt2_camera_info
 from benchmarks.common import peak_rss_mb, record
 
 SAMPLE = Path(__file__).resolve().parents[2] / "shared" / "data" / "flir_samples" / "fff_flir_t640.jpg"
 
 
 def _write_flight(folder: Path, n: int, seed: int = 0) -> None:
-    from aerocal.ingest.metadata_writer import dji_xmp_packet, exif_block, fff_file, jpeg_with_flir, jpeg_with_metadata
-    from aerocal.simulate.image_files import zenmuse_xt2_camera_info
-
     rng = np.random.default_rng(seed)
     info = zenmuse_xt2_camera_info(60.0)
     images = folder / "images"
@@ -57,8 +60,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--frames", type=int, default=1000)
     parser.add_argument("--flyr-frames", type=int, default=20)
     args = parser.parse_args(argv)
-    from aerocal.ingest import ingest_folder, read_raw
-    from aerocal.ingest.pixels import read_temperature_c
 
     n = args.frames
     with tempfile.TemporaryDirectory(prefix="aerocal-ingest-bench-") as tmp:
@@ -79,7 +80,6 @@ def main(argv: list[str] | None = None) -> None:
         for p in paths:
             read_temperature_c(p)
         t_temp = time.perf_counter() - t0
-        import tifffile
 
         tiffs = Path(tmp) / "tiff"
         tiffs.mkdir()
@@ -89,7 +89,6 @@ def main(argv: list[str] | None = None) -> None:
         for q in sorted(tiffs.iterdir()):
             tifffile.imread(q)
         t_tiff = time.perf_counter() - t0
-        import flyr
 
         sample = SAMPLE if SAMPLE.is_file() else None
         t_flyr_one = t_ours_one = float("nan")

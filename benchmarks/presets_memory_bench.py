@@ -21,6 +21,11 @@ import time
 from pathlib import Path
 
 import psutil
+from prefect.settings import PREFECT_API_URL
+from prefect.testing.utilities import prefect_test_harness
+
+from aerocal.simulate.presets import preset_names
+from benchmarks.common import record
 
 AEROCAL = str(Path(sys.executable).with_name("aerocal"))
 TARGET_GB = 4.0
@@ -62,12 +67,6 @@ def run_sampled(args: list[str], env: dict, cwd: Path) -> tuple[int, float, floa
 
 
 def main(presets: list[str] | None = None) -> None:
-    from prefect.settings import PREFECT_API_URL
-    from prefect.testing.utilities import prefect_test_harness
-
-    from aerocal.simulate.presets import preset_names
-    from benchmarks.common import record
-
     presets = presets or [a for a in sys.argv[1:] if not a.startswith("-")] or preset_names()
     root = Path(os.environ.get("AEROCAL_BENCH_DIR", "/tmp/aerocal-presets-memory"))
     shutil.rmtree(root, ignore_errors=True)

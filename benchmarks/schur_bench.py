@@ -14,16 +14,15 @@ import argparse
 
 import numpy as np
 
+from aerocal.adjust import AdjustConfig
+from aerocal.adjust.bundle import initial_state
+from aerocal.adjust.problem import build_block
+from aerocal.adjust.solver import Problem, schur_complement
+from aerocal.simulate import simulate_flight
 from benchmarks.common import best_of, record
 
 
 def case(n: int, free: tuple[str, ...]) -> dict:
-    from aerocal.adjust import AdjustConfig
-    from aerocal.adjust.bundle import initial_state
-    from aerocal.adjust.problem import build_block
-    from aerocal.adjust.solver import Problem, schur_complement
-    from aerocal.simulate import simulate_flight
-
     sim = simulate_flight("conte-city", seed=0, max_images=n if n < 818 else None)
     cfg = AdjustConfig(free=free, gnss_sigma_m=(0.1, 0.1, 0.15))
     blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)

@@ -38,16 +38,33 @@ and calibrating again (the step cache keys on inputs and configuration, not code
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
+import re
 import resource
 import shutil
 import tempfile
 import time
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+import pyarrow as pa
 
+from aerocal import tables
+from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
+from aerocal.camera import Camera
+from aerocal.certificate import Certificate
+from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+from aerocal.diagnose.io_uncertainty import IOUncertainty
+from aerocal.ingest import ingest_folder
+from aerocal.io import write_json_atomic
+from aerocal.matching import FeatureConfig
+from aerocal.pipeline import process
+from aerocal.pipeline.config import MatchStepConfig, ProcessConfig
+from aerocal.pipeline.report_step import recorded_eo_text
 from benchmarks.common import peak_rss_mb, record
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -78,9 +95,6 @@ def children_peak_mb() -> float:
 
 def build_flight(work: Path, quick: bool = False) -> tuple[Path, dict]:
     """The flight folder under ``work`` (image links, camera.json, flight.json) and what was left out."""
-    from aerocal.camera import Camera
-    from aerocal.ingest import ingest_folder
-
     res = ingest_folder(IMAGES)
     im, extra = res.images, res.extra
     w, h = im.column("width").to_numpy(), im.column("height").to_numpy()
@@ -132,8 +146,6 @@ def _stats(values: np.ndarray) -> str:
 
 
 def _rejected(selection: list[str]) -> str:
-    import re
-
     for s in selection or []:
         m = re.match(r"rejected (\d+) of (\d+)", s)
         if m:
@@ -145,10 +157,7 @@ def tie_point_figure(names: list[str], per_image: np.ndarray, used: np.ndarray, 
                      path: Path) -> Path:
     """Bars of tie points per image (matched and used by the block adjustment) over the image order, the
     sensor temperature on a twin axis."""
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     x = np.arange(len(names))
     fig, ax = plt.subplots(figsize=(12, 4.5))
@@ -191,9 +200,6 @@ KEPT = {
 
 def keep(run, work: Path) -> None:
     """Write the run's tables the report and ``--rediagnose`` read to ``work/kept`` (Parquet, .npy, JSON)."""
-    from aerocal import tables
-    from aerocal.io import write_json_atomic
-
     folder = work / "kept"
     for name, (step, output, kind) in KEPT.items():
         values = run.runner.inputs({name: run.steps[step][output]})
@@ -208,8 +214,6 @@ def keep(run, work: Path) -> None:
 
 def read_kept(work: Path) -> dict:
     """What :func:`keep` wrote, by name."""
-    from aerocal import tables
-
     folder, out = work / "kept", {}
     for name, (_, _, kind) in KEPT.items():
         if kind is not None:
@@ -223,14 +227,6 @@ def read_kept(work: Path) -> dict:
 
 def rediagnose(work: Path) -> list[str]:
     """The diagnose step of the run kept in ``work`` done again by this code, timed: result lines."""
-    import dataclasses
-
-    import pyarrow as pa
-
-    from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
-    from aerocal.certificate import Certificate
-    from aerocal.diagnose.engine import DiagnoseConfig, diagnose
-    from aerocal.diagnose.io_uncertainty import IOUncertainty
     measured_path = work / "measured.json"
     if not measured_path.is_file():
         raise SystemExit(f"{measured_path} not found: run the benchmark with --work {work} first")
@@ -292,17 +288,9 @@ def main(argv: list[str] | None = None) -> None:
     measured_path = work / "measured.json"
     done = False
     try:
-        from aerocal.camera import Camera
-        from aerocal.certificate import Certificate
-        from aerocal.pipeline.report_step import recorded_eo_text
-
         if measured_path.exists():
             measured = json.loads(measured_path.read_text())
         else:
-            from aerocal.matching import FeatureConfig
-            from aerocal.pipeline import process
-            from aerocal.pipeline.config import MatchStepConfig, ProcessConfig
-
             folder, built = build_flight(work, args.quick)
             t0 = time.perf_counter()
             config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES)))

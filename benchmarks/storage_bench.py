@@ -21,7 +21,15 @@ from pathlib import Path
 
 import sqlalchemy as sa
 
+from aerocal.certificate import CameraIdentity, Certificate, Conditions
+from aerocal.simulate.presets import PRESETS
 from benchmarks.common import record
+from storage.certificates import issue_certificate, select_certificate
+from storage.database import connect
+from storage.migrations import upgrade
+from storage.models import Artifact, RunArtifact
+from storage.provenance import provenance
+from storage.runs import start_run
 
 POSTGRES_ADMIN = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
 
@@ -46,22 +54,12 @@ def _drop_postgres(name: str) -> None:
 
 
 def _certificate(serial: int, k: int) -> dict:
-    from aerocal.certificate import CameraIdentity, Certificate, Conditions
-    from aerocal.simulate.presets import PRESETS
-
     cam = PRESETS["conte-calibration"].camera_true.replace(f=1670.0 + 0.01 * k)
     return Certificate(CameraIdentity("NEC", "TS9260", f"{serial:05d}", "39.2mm Ge"), cam,
                        conditions=Conditions(date="2016-03-14", temperature_range=(15.0, 25.0))).to_dict()
 
 
 def bench(url: str, n_images: int, n_certs: int) -> list[tuple[str, float, int]]:
-    from storage.certificates import issue_certificate, select_certificate
-    from storage.database import connect
-    from storage.migrations import upgrade
-    from storage.models import Artifact, RunArtifact
-    from storage.provenance import provenance
-    from storage.runs import start_run
-
     upgrade(url)
     db = connect(url)
     rows = []

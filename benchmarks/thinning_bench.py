@@ -21,7 +21,14 @@ import time
 
 import numpy as np
 
+from aerocal.adjust import adjust, adjust_fixed_io, select_images
+from aerocal.camera import LinearThermalModel
+from aerocal.ingest import ingest_folder
+from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
+from aerocal.pipeline.match_step import match_images
+from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
+from benchmarks.colmap_bench import _flight
 from benchmarks.common import record
 
 
@@ -29,13 +36,6 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=None, help="only the N frames nearest the block centre")
     args = ap.parse_args(argv)
-    from aerocal.adjust import adjust, adjust_fixed_io, select_images
-    from aerocal.camera import LinearThermalModel
-    from aerocal.ingest import ingest_folder
-    from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
-    from aerocal.pipeline.match_step import match_images
-    from aerocal.subset import SubsetConfig, propose_subset
-    from benchmarks.colmap_bench import _flight
 
     with scratch_folder("work-thinning-") as work:
         full = rendered_flight()

@@ -22,7 +22,10 @@ from pathlib import Path
 from typing import Any
 
 import sqlalchemy as sa
-from prefect import flow
+from prefect import flow, serve
+from prefect.client.schemas.schedules import CronSchedule
+from prefect.deployments.runner import EntrypointType
+from sqlalchemy.engine import make_url
 
 from aerocal.pipeline import FolderDataset, ProcessConfig
 from aerocal.pipeline.certificates import identity_of
@@ -73,8 +76,6 @@ def add_flights(
     one). Returns the flight names."""
     where = resolve_storage(database_url, artifact_root)
     if cron is not None:
-        from prefect.client.schemas.schedules import CronSchedule
-
         try:
             CronSchedule(cron=cron)
         except ValueError:
@@ -219,13 +220,9 @@ def register_campaign_deployments(
 ) -> list[Any]:
     """Register one scheduled deployment of :func:`run_campaign` per campaign with a cron schedule and
     return the ``RunnerDeployment`` objects (nothing runs until they are served)."""
-    from prefect.deployments.runner import EntrypointType
-
     where = resolve_storage(database_url, artifact_root)
     # deployment parameters are stored by Prefect's server: a URL with a password goes to the environment the
     # served runs inherit (AEROCAL_DATABASE_URL), never into the parameters
-    from sqlalchemy.engine import make_url
-
     stored_url: str | None = where.database_url
     if make_url(where.database_url).password:
         os.environ["AEROCAL_DATABASE_URL"] = where.database_url
@@ -261,8 +258,6 @@ def serve_campaigns(
     dask_address: str | None = None,
 ) -> None:
     """Register the campaigns' deployments and serve them until interrupted (blocks)."""
-    from prefect import serve
-
     deployments = register_campaign_deployments(database_url, artifact_root, out_dir, dask_address)
     if not deployments:
         raise FlowInputError(

@@ -23,6 +23,9 @@ import numpy as np
 from prefect import flow
 
 from aerocal.pipeline import ProcessConfig
+from aerocal.simulate import simulate_flight, write_flight
+from aerocal.simulate.rendered_frames import render_flight_images
+from aerocal.simulate.simulator import spec_summary
 from flows.environment import demo_environment
 from flows.process import FlowInputError, process_flight
 
@@ -44,10 +47,6 @@ class DemoConfig:
 
 def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
     """Write the demo flight (observations mode plus ``config.frames`` rendered frames) to ``folder``."""
-    from aerocal.simulate import simulate_flight, write_flight
-    from aerocal.simulate.rendering import render_flight_images
-    from aerocal.simulate.simulator import spec_summary
-
     if folder.exists():
         if not (folder / "flight.json").exists():
             raise FlowInputError(

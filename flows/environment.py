@@ -16,6 +16,7 @@ is first imported (its settings are read then).
 from __future__ import annotations
 
 import os
+import secrets
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -55,6 +56,7 @@ class StorageLocation:
     artifact_root: str
 
     def describe(self) -> dict[str, str]:
+        # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
         from storage.database import mask_url
 
         return {"database": mask_url(self.database_url), "artifacts": self.artifact_root}
@@ -74,6 +76,7 @@ def conceal_password(url: str | None) -> str | None:
     one: the commands pass the concealed URL and :func:`resolve_storage` resolves it."""
     if not url:
         return url
+    # lazy: SQLAlchemy costs ~0.15-0.5 s CPU at start-up; --help must not pay it
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError
 
@@ -83,7 +86,6 @@ def conceal_password(url: str | None) -> str | None:
         return url  # not a URL: resolve_storage's own error names it
     if not parsed.password or str(parsed.password).startswith(_SECRET_PREFIX):
         return url
-    import secrets
 
     token = _SECRET_PREFIX + secrets.token_hex(8)
     _PASSWORDS[token] = str(parsed.password)
@@ -94,6 +96,7 @@ def reveal_password(url: str | None) -> str | None:
     """The URL :func:`conceal_password` concealed; raises ``ValueError`` when its password is not known here."""
     if not url or _SECRET_PREFIX not in url:
         return url
+    # lazy: SQLAlchemy costs ~0.15-0.5 s CPU at start-up; --help must not pay it
     from sqlalchemy.engine import make_url
 
     parsed = make_url(url)
@@ -111,6 +114,7 @@ def resolve_storage(
 ) -> StorageLocation:
     """The storage a flow uses (see the module docstring); the database is migrated to the newest schema
     once per process."""
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage.artifacts import default_artifact_root
     from storage.database import database_url as default_url
     from storage.migrations import upgrade
@@ -132,6 +136,7 @@ def _artifacts_beside(url: str) -> Path | None:
     to the home data folder."""
     if os.environ.get("AEROCAL_ARTIFACT_ROOT", "").strip():
         return None
+    # lazy: storage and SQLAlchemy cost ~0.5 s CPU at start-up; --help must not pay them
     from sqlalchemy.engine import make_url
     from sqlalchemy.exc import ArgumentError
 

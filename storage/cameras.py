@@ -13,11 +13,12 @@ shared by several bodies of the model, which its label says.
 from __future__ import annotations
 
 import sqlalchemy as sa
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
 from aerocal.camera_identity import UNKNOWN, CameraIdentity
 from storage.errors import NotFoundError
-from storage.models import Camera
+from storage.models import Camera, utcnow
 
 __all__ = [
     "UNKNOWN",
@@ -87,17 +88,10 @@ def get_or_create_camera(session: Session, camera: CameraIdentity | str, lock: b
         return found
     dialect = session.get_bind().dialect.name
     values = identity.as_dict()
-    if dialect == "postgresql":
-        from sqlalchemy.dialects.postgresql import insert
-    elif dialect == "sqlite":
-        from sqlalchemy.dialects.sqlite import insert
-    else:  # pragma: no cover - only SQLite and PostgreSQL are supported
-        insert = None
+    insert = {"postgresql": postgresql.insert, "sqlite": sqlite.insert}.get(dialect)
     if insert is not None:
-        from storage.models import utcnow
-
         session.execute(insert(Camera).values(**values, created=utcnow()).on_conflict_do_nothing())
-    else:  # pragma: no cover
+    else:  # pragma: no cover - only SQLite and PostgreSQL are supported
         with session.begin_nested():
             session.add(Camera(**values))
     found = find_camera(session, identity, lock=lock)

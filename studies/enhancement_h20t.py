@@ -32,6 +32,8 @@ import re
 import time
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 
 from aerocal import enhance as E
@@ -268,10 +270,7 @@ def markdown(r: dict) -> str:
 
 
 def figure(r: dict, path: Path) -> None:
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     rows = r["rows"]
     n = len(rows)

@@ -33,12 +33,21 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
+import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, adjust, run_strategy, select_images
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
 from aerocal.camera import Camera, LinearThermalModel
-from aerocal.geometry import attitude_to_R_cw, estimate_similarity, rotvec_from_matrix, small_rotation
+from aerocal.geometry import (
+    attitude_to_R_cw,
+    estimate_similarity,
+    matrix_from_quat_wxyz,
+    rotvec_from_matrix,
+    small_rotation,
+)
 from aerocal.io import atomic_path, write_text_atomic
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
@@ -84,8 +93,6 @@ def _priors(sim, **kw) -> AdjustConfig:
 
 def _as_checks(gcps):
     """The GCP table with every point a check point (kept out of the datum, triangulated afterwards)."""
-    import pyarrow as pa
-
     i = gcps.schema.get_field_index("role")
     return gcps.set_column(i, "role", pa.array(["check"] * gcps.num_rows))
 
@@ -201,7 +208,6 @@ def mitishita(cfg: StudyConfig) -> dict:
                      conf, sim.gcps, select_images(sim.gcp_observations, ids))
         sub = select_images(sim.images, ids)
         R_rec = recorded_R(sub)
-        from aerocal.geometry import matrix_from_quat_wxyz
 
         q = np.column_stack([res.poses.column(k).to_numpy() for k in ("qw", "qx", "qy", "qz")])
         pose_ids = res.poses.column("image_id").to_numpy()
@@ -452,10 +458,7 @@ def daakir_comment(d: dict) -> str:
 
 
 def figure(d: dict, m: dict, c: dict, path: Path) -> None:
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(1, 3, figsize=(13, 3.8))
     ax = axes[0]

@@ -39,11 +39,15 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: the project's packages
     sys.path.insert(0, str(ROOT))
 
+import matplotlib  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+
 from aerocal import pipeline  # noqa: E402
 from aerocal.certificate import Certificate  # noqa: E402
 from aerocal.io import atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
 from aerocal.matching import FeatureConfig  # noqa: E402
 from aerocal.pipeline.config import MatchStepConfig, ProcessConfig  # noqa: E402
+from benchmarks.seneca_bench import MAX_FEATURES, build_flight  # noqa: E402
 
 OUT = ROOT / "studies" / "output"
 
@@ -51,8 +55,6 @@ OUT = ROOT / "studies" / "output"
 def process(work: Path, quick: bool) -> Path:
     """Build the seneca flight folder under ``work`` and process it as ``aerocal process`` does; the run
     folder."""
-    from benchmarks.seneca_bench import MAX_FEATURES, build_flight
-
     run_dir = work / "run"
     if (run_dir / "diagnosis.json").is_file():
         return run_dir
@@ -217,10 +219,8 @@ def twin_figure(r: dict, path: Path) -> Path | None:
             if v is not None and np.isfinite(v) and twin["twin_mean"].get(k) not in (None, 0)]
     if not rows:
         return None
-    import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
 
     mean = np.array([twin["twin_mean"][k] for k in rows])
     real = np.array([twin["real"][k] for k in rows]) / mean

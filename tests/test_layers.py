@@ -101,3 +101,69 @@ def test_tasks_are_thin_wrappers():
     long = {str(p.relative_to(ROOT)): n for p in (ROOT / "tasks").rglob("*.py")
             if (n := len(p.read_text().splitlines())) > 150}
     assert not long, f"tasks modules over 150 lines: {long}"
+
+
+#: where every function-local import must say why it is not at module level (aerocal/report/ joins when its
+#: rewrite lands)
+LOCAL_IMPORT_ROOTS = ("aerocal", "storage", "flows/cli")
+LOCAL_IMPORT_EXEMPT = ("aerocal/report/",)
+#: the reasons a function-local import may have: a measured start-up cost, or an import cycle
+LOCAL_IMPORT_REASONS = ("# lazy:", "# import cycle:")
+
+
+def _function_local_imports(tree: ast.Module) -> list[ast.Import | ast.ImportFrom]:
+    found = []
+    for fn in ast.walk(tree):
+        if isinstance(fn, ast.FunctionDef | ast.AsyncFunctionDef):
+            for stmt in fn.body:
+                found.extend(n for n in ast.walk(stmt) if isinstance(n, ast.Import | ast.ImportFrom))
+    return sorted(set(found), key=lambda n: n.lineno)
+
+
+def _unexplained_local_imports(source: str) -> list[int]:
+    """Line numbers of function-local imports without a reason: a comment starting with one of
+    :data:`LOCAL_IMPORT_REASONS` on the import's own line or on the line above it (above the first import of
+    a run of consecutive imports, blank lines between them included, which it covers)."""
+    lines = source.splitlines()
+    imports = _function_local_imports(ast.parse(source))
+    import_lines = {k for n in imports for k in range(n.lineno, n.end_lineno + 1)}
+    bad = []
+    for node in imports:
+        own = [lines[k - 1] for k in range(node.lineno, node.end_lineno + 1)]
+        if any(reason in line for line in own for reason in LOCAL_IMPORT_REASONS):
+            continue
+        above = node.lineno - 1
+        while above in import_lines or (above > 1 and not lines[above - 1].strip() and above - 1 in import_lines):
+            above -= 1
+        if above < 1 or not lines[above - 1].strip().startswith(LOCAL_IMPORT_REASONS):
+            bad.append(node.lineno)
+    return bad
+
+
+def test_unexplained_local_import_is_found():
+    source = (
+        "import os\n\n\n"
+        "def f():\n    import json\n\n    return json\n\n\n"
+        "def g():\n    # lazy: pyarrow costs 0.1 s at start-up\n    import pyarrow\n    import pyarrow.parquet\n\n"
+        "    return pyarrow\n\n\n"
+        "def h():\n    # a remark that gives no reason\n    import csv\n\n    return csv\n\n\n"
+        "def k():\n    if os.name:\n        from io import BytesIO  # import cycle: io imports this module\n"
+        "        return BytesIO\n"
+    )
+    assert _unexplained_local_imports(source) == [5, 20]
+
+
+def test_every_function_local_import_says_why():
+    """Imports belong at the top of a module, where they show what it depends on; one inside a function is
+    kept only for a measured start-up cost or an import cycle, and says so."""
+    offenders = []
+    for folder in LOCAL_IMPORT_ROOTS:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            rel = path.relative_to(ROOT).as_posix()
+            if rel.startswith(LOCAL_IMPORT_EXEMPT):
+                continue
+            offenders += [f"{rel}:{line}" for line in _unexplained_local_imports(path.read_text())]
+    assert not offenders, (
+        "function-local imports without a '# lazy: ...' or '# import cycle: ...' comment (move them to the top "
+        f"of the module, or say why not): {offenders}"
+    )

@@ -17,8 +17,8 @@ def flight(tmp_path_factory):
     """An effect-free conte-calibration sub-block of 12 frames, rendered once; the true poses and camera
     stand for the adjusted block, the DSM is gridded from the true tie points."""
     from aerocal.simulate import simulate_flight
-    from aerocal.simulate.render import RenderConfig
-    from aerocal.simulate.rendering import render_flight_images
+    from aerocal.simulate.raycast import RenderConfig
+    from aerocal.simulate.rendered_frames import render_flight_images
     from aerocal.simulate.simulator import true_poses
 
     sim = simulate_flight("conte-calibration", seed=SEED, max_images=12)

@@ -5,8 +5,9 @@ import pytest
 import tifffile
 
 from aerocal.simulate import simulate_flight, write_flight
-from aerocal.simulate.render import RenderConfig, locate_targets, render_frame
-from aerocal.simulate.rendering import target_scene
+from aerocal.simulate.raycast import RenderConfig, render_frame
+from aerocal.simulate.rendered_frames import target_scene
+from aerocal.targets import locate_targets
 
 # every effect of the catalogue that acts on pixels, in three renders (the exterior-orientation effects
 # change only what is recorded, not the pixels)

@@ -12,7 +12,7 @@ import numpy as np
 from aerocal.enhance import EnhanceConfig, enhance, stretch_params
 from aerocal.matching import MatchConfig, exhaustive_pairs, extract_features, match_pairs
 from aerocal.simulate import simulate_flight
-from aerocal.simulate.render import RenderConfig, intersect_dsm, render_frame
+from aerocal.simulate.raycast import RenderConfig, intersect_dsm, render_frame
 
 
 def _load(frames: dict, params, config: EnhanceConfig, image_id: int) -> np.ndarray:

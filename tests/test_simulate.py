@@ -14,7 +14,7 @@ from aerocal import tables
 from aerocal.cli import app
 from aerocal.simulate import PRESETS, simulate_flight, write_flight
 from aerocal.simulate.exposure import Exposure
-from aerocal.simulate.flight import overlaps
+from aerocal.simulate.flight_plan import overlaps
 from aerocal.simulate.sensors import TemperatureCurve
 from aerocal.simulate.simulator import recorded_R_cw, spec_summary
 

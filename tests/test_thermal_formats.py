@@ -231,7 +231,7 @@ def test_strip_headings_come_from_the_rotation_not_the_gimbal_yaw():
     seed = 3
     sim = simulate_flight(get_preset("xt2-survey"), seed=seed)
     strips = np.asarray(sim.trajectory.strip)
-    # the gimbal angles the rendered files record (aerocal.simulate.rendering writes these)
+    # the gimbal angles the rendered files record (aerocal.simulate.rendered_frames writes these)
     gimbal = np.array([R_cw_to_dji_gimbal(R) for R in recorded_R_cw(sim.images)])
     head = np.array([image_heading("dji_gimbal", r, p, y) for r, p, y in gimbal])
     yaw_spreads = []

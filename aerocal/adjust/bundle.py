@@ -22,6 +22,7 @@ from aerocal.adjust.covariance import (
     correlation,
     global_covariance,
     global_names,
+    t_critical,
     t_values,
     triangulate_check_points,
 )
@@ -33,6 +34,7 @@ from aerocal.adjust.thinning import ThinningConfig, thin_tracks
 from aerocal.adjust.triangulate import pixels_to_rays, refine_points, triangulate_linear
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel, correct_measurements
 from aerocal.geometry import matrix_from_quat_wxyz, quat_wxyz_from_matrix
+from aerocal.poses import poses_arrays
 
 
 @dataclass
@@ -215,7 +217,6 @@ def _result(
         + [0.0] * len(sol.layout.slope_free)
     )
     t = t_values(est, ref, sig)
-    from aerocal.adjust.covariance import t_critical
 
     tcrit = t_critical(sol.dof)
     cam = camera.with_params(st.io)
@@ -470,8 +471,6 @@ def _intersect_left_out(
     n_used = inner.points.num_rows
     added = flagged = 0
     if len(rest):
-        from aerocal.orient import poses_arrays
-
         obs = observations.take(pa.array(rest, pa.int64()))
         p_ids, R, C = poses_arrays(inner.poses)
         origin = C.mean(axis=0)  # local frame: projected coordinates are ~1e6 m

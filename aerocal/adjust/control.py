@@ -51,6 +51,7 @@ import pyarrow.compute as pc
 from scipy.stats import chi2
 
 from aerocal import tables
+from aerocal.adjust.strategy import adjust_fixed_io
 from aerocal.adjust.triangulate import triangulate_linear
 from aerocal.camera import Camera
 from aerocal.geometry import Similarity, estimate_similarity, matrix_from_quat_wxyz
@@ -323,8 +324,6 @@ def reference_poses(images: pa.Table, observations: pa.Table, gcp_observations: 
                     adjust_config, config: ControlScreeningConfig, gcps: pa.Table) -> tuple[pa.Table, str]:
     """Poses the control did not shape (GNSS datum): the images that see a GCP and their tie-point
     neighbours (``neighbour_tracks``), adjusted with IO fixed at ``camera`` and control points left out."""
-    from aerocal.adjust.strategy import adjust_fixed_io
-
     seen = set(pc.unique(gcp_observations.column("image_id")).to_pylist())
     img = observations.column("image_id").to_numpy(zero_copy_only=False)
     trk = observations.column("track_id").to_numpy(zero_copy_only=False)

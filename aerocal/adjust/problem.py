@@ -16,6 +16,7 @@ from aerocal.adjust.projection import THERMAL_PARAMS
 from aerocal.adjust.thinning import ThinningConfig
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel, correct_measurements
 from aerocal.geometry import attitude_to_R_cw
+from aerocal.poses import poses_arrays
 
 
 class AdjustmentError(ValueError):
@@ -202,7 +203,6 @@ def build_block(
             raise AdjustmentError(
                 "initial_poses are starting values, not recorded GNSS/IMU: set AdjustConfig.gnss_sigma_m=None "
                 "and attitude_sigma_deg=None (the datum then comes from at least 3 control GCPs)")
-        from aerocal.orient import poses_arrays
 
         p_ids, p_R, p_C = poses_arrays(initial_poses)
         pos = {int(v): k for k, v in enumerate(p_ids)}

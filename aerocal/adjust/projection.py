@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from aerocal.camera import PARAM_NAMES
 
@@ -141,6 +142,4 @@ def rotation_update(R: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 def rotation_log(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (N, 3), radians, of a stack of rotation matrices."""
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(R).as_rotvec()

@@ -31,6 +31,7 @@ import numpy as np
 import pyarrow as pa
 from scipy import stats
 
+from aerocal.adjust import adjust, scale_tie_sigma
 from aerocal.adjust.problem import AdjustConfig
 from aerocal.adjust.solver import inverse_spd
 from aerocal.camera import Camera, LinearThermalModel
@@ -561,8 +562,6 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
 
         images, observations, gcp_observations = only(images), only(observations), only(gcp_observations)
     if adjust_config.robust_loss != "none" and adjust_config.reject_chi2 is not None:
-        from aerocal.adjust import adjust, scale_tie_sigma
-
         screened = adjust(images, observations, camera, dataclasses.replace(adjust_config, adaptive=False),
                           gcps, gcp_observations)
         keep = np.flatnonzero(screened.obs_weight != 0)

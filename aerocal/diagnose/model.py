@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from aerocal.adjust.bundle import initial_state, warm_start
 from aerocal.adjust.problem import AdjustConfig, Block, build_block
@@ -170,8 +171,6 @@ class Conditional:
     """
 
     def __init__(self, red: Reduced, base: np.ndarray, tests: np.ndarray) -> None:
-        import scipy.sparse.linalg as spla
-
         S, g = red.S, red.g
         self.S, self.g, self.base = S, g, base
         self.tests = tests

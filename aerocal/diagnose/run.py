@@ -10,6 +10,7 @@ from aerocal.adjust import AdjustConfig
 from aerocal.camera import Camera
 from aerocal.diagnose.engine import DiagnoseConfig, Diagnosis, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
+from aerocal.formats import import_certificate
 
 #: the interior orientation a baseline self-calibrates when no certificate fixes it
 SELF_CALIBRATED = ("f", "cx", "cy", "k1", "k2", "p1", "p2")
@@ -47,8 +48,6 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
     t0 = None
     io = None
     if certificate is not None:
-        from aerocal.formats import import_certificate
-
         try:
             cert = import_certificate(certificate)
         except (OSError, ValueError) as exc:

@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import pycolmap
+
 from aerocal.camera import from_pycolmap, to_pycolmap
 from aerocal.camera_identity import CameraIdentity
 from aerocal.certificate import Certificate
@@ -56,8 +58,6 @@ def read_colmap_cameras(
 
     Errors name the file, the line and the field (model, width, height, parameter count).
     """
-    import pycolmap
-
     path = Path(path)
     data = read_bytes(path)
     text = decode_text(path, data)

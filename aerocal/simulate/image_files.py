@@ -17,6 +17,7 @@ truth. Files are written atomically (:func:`aerocal.io.atomic_path`).
 from __future__ import annotations
 
 import datetime as dt
+import io
 import os
 import struct
 from dataclasses import dataclass, field
@@ -24,7 +25,11 @@ from pathlib import Path
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
+import tifffile
+from PIL import Image
 
+from aerocal.ingest.flir import KELVIN, FlirCameraInfo, celsius_to_raw
+from aerocal.ingest.metadata_writer import dji_xmp_packet, exif_block, fff_file, jpeg_with_flir, jpeg_with_metadata
 from aerocal.io import atomic_path
 
 DJI_NAMESPACE = "http://www.dji.com/drone-dji/1.0/"
@@ -126,8 +131,6 @@ def write_thermal_tiff(path: str | Path, img_uint16: np.ndarray, meta: FrameMeta
     tifffile cannot write IFD-type tags, so the EXIF IFD is appended after tifffile has written the
     file and the ExifIFD tag (34665, written as a LONG placeholder) is patched to point at it.
     """
-    import tifffile
-
     img = np.asarray(img_uint16)
     if img.dtype != np.uint16 or img.ndim != 2:
         raise ValueError(f"{path}: a thermal frame must be a 2-D uint16 array, got {img.dtype} {img.shape}")
@@ -191,8 +194,6 @@ def _append_exif_ifd(path: Path, entries: dict[int, str]) -> None:
 def write_rgb_jpeg(path: str | Path, img_uint8: np.ndarray, meta: FrameMetadata, quality: int = 95) -> Path:
     """Write a (H, W, 3) uint8 RGB frame as a baseline JPEG with EXIF (APP1 ``Exif``) and XMP (APP1
     ``http://ns.adobe.com/xap/1.0/``) segments. Channel order of the array: R, G, B."""
-    from PIL import Image
-
     img = np.asarray(img_uint8)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"{path}: an RGB frame must be an (H, W, 3) uint8 array, got {img.dtype} {img.shape}")
@@ -217,8 +218,6 @@ def zenmuse_xt2_camera_info(object_distance_m: float = 20.0, air_temperature_c: 
     """FLIR camera information as a DJI Zenmuse XT2 (Tau 2 core) records it: the Planck constants of
     ``shared/data/flir_samples/fff_dji_xt2.jpg`` (R1 17096.453, B 1428, F 1, O -267, R2 0.04658), emissivity 1,
     FLIR's default atmospheric-transmission constants, the given object distance and air temperature."""
-    from aerocal.ingest.flir import KELVIN, FlirCameraInfo
-
     return FlirCameraInfo(
         emissivity=1.0, object_distance_m=float(object_distance_m), reflected_temperature_k=KELVIN + 20.0,
         atmospheric_temperature_k=KELVIN + float(air_temperature_c), window_temperature_k=KELVIN + 20.0,
@@ -239,13 +238,6 @@ def write_flir_rjpeg(path: str | Path, dn_uint16: np.ndarray, meta: FrameMetadat
     attitude (plus ``meta.extra_xmp``, e.g. RelativeAltitude), and the FFF file in APP1 ``FLIR`` segments
     (little-endian, unwrapped counts, as in ``fff_dji_xt2.jpg``).
     """
-    import io
-
-    from PIL import Image
-
-    from aerocal.ingest.flir import KELVIN, celsius_to_raw
-    from aerocal.ingest.metadata_writer import dji_xmp_packet, exif_block, fff_file, jpeg_with_flir, jpeg_with_metadata
-
     dn = np.asarray(dn_uint16)
     if dn.dtype != np.uint16 or dn.ndim != 2:
         raise ValueError(f"{path}: a thermal frame must be a 2-D uint16 array, got {dn.dtype} {dn.shape}")

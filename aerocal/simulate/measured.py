@@ -14,7 +14,9 @@ import numpy as np
 
 from aerocal.camera import Camera
 from aerocal.geometry import attitude_to_R_cw
-from aerocal.simulate.flight import FlightPlanConfig, Trajectory
+from aerocal.ingest import ingest_folder
+from aerocal.simulate.flight_plan import FlightPlanConfig, Trajectory, footprint_m
+from aerocal.simulate.presets import FlightSpec, SceneSpec
 from aerocal.simulate.sensors import SensorConfig, TemperatureCurve
 
 #: where the measured images live in a development checkout (../shared beside the repository)
@@ -31,8 +33,6 @@ class MeasuredFlightError(ValueError):
 
 def stations_from_images(folder: str | Path) -> dict:
     """True stations (from the recorded EO) of a real flight: positions, rotations, times, strips, temperatures."""
-    from aerocal.ingest import ingest_folder
-
     folder = Path(folder)
     if not folder.is_dir():
         raise MeasuredFlightError(f"{folder} is not a folder of images; give --source with the seneca images")
@@ -90,9 +90,6 @@ def seneca_camera(true: bool) -> Camera:
 
 def seneca_spec(source: str | Path | None = None):
     """The ``seneca`` FlightSpec (stations in ``extra["stations"]``)."""
-    from aerocal.simulate.flight import footprint_m
-    from aerocal.simulate.presets import FlightSpec, SceneSpec
-
     st = stations_from_images(source or DEFAULT_SENECA)
     ground = float(np.median(st["C"][:, 2])) - SENECA_FLYING_HEIGHT_M
     lo = st["C"][:, :2].min(axis=0)

@@ -11,7 +11,7 @@ import dataclasses
 from dataclasses import dataclass, field
 
 from aerocal.camera import Camera
-from aerocal.simulate.flight import FlightPlanConfig
+from aerocal.simulate.flight_plan import FlightPlanConfig
 from aerocal.simulate.sensors import SensorConfig, TemperatureCurve
 
 
@@ -244,6 +244,7 @@ def preset_names() -> list[str]:
 def get_preset(name: str, source: str | None = None) -> FlightSpec:
     """A preset by name; ``source`` is the image folder of a measured preset (``seneca``)."""
     if name == "seneca":
+        # import cycle: aerocal.simulate.measured builds its FlightSpec from the classes of this module
         from aerocal.simulate.measured import MeasuredFlightError, seneca_spec
 
         try:

@@ -1,8 +1,9 @@
 """Sensors of a simulated flight: GNSS, IMU, lever arm, boresight, clock offset, sensor temperature.
 
-The true trajectory (:mod:`aerocal.simulate.flight`) is what the camera did; these functions make what
+The true trajectory (:mod:`aerocal.simulate.flight_plan`) is what the camera did; these functions make what
 the aircraft *recorded*, with noise and with the exterior-orientation effects of the catalogue
-(:mod:`aerocal.effects`) applied, and the sensor temperature curve that drives the thermal effects.
+(:mod:`aerocal.effects`) applied, and the sensor temperature curve that drives the thermal effects;
+:func:`recorded_R_cw` reads the recorded attitude of an ``images`` table back as rotations.
 """
 
 from __future__ import annotations
@@ -11,8 +12,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import pyarrow as pa
 
-from aerocal.geometry import small_rotation
+from aerocal.geometry import attitude_to_R_cw, small_rotation
 
 
 @dataclass(frozen=True)
@@ -97,3 +99,12 @@ def recorded_exterior(
     imu_noise = rng.normal(0.0, 1.0, (N, 3)) * np.radians(config.imu_sigma_deg)
     R_rec = np.stack([small_rotation(n) @ B.T @ R for n, R in zip(imu_noise, R_cw, strict=True)])
     return pos, R_rec
+
+
+def recorded_R_cw(images: pa.Table) -> np.ndarray:
+    """World-to-camera rotations from the recorded attitude columns of an ``images`` table."""
+    conv = images.column("attitude_convention").to_pylist()
+    r = images.column("roll").to_numpy()
+    p = images.column("pitch").to_numpy()
+    y = images.column("yaw").to_numpy()
+    return np.stack([attitude_to_R_cw(c, a, b, d) for c, a, b, d in zip(conv, r, p, y, strict=True)])

@@ -29,19 +29,24 @@ import pyarrow as pa
 
 from aerocal import tables
 from aerocal.camera import Camera
+from aerocal.dsm import Dsm, write_dsm
 from aerocal.effects import bertram_refraction_k, normalise_effects
 from aerocal.geometry import (
+    R_cw_to_dji_gimbal,
     R_cw_to_opk,
-    attitude_to_R_cw,
     projected_to_lonlat,
     quat_wxyz_from_matrix,
 )
 from aerocal.io import write_json_atomic
 from aerocal.pipeline.dataset import MemoryDataset
 from aerocal.simulate.exposure import Exposure
-from aerocal.simulate.flight import Trajectory, footprint_m, plan_flight
+from aerocal.simulate.flight_plan import Trajectory, footprint_m, overlaps, plan_flight
+from aerocal.simulate.measured import trajectory
 from aerocal.simulate.observations import Measurements, observe_points, place_control, sample_surface_points
 from aerocal.simulate.presets import FlightSpec, get_preset
+from aerocal.simulate.rendered_frames import render_flight_images
+from aerocal.simulate.scene import SceneConfig, make_scene
+from aerocal.simulate.sensors import recorded_exterior, recorded_R_cw
 
 MODES = ("observations", "images")
 
@@ -94,8 +99,6 @@ def _true_camera(spec: FlightSpec, effects: dict[str, tuple[float, ...]], temper
 
 
 def _make_scene(spec: FlightSpec, margin_m: float, seed: int):
-    from aerocal.simulate.scene import SceneConfig, make_scene
-
     s = spec.scene
     width = spec.area_m[0] + 2 * margin_m
     height = spec.area_m[1] + 2 * margin_m
@@ -141,7 +144,6 @@ def simulate_flight(
     scene, bounds = _make_scene(spec, margin, seed=int(seeds[0].generate_state(1)[0]))
     terrain = spec.scene.terrain_mean_m
     if "stations" in spec.extra:  # a measured flight: its recorded stations are the truth
-        from aerocal.simulate.measured import trajectory
 
         traj = trajectory(spec.extra["stations"])
     else:
@@ -166,8 +168,6 @@ def simulate_flight(
             image_id=i + 1, camera=_true_camera(spec, fx, float(t_true[i])), R_cw=traj.R_cw[i], C=traj.C[i],
             velocity=traj.velocity[i], readout_s=readout, refraction_k=k,
         ))
-
-    from aerocal.simulate.sensors import recorded_exterior
 
     pos_rec, R_rec = recorded_exterior(traj.C, traj.R_cw, traj.velocity, spec.sensors, fx, rng_sens)
 
@@ -270,19 +270,8 @@ def true_poses(sim: SimulatedFlight) -> pa.Table:
     }, crs=sim.crs)
 
 
-def recorded_R_cw(images: pa.Table) -> np.ndarray:
-    """World-to-camera rotations from the recorded attitude columns of an ``images`` table."""
-    conv = images.column("attitude_convention").to_pylist()
-    r = images.column("roll").to_numpy()
-    p = images.column("pitch").to_numpy()
-    y = images.column("yaw").to_numpy()
-    return np.stack([attitude_to_R_cw(c, a, b, d) for c, a, b, d in zip(conv, r, p, y, strict=True)])
-
-
 # ----------------------------------------------------------------------------------- writing
 def _eo_csv(sim: SimulatedFlight) -> str:
-    from aerocal.geometry import R_cw_to_dji_gimbal
-
     im = sim.images
     lines = ["# recorded GNSS/IMU exterior orientation and sensor temperature",
              "# crs: EPSG:4326", "# attitude: dji_gimbal",
@@ -319,8 +308,6 @@ def _gcp_files(sim: SimulatedFlight) -> tuple[str, str]:
 def _write_reference_dsm(sim: SimulatedFlight, path: Path) -> None:
     """The scene's surface over the flight (plus 50 cells) as a reference DSM, as a city's LiDAR survey
     would supply it (``reference/dsm.tif``: what the flight report compares its DSM with)."""
-    from aerocal.dsm import Dsm, write_dsm
-
     scene = sim.scene
     west, _, _, north = scene.bounds()
     surface = Dsm(heights=scene.dsm, west=west, north=north, cell_m=scene.config.cell_m, crs=sim.crs)
@@ -370,8 +357,6 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
     tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{out.name}.", dir=out.parent))
     try:
         if as_recorded:
-            from aerocal.simulate.rendering import render_flight_images
-
             render_flight_images(sim, tmp / "images", progress=progress)
             return _finish_flight(sim, tmp, out)
         obs_dir = tmp / "observations"
@@ -388,8 +373,6 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
         write_json_atomic(tmp / "camera.json", camera_document(sim))
         write_json_atomic(tmp / "flight.json", flight_metadata(sim, mode))
         if mode == "images":
-            from aerocal.simulate.rendering import render_flight_images
-
             render_flight_images(sim, tmp / "images", progress=progress)
         return _finish_flight(sim, tmp, out)
     except BaseException:
@@ -414,8 +397,6 @@ def _finish_flight(sim: SimulatedFlight, tmp: Path, out: Path) -> Path:
 
 def spec_summary(sim: SimulatedFlight) -> dict:
     """Figures a user checks after simulating (for the CLI)."""
-    from aerocal.simulate.flight import overlaps
-
     fwd, side = overlaps(sim.trajectory, sim.spec.camera_nominal, sim.spec.plan.height_agl_m)
     t = sim.images.column("temperature_c").to_numpy()
     obs_per_image = np.bincount(sim.tie.image_id)[1:]

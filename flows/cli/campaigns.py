@@ -46,6 +46,7 @@ def campaign_add(
     """
     quiet_prefect()
     with user_errors():
+        # lazy: flows.campaign imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from flows.campaign import add_flights
 
         names = add_flights(
@@ -75,6 +76,7 @@ def campaign_run(
     """
     quiet_prefect()
     with user_errors():
+        # lazy: flows.campaign imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from flows.campaign import run_campaign
 
         with console.status(f"processing campaign {name} ..."):
@@ -97,6 +99,7 @@ def campaign_list(database_url: str | None = DATABASE_URL_OPTION) -> None:
     """
     quiet_prefect()
     with user_errors():
+        # lazy: flows.campaign imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from flows.campaign import list_campaigns
 
         rows = list_campaigns(database_url)
@@ -134,6 +137,7 @@ def serve(
     """
     quiet_prefect()
     with user_errors():
+        # lazy: flows.campaign imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from flows.campaign import list_campaigns, serve_campaigns
 
         while wait > 0 and not any(c["cron"] for c in list_campaigns(database_url)):

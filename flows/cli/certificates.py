@@ -68,6 +68,7 @@ def certificates_list(
 
     Example: aerocal certificates list --camera "TS9260 123"
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage.certificates import list_certificates
 
     with user_errors():
@@ -115,6 +116,7 @@ def certificates_show(
 
     Example: aerocal certificates show 3f2a9c --json
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage.certificates import get_certificate
 
     with user_errors():
@@ -185,6 +187,7 @@ def certificates_export(
 
     Example: aerocal certificates export 3f2a9c --format opencv --out camera.yaml
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU), aerocal.io numpy (~0.07 s); --help must not pay them
     from aerocal.io import write_json_atomic
     from storage.certificates import get_certificate
 
@@ -206,6 +209,7 @@ def certificates_export(
 
 def _formats_module():  # -> the aerocal.formats module
     try:
+        # lazy: aerocal.formats costs ~0.4 s CPU at start-up; --help must not pay it
         from aerocal import formats
     except ImportError as exc:
         fail(f"certificate formats are not available in this installation ({exc}); use --format json")
@@ -217,6 +221,7 @@ def _read_document(path: Path, fmt: str | None, identity: dict[str, str]) -> dic
 
     ``identity`` (make, model, serial, lens given on the command line) replaces what the file says.
     """
+    # lazy: aerocal.certificate costs ~0.2 s CPU at start-up (numpy, pydantic); --help must not pay it
     from aerocal.certificate import CameraIdentity, Certificate
 
     doc: Any = None
@@ -267,6 +272,7 @@ def certificates_import(
 
     Example: aerocal certificates import camera.yaml --make NEC --model TS9260 --serial 123
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage.certificates import issue_certificate
 
     identity = {k: v for k, v in (("make", make), ("model", model), ("serial", serial), ("lens", lens)) if v}

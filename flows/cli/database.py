@@ -33,6 +33,7 @@ def open_database(url: str | None, migrated: bool = True):  # -> storage.databas
     With ``migrated``, the database must exist at the newest schema. A command that only reads never creates
     a SQLite file (a mistyped path, or no database configured yet, is said, not made).
     """
+    # lazy: storage and SQLAlchemy cost ~0.5 s CPU at start-up; --help must not pay them
     from sqlalchemy.engine import make_url
 
     from storage.database import connect, database_url
@@ -88,6 +89,7 @@ def db_upgrade(
 
     Example: aerocal db upgrade --database-url postgresql+psycopg://aerocal@localhost/aerocal
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage import migrations
 
     with user_errors():
@@ -113,6 +115,7 @@ def db_downgrade(
 
     Example: aerocal db downgrade base --yes --database-url sqlite:///scratch.db
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage import migrations
 
     with user_errors():
@@ -136,6 +139,7 @@ def db_current(database_url: str | None = DATABASE_URL_OPTION) -> None:
 
     Example: aerocal db current --database-url sqlite:///aerocal.db
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage import migrations
 
     with user_errors():

@@ -37,6 +37,7 @@ def diagnose(
 
     Example: aerocal diagnose flight --certificate camera.json
     """
+    # lazy: the diagnosis engine costs ~1.2 s CPU at start-up; --help must not pay it
     from aerocal.diagnose.run import diagnose_folder, read_run_diagnosis
 
     with user_errors():

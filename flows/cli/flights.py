@@ -61,6 +61,7 @@ def print_run(summary: dict[str, Any]) -> None:
     print_steps(summary)
     skipped = summary.get("images_skipped_at_ingest") or []
     if skipped:
+        # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
         from aerocal.ingest.problems import name_list
 
         console.print(f"[yellow]{len(skipped)} image(s) skipped at ingest[/yellow]: {name_list(skipped)} "
@@ -96,6 +97,7 @@ def print_run(summary: dict[str, Any]) -> None:
     if summary.get("diagnosis"):
         console.print(f"diagnosis: {summary['diagnosis']}")
     if summary.get("recorded_eo"):
+        # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
         from aerocal.pipeline.report_step import recorded_eo_text
 
         console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
@@ -122,6 +124,7 @@ def print_problems(result: Any, out: Console, warnings: bool = True, limit: int 
 def stop_if_not_processable(flight_dir: Path) -> None:
     """Run ingest's checks on an image-mode flight before any server starts; on a blocking problem print
     ingest's errors and exit 2 (bad input)."""
+    # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
     from aerocal.ingest import ingest_folder
 
     if (flight_dir / "observations" / "observations.parquet").is_file():
@@ -155,6 +158,7 @@ def ingest(
 
     Example: aerocal ingest flights/2016-03-14 --gcp flights/2016-03-14/gcp_list.txt --out ingested
     """
+    # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
     from aerocal.ingest import ingest_folder, summary_rows, write_ingest
 
     if not folder.exists():
@@ -196,6 +200,7 @@ def match(
 
     Example: aerocal match flights/2016-03-14 --dask tcp://scheduler:8786
     """
+    # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
     from aerocal import tables
     from aerocal.ingest import ingest_folder
 
@@ -203,6 +208,7 @@ def match(
         fail(f"{folder}: no such folder; give a flight folder with images/", BAD_INPUT)
     quiet_prefect()
     with user_errors():
+        # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
         from aerocal.pipeline.config import MatchStepConfig
         from aerocal.pipeline.dataset import FlightInputError
         from aerocal.pipeline.match_step import match_images
@@ -266,6 +272,7 @@ def process(
     quiet_prefect()
     run_dir = default_run_dir(flight_dir, out)
     with flow_errors(run_dir):
+        # lazy: flows.process imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from flows.process import process_flight
 
         with console.status(f"processing {flight_dir} ..."):
@@ -337,6 +344,7 @@ def calibrate(
     require_folder(flight_dir)
     quiet_prefect()
     with flow_errors(default_run_dir(flight_dir, out)):
+        # lazy: flows.process imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from aerocal.certificate import Certificate
         from aerocal.pipeline import ProcessConfig
         from flows.process import calibrate_camera

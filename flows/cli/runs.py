@@ -40,6 +40,7 @@ def runs_list(
 
     Example: aerocal runs list --kind process_flight --limit 10
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage.runs import list_runs, reap_dead_runs
 
     with user_errors():
@@ -89,6 +90,7 @@ def runs_show(
 
     Example: aerocal runs show 0d9f6c1e-5b7a-4f4e-9d55-2b1f0c8e7a31 --json
     """
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
     from storage.provenance import provenance
 
     with user_errors():

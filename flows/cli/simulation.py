@@ -52,6 +52,7 @@ def simulate(
 
     Example: aerocal simulate xt2-survey --mode images --as-recorded --max-images 12 --out xt2
     """
+    # lazy: the simulator costs ~1.5 s CPU at start-up; --help must not pay it
     from aerocal.effects import parse_effect
     from aerocal.simulate import MODES, SimulationError, get_preset, simulate_flight, write_flight
     from aerocal.simulate.simulator import spec_summary
@@ -89,6 +90,7 @@ def demo(
     """
     demo_environment(out)  # before Prefect is imported: its home goes under --out
     with user_errors():
+        # lazy: flows.demo imports Prefect (~2.7 s CPU at start-up); --help must not pay it
         from flows.demo import DemoConfig
         from flows.demo import demo as demo_flow
 

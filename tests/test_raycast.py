@@ -15,15 +15,15 @@ from PIL import Image
 from aerocal.camera import Camera
 from aerocal.geometry import dji_gimbal_to_R_cw, nadir_R_cw, small_rotation, world_to_camera
 from aerocal.simulate.image_files import DJI_NAMESPACE, FrameMetadata, write_rgb_jpeg, write_thermal_tiff
-from aerocal.simulate.render import (
+from aerocal.simulate.raycast import (
     RenderConfig,
     intersect_dsm,
-    locate_targets,
     render_frame,
     render_radiance,
     vignetting_factor,
 )
 from aerocal.simulate.scene import SKY_KELVIN, SceneConfig, make_scene
+from aerocal.targets import locate_targets
 
 SEED = 7301
 ALTITUDE = 600.0  # metres above the mean terrain

@@ -16,7 +16,8 @@ import numpy as np
 
 from aerocal.geometry import R_cw_to_dji_gimbal
 from aerocal.simulate.image_files import FrameMetadata, write_flir_rjpeg, write_frame, zenmuse_xt2_camera_info
-from aerocal.simulate.render import RenderConfig, render_frame
+from aerocal.simulate.raycast import RenderConfig, render_frame
+from aerocal.simulate.sensors import recorded_R_cw
 
 #: target disc radius in ground sampling distances (a 2.5 px radius disc is located to ~0.05 px)
 TARGET_RADIUS_GSD = 2.5
@@ -32,8 +33,6 @@ def render_flight_images(sim, out_dir: str | Path, config: RenderConfig | None =
                          progress: Callable[[int, int], None] | None = None) -> list[Path]:
     """Render every frame of ``sim`` into ``out_dir`` (TIFF for thermal, JPEG for RGB, FLIR radiometric JPEG
     for a spec whose ``file_format`` is ``"flir-rjpeg"``: RelativeAltitude above the mean terrain in XMP)."""
-    from aerocal.simulate.simulator import recorded_R_cw
-
     config = config or RenderConfig(modality=sim.spec.modality)
     scene = target_scene(sim)
     out = Path(out_dir)

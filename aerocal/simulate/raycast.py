@@ -22,7 +22,7 @@ steps, and rays that have hit leave the active set at every step:
    crosses them (a 2D DDA, Amanatides & Woo 1987). Along the ray, the bilinear patch is a quadratic in
    the ray parameter, so the first crossing inside a patch is the smallest root of that quadratic in
    the patch's interval: exact, nothing thin is stepped over, and no iterative refinement is needed
-   (the height error of a hit is ~1e-9 m, measured in tests/test_render.py).
+   (the height error of a hit is ~1e-9 m, measured in tests/test_raycast.py).
 
 Rays that point upwards from above the DSM, or leave the grid's extent (plus one cell) without hitting,
 see the sky: a frame that looks past the edge of the scene shows the sky there, which a flight plan
@@ -39,7 +39,7 @@ between them unseen) its sub-pixel rays are intersected exactly starting 0.3 cel
 interpolated distance; all other sub-pixel rays are traced fully. Measured on a 640 x 480 frame with
 3 x 3 sub-pixels (one core of a shared 2-core machine, CPU time): 0.9 s over a flat block and 1.8 s over
 a city with 30 m buildings, against 2.3 s and 4.1 s tracing every sub-pixel ray; the two images differ
-by < 1e-3 K on 99.9 % of the pixels (tests/test_render.py).
+by < 1e-3 K on 99.9 % of the pixels (tests/test_raycast.py).
 """
 
 from __future__ import annotations
@@ -52,7 +52,6 @@ import numpy as np
 
 from aerocal.camera import Camera
 from aerocal.simulate.scene import SKY_KELVIN, SKY_RGB, Scene
-from aerocal.targets import locate_targets  # noqa: F401  (re-exported: tests and the renderer's users)
 
 
 class ExposureLike(Protocol):
