@@ -9,6 +9,10 @@ from __future__ import annotations
 
 from typing import Any
 
+import sqlalchemy.exc
+
+from storage.errors import DatabaseUnreachableError
+
 #: retries of every step task, and the delays between them (seconds)
 TASK_RETRIES = 2
 TASK_RETRY_DELAYS_S = [2.0, 10.0]
@@ -19,10 +23,6 @@ def is_transient(exc: BaseException | None) -> bool:
     connection lost), an unreachable database, a lost Dask worker."""
     if exc is None:
         return False
-    import sqlalchemy.exc
-
-    from storage.errors import DatabaseUnreachableError
-
     if isinstance(exc, FileNotFoundError | IsADirectoryError | NotADirectoryError | PermissionError):
         return False  # a missing or forbidden file stays so
     if isinstance(exc, OSError | TimeoutError | ConnectionError | DatabaseUnreachableError):
