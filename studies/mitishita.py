@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -417,6 +418,7 @@ def main(argv: list[str] | None = None) -> Path:
     stem = "mitishita_quick" if args.quick else "mitishita"
     args.out.mkdir(parents=True, exist_ok=True)
     md = args.out / f"{stem}.md"
+    write_text_atomic(args.out / f"{stem}.json", json.dumps(result, indent=1))
     write_text_atomic(md, markdown(result))
     figure(result, args.out / f"{stem}.png")
     print(f"wrote {md}")
