@@ -310,6 +310,13 @@ def markdown(result: dict) -> str:
         m = calibrated_models(0.0, np.random.default_rng(seed))["eq2"]
         draws.append(f"({m.dcx_dt - PP_SLOPE[0]:+.3f}, {m.dcy_dt - PP_SLOPE[1]:+.3f})")
     full_better = gain(qn[orig], qn[corr]) > gain(qn[orig], qn[corr_f])
+
+    a_, b_ = e[orig].get("per_seed_mean", []), e[corr].get("per_seed_mean", [])
+    n_close = sum(x / y >= 0.8 * 1.4 for x, y in zip(a_, b_, strict=True))
+
+    def per_seed_gains(d: dict) -> str:
+        a, b = d[orig].get("per_seed_mean", []), d[corr].get("per_seed_mean", [])
+        return ", ".join(f"{x / y:.2f}x" for x, y in zip(a, b, strict=True))
     L += ["",
           "### Every row explained", "",
           f"* **Today's model, gain {gain(t['original'], t['corrected']):.2f}x.** A focal drift on a "
@@ -341,7 +348,8 @@ def markdown(result: dict) -> str:
           "repeatable\".",
           f"* **Extended column (with the survey noise).** The Eq. 2 correction takes the residual mean "
           f"from {e[orig]['mean'] * 1000:.1f} to {e[corr]['mean'] * 1000:.1f} mm, "
-          f"{gain(e[orig], e[corr]):.2f}x (focal-only correction: {gain(e[orig], e[corr_f]):.2f}x). A "
+          f"{gain(e[orig], e[corr]):.2f}x pooled over the seeds (focal-only correction: "
+          f"{gain(e[orig], e[corr_f]):.2f}x); per seed {per_seed_gains(e) or 'not recorded'}. A "
           f"{thermal:.1f} mm deformation added in quadrature to a {floor:.1f} mm floor predicts "
           f"{predicted:.2f}x.",
           f"* **Min / max / std.** Paper: max 39.6 -> 24.9 mm, std 11.0 -> 6.6 mm (a few GCPs carried most of "
@@ -352,8 +360,14 @@ def markdown(result: dict) -> str:
           f"If the paper's corrected residual (15.5 mm) is its noise floor, its original 21.4 mm holds a "
           f"thermal part of sqrt(21.4^2 - 15.5^2) = {need:.1f} mm. The drift rates the paper measured "
           "(focal 0.07-0.08 px/degC, Table 8's principal point, rotation < 0.02 px/degC) deform this "
-          f"corridor by {thermal:.1f} mm after the similarity, {need / max(thermal, 1e-9):.1f} times too "
-          f"little; under the GCPs' 1 cm survey noise the correction then gains {gain(e[orig], e[corr]):.2f}x. "
+          f"corridor by {thermal:.1f} mm after the similarity on average, {need / max(thermal, 1e-9):.1f} "
+          f"times too little; under the GCPs' 1 cm survey noise the correction then gains "
+          f"{gain(e[orig], e[corr]):.2f}x. The deformation depends strongly on the simulated flight (per "
+          f"seed {seeds(qn[orig])} mm with the same drift and pre-calibration; a seed draws the scene, the "
+          f"trajectory's jitter, the GCP layout and the tie points): {n_close} of {len(result['seeds'])} "
+          "seeds reach a gain of 1.12x (1.4x less 20 %) or more under the survey noise. The paper's "
+          "set-up can give its 1.4x on one flight, not as the expected gain; the paper measured one "
+          "flight. "
           "The image rotation adds nothing here, exactly: a rotation of the image about the principal "
           "point is a rotation of the camera about its axis (that is how the simulator applies it), which "
           "each image's free kappa takes in a relative orientation (the diagnosis does not test it without "
