@@ -299,6 +299,12 @@ def markdown(result: dict) -> str:
     ft = np.mean(t["focal_mm"])
     f1, f2 = (np.mean(e["focal_mm"][m]) for m in (m1, m2))
     dz_t = t["stats"]["nominal"]["dz"]["mean"] * 100
+    pix = get_preset(PRESET).camera_true.pixel_size_mm
+    H = get_preset(PRESET).plan.height_agl_m
+
+    def lift(f_mm: float, expected_mm: float) -> float:
+        """DZ (cm, surveyed minus computed) of a focal length ``f_mm`` against ``expected_mm``."""
+        return H * (f_mm - expected_mm) / NOMINAL_FOCAL_MM * 100
     dz_e = [e["models"][m]["nominal"]["dz"]["mean"] * 100 for m in (m1, m2)]
     L = [f"## Mitishita: direct georeferencing with nominal and in-situ IOP{' (quick)' if result['quick'] else ''}",
          "",
@@ -354,10 +360,14 @@ def markdown(result: dict) -> str:
           "that number being an input); block 2, with no such error, recovers the truth "
           f"({e['true_focal_mm']:.4f} mm) within the paper's sigma (100.529 +- 0.004).",
           f"* **In-situ IOP, DZ.** Paper +23 (model 1) / 0 cm (model 2). Today "
-          f"{t['stats']['in situ']['dz']['mean'] * 100:+.0f} cm (the in-situ focal equals the truth). "
-          f"Extended {e['models'][m1]['in situ']['dz']['mean'] * 100:+.0f} / "
+          f"{t['stats']['in situ']['dz']['mean'] * 100:+.0f} cm, extended "
+          f"{e['models'][m1]['in situ']['dz']['mean'] * 100:+.0f} / "
           f"{e['models'][m2]['in situ']['dz']['mean'] * 100:+.0f} cm: the over-correction of model 1 is "
-          "block 1's height error carried by c into a model that does not have it. The simulated DZ RMSE "
+          "block 1's height error carried by c into a model that does not have it; the rest is the "
+          "in-situ focal's scatter about what it should find, which moves DZ by H (c - c_expected) / c = "
+          f"{lift(ft, get_preset(PRESET).camera_true.f * pix):+.0f} cm today and "
+          f"{lift(f1, PAPER_IN_SITU_FOCAL_MM[0]):+.0f} / {lift(f2, e['true_focal_mm']):+.0f} cm in the "
+          "extended models over these seeds. The simulated DZ RMSE "
           f"({e['models'][m1]['in situ']['dz']['rmse'] * 100:.0f} / "
           f"{e['models'][m2]['in situ']['dz']['rmse'] * 100:.0f} cm against the paper's 18 / 21 cm) pools "
           "the seeds: it holds the seed-to-seed scatter of the in-situ focal (0.005 mm, 12 cm in height, "
