@@ -21,6 +21,11 @@ Frames and signs
   ``C_recorded = C(t + dt)``, i.e. shifted by ``v dt`` along the track.
 * ``rolling_shutter`` (seconds of readout): row ``v`` is exposed at ``t + readout (v / height - 0.5)``,
   so the middle row is exposed at the recorded time.
+* ``thermal_rotation`` (pixels per degC at the image corner): the image rotates about the principal point
+  by ``theta = rate (T - T_ref) / r_corner`` radians (``r_corner`` the half-diagonal in pixels), positive
+  from the image x axis (right) towards y (down); Daakir 2019's Eq. 2 rotation term. A rotation about the
+  principal point is a rotation of the camera about its optical axis: with free attitudes a block absorbs
+  it in each image's kappa, and only attitude observations can tell it apart.
 * ``refraction`` (on/off): standard-atmosphere radial refraction, displacement outwards
   ``dr = K (r + r^3 / f^2)`` (pixels, r from the principal point) with ``K`` from Bertram's formula.
 """
@@ -73,6 +78,9 @@ CATALOGUE: dict[str, Effect] = {
         Effect("thermal_principal_point", "px/degC", ("dcx_dT", "dcy_dT"), "interior", ("temperature",),
                "principal point moves linearly with sensor temperature",
                plausible=2e-3, scale="focal"),
+        Effect("thermal_rotation", "px/degC", ("dtheta_dT",), "interior", ("temperature",),
+               "the image rotates about the principal point linearly with sensor temperature (px at the "
+               "image corner)", plausible=2e-3, scale="focal"),
         Effect("rolling_shutter", "s", ("readout",), "interior", ("image row", "velocity"),
                "rows are read out one after the other while the camera moves", plausible=0.1),
         Effect("boresight", "deg", ("about_x", "about_y", "about_z"), "exterior", ("attitude",),
@@ -223,3 +231,16 @@ def boresight_shift_px(f_px: float, angle_deg: float) -> float:
 def focal_shift_px(df_px: float, r_px: float, f_px: float) -> float:
     """Radial displacement at radius ``r_px`` when the focal length changes by ``df_px``."""
     return df_px * r_px / f_px
+
+
+# ------------------------------------------------------------------------------ thermal rotation
+def thermal_rotation_angle(rate_px_per_c: float, dt_c: float, corner_radius_px: float) -> float:
+    """Image rotation (radians) of ``thermal_rotation`` at ``dt_c`` degC from the reference temperature."""
+    return float(rate_px_per_c) * float(dt_c) / float(corner_radius_px)
+
+
+def image_rotation(theta_rad: float) -> np.ndarray:
+    """Rotation of camera coordinates about the optical axis by ``theta_rad`` (x towards y): applied as
+    ``R_cw' = image_rotation(theta) @ R_cw`` it rotates the image about the principal point."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

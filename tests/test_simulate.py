@@ -128,6 +128,17 @@ def test_thermal_principal_point_displacement():
     assert np.allclose(d, [0.5, -0.3], rtol=0.05, atol=0.01)
 
 
+def test_thermal_rotation_turns_the_image_about_the_principal_point():
+    # Daakir 2019's bound, 0.02 px/degC at the corner, over 10 degC: the corners move 0.2 px tangentially
+    ex0, uv, d = _interior_displacement("daakir-uav", "thermal_rotation", 0.02, DT)
+    rel = uv - [ex0.camera.cx, ex0.camera.cy]
+    r = np.hypot(rel[:, 0], rel[:, 1])
+    tangential = (rel[:, 0] * d[:, 1] - rel[:, 1] * d[:, 0]) / np.maximum(r, 1e-9)
+    radial = (rel[:, 0] * d[:, 0] + rel[:, 1] * d[:, 1]) / np.maximum(r, 1e-9)
+    assert tangential[np.argmax(r)] == pytest.approx(0.2, rel=0.05)
+    assert np.allclose(tangential, 0.2 * r / r.max(), atol=0.01) and np.abs(radial).max() < 0.01
+
+
 def test_affinity_skew_and_k3_displacement():
     ex0, uv, d = _interior_displacement("conte-calibration", "affinity_skew", (0.6, 0.25))
     xn = ex0.camera.pixels_to_normalised(uv)

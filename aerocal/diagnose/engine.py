@@ -358,6 +358,10 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
         if untestable:
             names = [n for n in names if n not in untestable]
             notes.append(f"{', '.join(untestable)} not tested: the block was adjusted without GNSS observations")
+    if baseline.config.attitude_sigma_deg is None and "thermal_rotation" in names:
+        names = [n for n in names if n != "thermal_rotation"]
+        notes.append("thermal_rotation not tested: without attitude observations each image's kappa absorbs a "
+                     "rotation of the image about the principal point")
     if baseline.config.free:
         names = [n for n in names if not (n == "radial_k3" and "k3" in baseline.config.free)
                  and not (n == "affinity_skew" and {"b1", "b2"} <= set(baseline.config.free))]
@@ -515,7 +519,7 @@ MISFIT_SIGMA0 = 3.0
 EXTENSION_WORSE = 1.05
 
 #: hypotheses that need every image's sensor temperature, and those that act on GNSS observations
-THERMAL_HYPOTHESES = ("thermal_focal", "thermal_principal_point")
+THERMAL_HYPOTHESES = ("thermal_focal", "thermal_principal_point", "thermal_rotation")
 GNSS_HYPOTHESES = ("gnss_bias", "gnss_time_offset", "lever_arm")
 
 

@@ -34,8 +34,8 @@ PER_STRIP = "per_strip_io"
 #: hypotheses the diagnosis tests: the effect catalogue plus per-strip interior orientation
 HYPOTHESES: tuple[str, ...] = (*CATALOGUE, PER_STRIP)
 UNITS = {**{k: v.units for k, v in CATALOGUE.items()}, PER_STRIP: "px"}
-IMAGE_EFFECTS = ("thermal_focal", "thermal_principal_point", "affinity_skew", "radial_k3", "rolling_shutter",
-                 "refraction", PER_STRIP)
+IMAGE_EFFECTS = ("thermal_focal", "thermal_principal_point", "thermal_rotation", "affinity_skew", "radial_k3",
+                 "rolling_shutter", "refraction", PER_STRIP)
 
 
 @dataclass(frozen=True)
@@ -121,6 +121,11 @@ def image_signature(name: str, base: Baseline, ctx: Context, img: np.ndarray, uv
         frac = uv[:, 1] / cam.height - 0.5
         dC = np.einsum("mab,mb->ma", base.state.R[img], ctx.velocity[img])  # camera motion in its frame
         return (-np.einsum("mab,mb->ma", duv_dpc, dC) * frac[:, None])[:, :, None]
+    if name == "thermal_rotation":  # normalised coordinates turned by dT / r_corner per px/degC
+        duv_dxn = duv_dpc[:, :, :2] * pc[:, 2][:, None, None]
+        corner = float(np.max(np.hypot(*(cam.corners() - [cam.cx, cam.cy]).T)))
+        dxn = np.column_stack([-xn[:, 1], xn[:, 0]]) * (ctx.dT[img] / corner)[:, None]
+        return np.einsum("mab,mb->ma", duv_dxn, dxn)[:, :, None]
     if name == "refraction":
         duv_dxn = duv_dpc[:, :, :2] * pc[:, 2][:, None, None]
         r2 = np.sum(xn**2, axis=1)

@@ -30,7 +30,7 @@ import pyarrow as pa
 from aerocal import tables
 from aerocal.camera import Camera
 from aerocal.dsm import Dsm, write_dsm
-from aerocal.effects import bertram_refraction_k, normalise_effects
+from aerocal.effects import bertram_refraction_k, image_rotation, normalise_effects, thermal_rotation_angle
 from aerocal.geometry import (
     R_cw_to_dji_gimbal,
     R_cw_to_opk,
@@ -164,8 +164,14 @@ def simulate_flight(
     exposures = []
     for i in range(N):
         k = bertram_refraction_k(float(traj.C[i, 2]), terrain) if refr else 0.0
+        R_cw = traj.R_cw[i]
+        if "thermal_rotation" in fx:  # the image turns about the principal point: the camera about its axis
+            cam = spec.camera_true
+            corner = float(np.max(np.hypot(*(cam.corners() - [cam.cx, cam.cy]).T)))
+            dt_c = float(t_true[i]) - spec.sensors.reference_temperature_c
+            R_cw = image_rotation(thermal_rotation_angle(fx["thermal_rotation"][0], dt_c, corner)) @ R_cw
         exposures.append(Exposure(
-            image_id=i + 1, camera=_true_camera(spec, fx, float(t_true[i])), R_cw=traj.R_cw[i], C=traj.C[i],
+            image_id=i + 1, camera=_true_camera(spec, fx, float(t_true[i])), R_cw=R_cw, C=traj.C[i],
             velocity=traj.velocity[i], readout_s=readout, refraction_k=k,
         ))
 
