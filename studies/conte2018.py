@@ -35,8 +35,6 @@ Run: ``python -m studies.conte2018`` (``--quick``: one seed, smaller blocks, no 
 
 from __future__ import annotations
 
-import argparse
-import csv
 import dataclasses
 import json
 import time
@@ -47,13 +45,11 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, adjust, run_strategy
-from aerocal.io import atomic_path, write_text_atomic
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
+from studies.papers import reference, save_png, study_parser, write_study
 
 ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = ROOT.parent / "shared" / "reference"
-OUT = ROOT / "studies" / "output"
 
 #: the focal drift hidden in every simulated flight (px/degC; 5 um/degC at 23.5 um pixels is 0.21 px/degC, a
 #: non-athermalised germanium lens; NOTES.md) and the 2016 flight's colder start (degC)
@@ -152,12 +148,6 @@ def control_rmse(res) -> float:
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(e) else float("nan")
 
 
-def reference(name: str) -> list[dict]:
-    path = REFERENCE / name
-    if not path.is_file():
-        return []
-    with path.open() as fh:
-        return list(csv.DictReader(fh))
 
 
 # ----------------------------------------------------------------------------- the runs
@@ -534,18 +524,13 @@ def figure(result: dict, path: Path) -> None:
         ax.set_ylabel("check-point residual (m)")
         ax.legend(fontsize=7)
     ax.set_title("STR2 runaway against the readout", fontsize=9)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def main(argv: list[str] | None = None) -> Path:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="one seed, 24-frame blocks, no sweep or diagnosis")
+    ap = study_parser(__doc__, "one seed, 24-frame blocks, no sweep or diagnosis")
     ap.add_argument("--city-images", type=int, default=None, help="frames of each year's city block")
     ap.add_argument("--seeds", type=int, nargs="+", default=None, help="seeds (default 1 2 3; quick 1)")
-    ap.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")
     ap.add_argument("--from-json", type=Path, default=None,
                     help="write the report from a saved result (conte2018.json) instead of running the study")
     args = ap.parse_args(argv)
@@ -555,13 +540,7 @@ def main(argv: list[str] | None = None) -> Path:
     if args.seeds:
         cfg = dataclasses.replace(cfg, seeds=tuple(args.seeds))
     result = json.loads(args.from_json.read_text()) if args.from_json else run(cfg=cfg)
-    cfg = dataclasses.replace(cfg, quick=result["quick"])
-    stem = "conte2018_quick" if cfg.quick else "conte2018"
-    args.out.mkdir(parents=True, exist_ok=True)
-    md = args.out / f"{stem}.md"
-    write_text_atomic(md, markdown(result))
-    write_text_atomic(args.out / f"{stem}.json", json.dumps(result, indent=1))
-    figure(result, args.out / f"{stem}.png")
+    md = write_study("conte2018", result, markdown, figure, args.out, result["quick"])
     print(f"wrote {md} ({result['seconds']:.0f} s)")
     return md
 

@@ -37,9 +37,7 @@ Run: ``python -m studies.daakir2019`` (five seeds, ~15 min of CPU; ``--quick``: 
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,13 +49,11 @@ import pyarrow.compute as pc
 from aerocal.adjust import AdjustConfig, run_strategy
 from aerocal.camera import LinearThermalModel
 from aerocal.geometry import estimate_similarity
-from aerocal.io import atomic_path, write_text_atomic
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
+from studies.papers import save_png, study_parser, write_study
 
 ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = ROOT.parent / "shared" / "reference"
-OUT = ROOT / "studies" / "output"
 
 PRESET = "daakir-uav"
 #: focal drift (px/degC, Sec. 4.2.3: 0.07-0.08) and the uncertainty of its separate calibration (px/degC)
@@ -407,24 +403,13 @@ def figure(result: dict, path: Path) -> None:
     ax.set_ylabel("GCP residual mean after similarity (mm)")
     ax.set_title("Daakir 2019 UAV corridor", fontsize=9)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def main(argv: list[str] | None = None) -> Path:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="one seed, a 24-image corridor (< 90 s)")
-    ap.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")
+    ap = study_parser(__doc__, "one seed, a 24-image corridor (< 90 s)")
     args = ap.parse_args(argv)
-    result = run(quick=args.quick)
-    stem = "daakir2019_quick" if args.quick else "daakir2019"
-    args.out.mkdir(parents=True, exist_ok=True)
-    md = args.out / f"{stem}.md"
-    write_text_atomic(args.out / f"{stem}.json", json.dumps(result, indent=1))
-    write_text_atomic(md, markdown(result))
-    figure(result, args.out / f"{stem}.png")
+    md = write_study("daakir2019", run(quick=args.quick), markdown, figure, args.out, args.quick)
     print(f"wrote {md}")
     return md
 

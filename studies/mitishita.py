@@ -36,9 +36,6 @@ Run: ``python -m studies.mitishita`` (five seeds, ~1 min; ``--quick``: one seed,
 
 from __future__ import annotations
 
-import argparse
-import csv
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,13 +46,11 @@ from aerocal.adjust import AdjustConfig, adjust, select_images
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
 from aerocal.camera import Camera
 from aerocal.geometry import attitude_to_R_cw, matrix_from_quat_wxyz, rotvec_from_matrix, small_rotation
-from aerocal.io import atomic_path, write_text_atomic
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
+from studies.papers import reference, save_png, study_parser, write_study
 
 ROOT = Path(__file__).resolve().parents[1]
-REFERENCE = ROOT.parent / "shared" / "reference"
-OUT = ROOT / "studies" / "output"
 
 PRESET = "mitishita-block"
 #: the boresight of today's set-up (degrees about camera x, y, z): the size of the paper's angular residuals
@@ -274,12 +269,6 @@ def run(quick: bool = False) -> dict:
 
 
 # ----------------------------------------------------------------------------- report
-def _reference(name: str) -> list[dict]:
-    path = REFERENCE / name
-    if not path.is_file():
-        return []
-    with path.open() as fh:
-        return list(csv.DictReader(fh))
 
 
 def _cell(s: dict) -> str:
@@ -288,7 +277,7 @@ def _cell(s: dict) -> str:
 
 
 def markdown(result: dict) -> str:
-    ref = _reference("mitishita_direct_georeferencing.csv")
+    ref = reference("mitishita_direct_georeferencing.csv")
     paper = {1: {}, 2: {}}
     for r in ref:
         m = 1 if r["model"].startswith("first") else 2
@@ -413,24 +402,13 @@ def figure(result: dict, path: Path) -> None:
     ax.set_ylabel("DZ mean, surveyed - computed (cm)")
     ax.set_title("Mitishita direct georeferencing", fontsize=9)
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=100)
-    plt.close(fig)
+    save_png(fig, path)
 
 
 def main(argv: list[str] | None = None) -> Path:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="one seed (~15 s)")
-    ap.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")
+    ap = study_parser(__doc__, "one seed (~15 s)")
     args = ap.parse_args(argv)
-    result = run(quick=args.quick)
-    stem = "mitishita_quick" if args.quick else "mitishita"
-    args.out.mkdir(parents=True, exist_ok=True)
-    md = args.out / f"{stem}.md"
-    write_text_atomic(args.out / f"{stem}.json", json.dumps(result, indent=1))
-    write_text_atomic(md, markdown(result))
-    figure(result, args.out / f"{stem}.png")
+    md = write_study("mitishita", run(quick=args.quick), markdown, figure, args.out, args.quick)
     print(f"wrote {md}")
     return md
 

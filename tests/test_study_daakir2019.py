@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import importlib
 import sys
 from pathlib import Path
@@ -18,10 +17,9 @@ def _study():
 
 def test_daakir_gain_needs_the_full_field_and_stays_below_the_paper(tmp_path):
     study = _study()
-    ref = study.REFERENCE / "daakir2019_results.csv"
-    if ref.is_file():  # the paper's Table 16 as the study quotes it
-        with ref.open() as fh:
-            rows = {r["variant"]: r for r in csv.DictReader(fh) if r["experiment"] == "UAV corridor"}
+    table = importlib.import_module("studies.papers").reference("daakir2019_results.csv")
+    if table:  # the paper's Table 16 as the study quotes it
+        rows = {r["variant"]: r for r in table if r["experiment"] == "UAV corridor"}
         for variant in ("original", "corrected"):
             assert float(rows[variant]["mean_mm"]) == study.PAPER[variant]["mean"]
 

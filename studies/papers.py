@@ -1,0 +1,56 @@
+"""What the seed-paper studies share: where their outputs go and how a study's result is written."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from aerocal.io import atomic_path, write_text_atomic
+
+ROOT = Path(__file__).resolve().parents[1]
+#: the papers' measured numbers as CSV (beside the repository)
+REFERENCE = ROOT.parent / "shared" / "reference"
+OUT = ROOT / "studies" / "output"
+
+
+def reference(name: str) -> list[dict]:
+    """The rows of a paper's reference CSV (``../shared/reference/<name>``), none when it is absent."""
+    path = REFERENCE / name
+    if not path.is_file():
+        return []
+    with path.open() as fh:
+        return list(csv.DictReader(fh))
+
+
+def save_png(fig, path: Path) -> None:
+    """Write a matplotlib figure as PNG atomically (100 dpi) and close it."""
+    import matplotlib.pyplot as plt  # lazy: matplotlib costs ~0.5 s and only figures need it
+
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=100)
+    plt.close(fig)
+
+
+def write_study(stem: str, result: dict, markdown: Callable[[dict], str], figure: Callable[[dict, Path], None],
+                out: Path, quick: bool) -> Path:
+    """Write a study's result to ``out``: ``<stem>[_quick].json`` (its numbers), ``.md`` (its section) and
+    ``.png`` (its figure); the Markdown file's path."""
+    stem = f"{stem}_quick" if quick else stem
+    out.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(out / f"{stem}.json", json.dumps(result, indent=1, default=str))
+    md = write_text_atomic(out / f"{stem}.md", markdown(result))
+    figure(result, out / f"{stem}.png")
+    return md
+
+
+def study_parser(doc: str, quick_help: str) -> argparse.ArgumentParser:
+    """The command line every paper study has: ``--quick`` (its reduced set-up, ``quick_help`` says what) and
+    ``--out`` (default :data:`OUT`); the study adds its own."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help=quick_help)
+    ap.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")
+    return ap
