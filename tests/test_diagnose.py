@@ -68,7 +68,18 @@ def draw(name, sigma, rng):
     return tuple(vals), vals
 
 
-@pytest.mark.parametrize("name,seed", [(n, 11 + k) for k, n in enumerate(CATALOGUE)])
+#: the seed of each effect's test: fixed per effect, so that an effect added to the catalogue does not change the
+#: draws of the others (the order the catalogue had them in, then the newer ones)
+EFFECT_SEEDS = {name: 11 + k for k, name in enumerate((
+    "thermal_focal", "thermal_principal_point", "rolling_shutter", "boresight", "lever_arm", "gnss_bias",
+    "gnss_time_offset", "affinity_skew", "radial_k3", "refraction", "thermal_rotation"))}
+
+
+def test_every_effect_of_the_catalogue_has_a_seed():
+    assert set(EFFECT_SEEDS) == set(CATALOGUE), f"give {set(CATALOGUE) - set(EFFECT_SEEDS)} a seed in EFFECT_SEEDS"
+
+
+@pytest.mark.parametrize("name,seed", sorted(EFFECT_SEEDS.items(), key=lambda kv: kv[1]))
 def test_hidden_effect_is_named_with_its_magnitude(name, seed, predicted_sigma):
     spec = SPEC_FOR.get(name, SPEC)
     rng = np.random.default_rng(seed)
