@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import sys
 import time
 from pathlib import Path
@@ -33,12 +34,19 @@ from studies.papers import OUT, write_study  # noqa: E402
 PAPERS = {"daakir": "studies.daakir2019", "mitishita": "studies.mitishita", "conte": "studies.conte2018"}
 
 
-def run_paper(name: str, quick: bool, out: Path) -> str:
-    """Run one paper's study, write its own report, figure and numbers to ``out``; its Markdown section."""
+def run_paper(name: str, quick: bool, out: Path, saved: bool = False) -> str:
+    """Run one paper's study (``saved``: take the numbers its last run wrote to ``out`` instead), write its own
+    report, figure and numbers to ``out``; its Markdown section."""
     module = importlib.import_module(PAPERS[name])
-    md = write_study(module.__name__.rsplit(".", 1)[-1], module.run(quick=quick), module.markdown, module.figure,
-                     out, quick)
-    return md.read_text()
+    stem = module.__name__.rsplit(".", 1)[-1]
+    if saved:
+        path = out / f"{stem}{'_quick' if quick else ''}.json"
+        if not path.is_file():
+            raise SystemExit(f"{path} not found: run the study first (python -m {module.__name__})")
+        result = json.loads(path.read_text())
+    else:
+        result = module.run(quick=quick)
+    return write_study(stem, result, module.markdown, module.figure, out, quick).read_text()
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -46,6 +54,8 @@ def main(argv: list[str] | None = None) -> Path:
     ap.add_argument("--quick", action="store_true", help="each study's reduced set-up")
     ap.add_argument("--papers", default=",".join(PAPERS), help=f"comma-separated, of {', '.join(PAPERS)}")
     ap.add_argument("--out", type=Path, default=OUT, help=f"output folder (default {OUT})")
+    ap.add_argument("--saved", action="store_true",
+                    help="write the report from the numbers each study's last run saved in --out (no run)")
     args = ap.parse_args(argv)
     names = [n.strip() for n in args.papers.split(",") if n.strip()]
     unknown = [n for n in names if n not in PAPERS]
@@ -56,7 +66,7 @@ def main(argv: list[str] | None = None) -> Path:
     sections = []
     for name in names:
         print(name, flush=True)
-        sections.append(run_paper(name, args.quick, args.out).strip())
+        sections.append(run_paper(name, args.quick, args.out, args.saved).strip())
     title = "# The seed papers' set-ups, simulated" + (" (quick mode)" if args.quick else "")
     text = "\n\n".join([title, f"Written by `python -m studies.paper_setups{' --quick' if args.quick else ''}` in "
                         f"{time.perf_counter() - t0:.0f} s; each section is also its study's own report.",
