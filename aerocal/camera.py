@@ -110,6 +110,11 @@ class Camera:
         w, h = float(self.width), float(self.height)
         return np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
 
+    @property
+    def corner_radius(self) -> float:
+        """Distance (pixels) from the principal point to the farthest image corner."""
+        return float(np.max(np.hypot(*(self.corners() - [self.cx, self.cy]).T)))
+
     # ----------------------------------------------------------------- distortion in normalised space
     def distort(self, xy: np.ndarray) -> np.ndarray:
         """Undistorted normalised coordinates (N, 2) -> distorted normalised coordinates (N, 2)."""

@@ -22,7 +22,8 @@ Frames and signs
 * ``rolling_shutter`` (seconds of readout): row ``v`` is exposed at ``t + readout (v / height - 0.5)``,
   so the middle row is exposed at the recorded time.
 * ``thermal_rotation`` (pixels per degC at the image corner): the image rotates about the principal point
-  by ``theta = rate (T - T_ref) / r_corner`` radians (``r_corner`` the half-diagonal in pixels), positive
+  by ``theta = rate (T - T_ref) / r_corner`` radians (``r_corner`` the distance in pixels from the principal
+  point to the farthest image corner, :attr:`aerocal.camera.Camera.corner_radius`), positive
   from the image x axis (right) towards y (down); Daakir 2019's Eq. 2 rotation term. A rotation about the
   principal point is a rotation of the camera about its optical axis: with free attitudes a block absorbs
   it in each image's kappa, and only attitude observations can tell it apart.
@@ -50,8 +51,9 @@ class Effect:
     description: str
     switch: bool = False  # True: the value is on/off (1.0 / 0.0)
     # the largest magnitude a real instrument can have, per value, in ``units`` once scaled to the camera
-    # (``scale``: "focal" = times the focal length in pixels; "corner_r6" = divided by r^6 at the image
-    # corner, normalised coordinates, i.e. the r^6 term moves the corner by that fraction of its radius): an
+    # (``scale``: "focal" = times the focal length in pixels; "corner" = times the corner's distance from the
+    # principal point in pixels; "corner_r6" = divided by r^6 at the image corner, normalised coordinates, i.e.
+    # the r^6 term moves the corner by that fraction of its radius): an
     # estimate beyond it is a symptom of another cause, not this effect
     plausible: float = math.inf
     scale: str = ""
@@ -64,6 +66,8 @@ class Effect:
 #: Plausible sizes (``Effect.plausible``), the largest a real survey instrument shows:
 #: * thermal focal / principal-point drift 0.2 % of f per degC: ten times a non-athermalised germanium
 #:   singlet's 5 um/degC on 39 mm (NOTES: 0.013 %/degC), twenty times a compact's;
+#: * thermal image rotation 2e-4 rad per degC (at the corner: times its distance from the principal point),
+#:   about 30 times the < 0.02 px/degC Daakir 2019 measured at the corner of a ~3,000 px half-diagonal;
 #: * rolling-shutter readout 0.1 s (CMOS frames read in 10-80 ms); boresight 3 deg (a mounting tilt);
 #: * lever arm 2 m (antenna to camera on drones and survey aircraft); GNSS time offset 2 s;
 #: * GNSS bias 100 m (a height read against the ellipsoid instead of the geoid is at most ~100 m off);
@@ -80,7 +84,7 @@ CATALOGUE: dict[str, Effect] = {
                plausible=2e-3, scale="focal"),
         Effect("thermal_rotation", "px/degC", ("dtheta_dT",), "interior", ("temperature",),
                "the image rotates about the principal point linearly with sensor temperature (px at the "
-               "image corner)", plausible=2e-3, scale="focal"),
+               "image corner)", plausible=2e-4, scale="corner"),
         Effect("rolling_shutter", "s", ("readout",), "interior", ("image row", "velocity"),
                "rows are read out one after the other while the camera moves", plausible=0.1),
         Effect("boresight", "deg", ("about_x", "about_y", "about_z"), "exterior", ("attitude",),
@@ -109,11 +113,14 @@ class EffectError(ValueError):
 
 def plausible_size(name: str, f_px: float, corner_radius_px: float | None = None) -> float:
     """The largest plausible magnitude of each value of effect ``name`` for a camera of focal length ``f_px``
-    pixels whose image corners lie ``corner_radius_px`` from the principal point (needed for ``radial_k3``),
+    pixels whose image corners lie ``corner_radius_px`` from the principal point (needed for ``radial_k3`` and
+    ``thermal_rotation``),
     in the effect's units (``math.inf`` when the catalogue sets no bound)."""
     e = CATALOGUE[name]
     if e.scale == "focal":
         return e.plausible * f_px
+    if e.scale == "corner":
+        return e.plausible * corner_radius_px if corner_radius_px else math.inf
     if e.scale == "corner_r6":
         if not corner_radius_px:
             return math.inf
@@ -234,9 +241,10 @@ def focal_shift_px(df_px: float, r_px: float, f_px: float) -> float:
 
 
 # ------------------------------------------------------------------------------ thermal rotation
-def thermal_rotation_angle(rate_px_per_c: float, dt_c: float, corner_radius_px: float) -> float:
-    """Image rotation (radians) of ``thermal_rotation`` at ``dt_c`` degC from the reference temperature."""
-    return float(rate_px_per_c) * float(dt_c) / float(corner_radius_px)
+def thermal_rotation_angle(rate_px_per_c: float, dt_c, corner_radius_px: float):
+    """Image rotation (radians) of ``thermal_rotation`` at ``dt_c`` degC (a number or an array) from the reference
+    temperature, for a camera whose farthest corner lies ``corner_radius_px`` from the principal point."""
+    return rate_px_per_c * np.asarray(dt_c, dtype=float) / corner_radius_px
 
 
 def image_rotation(theta_rad: float) -> np.ndarray:

@@ -27,7 +27,7 @@ from aerocal.adjust.problem import Block
 from aerocal.adjust.projection import project
 from aerocal.camera import PARAM_NAMES
 from aerocal.diagnose.model import Baseline, Linear, triangulate_checks
-from aerocal.effects import CATALOGUE, bertram_refraction_k, plausible_size
+from aerocal.effects import CATALOGUE, bertram_refraction_k, plausible_size, thermal_rotation_angle
 from aerocal.geometry import small_rotation
 
 PER_STRIP = "per_strip_io"
@@ -89,8 +89,7 @@ def plausible(name: str, camera, ctx: Context) -> np.ndarray:
     f_px = float(camera.f)
     if name == PER_STRIP:
         return np.full(size(name, ctx), PER_STRIP_PLAUSIBLE * f_px)
-    corner = float(np.max(np.hypot(*(camera.corners() - [camera.cx, camera.cy]).T)))
-    return np.full(size(name, ctx), plausible_size(name, f_px, corner))
+    return np.full(size(name, ctx), plausible_size(name, f_px, camera.corner_radius))
 
 
 def size(name: str, ctx: Context) -> int:
@@ -123,8 +122,8 @@ def image_signature(name: str, base: Baseline, ctx: Context, img: np.ndarray, uv
         return (-np.einsum("mab,mb->ma", duv_dpc, dC) * frac[:, None])[:, :, None]
     if name == "thermal_rotation":  # normalised coordinates turned by dT / r_corner per px/degC
         duv_dxn = duv_dpc[:, :, :2] * pc[:, 2][:, None, None]
-        corner = float(np.max(np.hypot(*(cam.corners() - [cam.cx, cam.cy]).T)))
-        dxn = np.column_stack([-xn[:, 1], xn[:, 0]]) * (ctx.dT[img] / corner)[:, None]
+        theta = thermal_rotation_angle(1.0, ctx.dT[img], cam.corner_radius)  # radians per px/degC at the corner
+        dxn = np.column_stack([-xn[:, 1], xn[:, 0]]) * theta[:, None]
         return np.einsum("mab,mb->ma", duv_dxn, dxn)[:, :, None]
     if name == "refraction":
         duv_dxn = duv_dpc[:, :, :2] * pc[:, 2][:, None, None]

@@ -20,15 +20,12 @@ identifies its content, so that a changed input re-runs ingest and everything af
 
 from __future__ import annotations
 
-import hashlib
-import io
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from aerocal import tables
 from aerocal.camera import Camera
@@ -37,6 +34,7 @@ from aerocal.certificate import validate_camera
 from aerocal.ingest import ingest_folder
 from aerocal.ingest.inferred import certificate_identity
 from aerocal.io import file_sha256
+from aerocal.pipeline.runner import table_sha256
 
 #: stem of the simulator's truth files and folder, which processing never reads (nor hashes)
 TRUTH_STEM = "truth"
@@ -209,12 +207,6 @@ class FolderDataset:
                               list(res.skipped_images), res.flight_facts)
 
 
-def _table_sha256(table: pa.Table) -> str:
-    buf = io.BytesIO()
-    pq.write_table(table, buf)
-    return hashlib.sha256(buf.getvalue()).hexdigest()
-
-
 @dataclass
 class MemoryDataset:
     """A flight given as tables (observations mode): ``images``, ``observations``, ``gcps`` and
@@ -237,11 +229,11 @@ class MemoryDataset:
         return True
 
     def manifest(self) -> dict[str, Any]:
-        """SHA-256 of each table's Parquet bytes and of the documents."""
+        """SHA-256 of each table (:func:`aerocal.pipeline.runner.table_sha256`) and the documents."""
         return {
             "schema": "aerocal.memory-manifest/1",
             "mode": "observations",
-            "tables": {kind: _table_sha256(getattr(self, kind)) for kind in OBSERVATION_TABLES},
+            "tables": {kind: table_sha256(getattr(self, kind), kind) for kind in OBSERVATION_TABLES},
             "camera": self.camera,
             "metadata": self.metadata,
             "crs": self.crs,
@@ -264,6 +256,6 @@ class MemoryDataset:
                               "observations")
 
 
-def as_dataset(flight: str | Path | FlightDataset) -> FlightDataset:
+def dataset_of(flight: str | Path | FlightDataset) -> FlightDataset:
     """A dataset for a folder path, or the dataset itself."""
     return FolderDataset(flight) if isinstance(flight, str | Path) else flight

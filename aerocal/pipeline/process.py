@@ -39,7 +39,7 @@ from aerocal.pipeline.config import (
     without_recorded_eo,
 )
 from aerocal.pipeline.control_step import control_step
-from aerocal.pipeline.dataset import FlightDataset, FlightInputError, as_dataset
+from aerocal.pipeline.dataset import FlightDataset, FlightInputError, dataset_of
 from aerocal.pipeline.diagnose_step import diagnose_step
 from aerocal.pipeline.ingest_step import ingest_step
 from aerocal.pipeline.match_step import match_step
@@ -152,7 +152,7 @@ def process(
     """
     if not certificate:
         raise FlightInputError("certificate is empty; give auto, none or a certificate id")
-    dataset = as_dataset(flight)
+    dataset = dataset_of(flight)
     config = config or ProcessConfig()
     runner = runner or LocalRunner()
     store = certificates if certificates is not None else MemoryCertificates()

@@ -16,9 +16,6 @@ from aerocal.pipeline.mosaic_step import reference_dsm_path
 from aerocal.pipeline.runner import FileOutput, Runner, StepInputs, StepResult
 from aerocal.report.flight_report import write_flight_report
 from aerocal.report.html import REPORT_NAME, SUMMARY_NAME
-from aerocal.report.wording import recorded_eo_text
-
-__all__ = ["recorded_eo_text", "report_step"]
 
 
 def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: StepResult, mosaic: StepResult,

@@ -1,15 +1,16 @@
 """How a step of the flight pipeline runs: its outputs, its result, and the runner that computes or reuses it.
 
-A step (:mod:`aerocal.pipeline.steps`) names its inputs (input name -> *reference* of a value the runner holds),
+A step (``aerocal.pipeline.*_step``) names its inputs (input name -> *reference* of a value the runner holds),
 its configuration, and a ``compute(inputs)`` function returning output name -> :data:`Output`. The runner
 decides whether to compute: :class:`LocalRunner` keeps every value in memory (a notebook, a study, a test; no
 Prefect, no database), the platform's runner (``tasks.runner.StoreRunner``) keys each step by the content of
 its inputs, its configuration and the code (:func:`cache_key`), stores the outputs in the artifact store with
 their lineage, reuses a completed step, and runs each step as a Prefect task. The steps do not know which.
 
-References are opaque strings: the SHA-256 of a stored artifact for the platform, a counter for
-:class:`LocalRunner`. Values read back are the same types in both: Arrow tables, plain JSON (dicts, lists,
-strings, numbers: what :func:`configuration_json` makes of a value), numpy arrays, file paths.
+References are the SHA-256 of the values: of the stored artifact for the platform, of the value's content
+for :class:`LocalRunner` (:func:`table_sha256` for a table). Values read back are the same types in both:
+Arrow tables, plain JSON (dicts, lists, strings, numbers: what :func:`configuration_json` makes of a value),
+numpy arrays, file paths.
 """
 
 from __future__ import annotations

@@ -166,10 +166,9 @@ def simulate_flight(
         k = bertram_refraction_k(float(traj.C[i, 2]), terrain) if refr else 0.0
         R_cw = traj.R_cw[i]
         if "thermal_rotation" in fx:  # the image turns about the principal point: the camera about its axis
-            cam = spec.camera_true
-            corner = float(np.max(np.hypot(*(cam.corners() - [cam.cx, cam.cy]).T)))
             dt_c = float(t_true[i]) - spec.sensors.reference_temperature_c
-            R_cw = image_rotation(thermal_rotation_angle(fx["thermal_rotation"][0], dt_c, corner)) @ R_cw
+            theta = thermal_rotation_angle(fx["thermal_rotation"][0], dt_c, spec.camera_true.corner_radius)
+            R_cw = image_rotation(theta) @ R_cw
         exposures.append(Exposure(
             image_id=i + 1, camera=_true_camera(spec, fx, float(t_true[i])), R_cw=R_cw, C=traj.C[i],
             velocity=traj.velocity[i], readout_s=readout, refraction_k=k,
