@@ -64,7 +64,7 @@ from aerocal.io import write_json_atomic
 from aerocal.matching import FeatureConfig
 from aerocal.pipeline import process
 from aerocal.pipeline.config import MatchStepConfig, ProcessConfig
-from aerocal.pipeline.report_step import recorded_eo_text
+from aerocal.report.wording import recorded_eo_text
 from benchmarks.common import peak_rss_mb, record
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -97,8 +97,8 @@ def print_run(summary: dict[str, Any]) -> None:
     if summary.get("diagnosis"):
         console.print(f"diagnosis: {summary['diagnosis']}")
     if summary.get("recorded_eo"):
-        # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
-        from aerocal.pipeline.report_step import recorded_eo_text
+        # lazy: the report wording loads numpy and the certificate schema (pydantic); --help must not pay them
+        from aerocal.report.wording import recorded_eo_text
 
         console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
     if summary.get("recorded_eo_corrections"):
