@@ -17,7 +17,7 @@ Check points (planimetric, on the orthomosaics): 1.3-2.0 m for STR1/2/3, 10.6-11
 This study simulates both years and the calibration subset with the engine (``aerocal.simulate``,
 ``aerocal.adjust.run_strategy``) under two models:
 
-* **today's model** (what ``studies/paper_setups.py`` simulated): a thermal focal drift only, every
+* **today's model** (what the project simulated before this study): a thermal focal drift only, every
   self-calibration with the adjustment's default free set (f, cx, cy, k1, k2, k3, p1, p2);
 * **extended model**: the frames are also read out row by row while the aircraft moves (the catalogue's
   ``rolling_shutter``, :data:`READOUT_S`), the certificate is computed with CAL4's free set (with b1, b2) and
@@ -47,9 +47,7 @@ import pyarrow as pa
 from aerocal.adjust import AdjustConfig, adjust, run_strategy
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
-from studies.papers import reference, save_png, study_parser, write_study
-
-ROOT = Path(__file__).resolve().parents[1]
+from studies.papers import as_checks, gnss_priors, reference, save_png, study_parser, write_study
 
 #: the focal drift hidden in every simulated flight (px/degC; 5 um/degC at 23.5 um pixels is 0.21 px/degC, a
 #: non-athermalised germanium lens; NOTES.md) and the 2016 flight's colder start (degC)
@@ -71,7 +69,6 @@ FREE_PHOTOSCAN = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
 CONVERGED_ITERATIONS = 400
 #: the years: 2016 is the colder flight whose STR2 certificate STR3 reuses on 2017
 YEARS = ("2016", "2017")
-STRATEGIES = ("STR1", "STR2", "STR3")
 
 
 @dataclass(frozen=True)
@@ -114,18 +111,6 @@ EXTENDED = Model("extended", {"thermal_focal": THERMAL_SLOPE, "rolling_shutter":
 MODELS = (TODAY, EXTENDED)
 
 
-# ----------------------------------------------------------------------------- helpers (as paper_setups)
-def priors(sim, **kw) -> AdjustConfig:
-    """The flight's GNSS priors (its simulated sigmas) as an adjustment configuration."""
-    s = sim.spec.sensors
-    return AdjustConfig(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m), **kw)
-
-
-def as_checks(gcps: pa.Table) -> pa.Table:
-    """The GCP table with every point a check point (kept out of the datum, triangulated afterwards)."""
-    i = gcps.schema.get_field_index("role")
-    return gcps.set_column(i, "role", pa.array(["check"] * gcps.num_rows))
-
 
 def dod_mean(sim, res) -> float:
     """Mean height error (m, computed minus true) of the adjusted tie points against the simulated surface."""
@@ -165,7 +150,7 @@ def flights(cfg: StudyConfig, seed: int, effects: dict):
 
 def self_calibrate(sim, model: Model, checks: pa.Table | None = None):
     """STR2: self-calibration of a whole city block (no ground control)."""
-    config = priors(sim, use_gcps=False, free=model.self_free, adaptive=model.adaptive,
+    config = gnss_priors(sim, use_gcps=False, free=model.self_free, adaptive=model.adaptive,
                     max_iterations=model.max_iterations)
     return run_strategy("self", sim.images, sim.observations, sim.camera_nominal, config, checks,
                         sim.gcp_observations if checks is not None else None).block
@@ -178,7 +163,7 @@ def run_model(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
     out: dict = {}
     certs = {}
     for name, free in (("CAL4", model.certificate_free), ("CAL6", FREE_CAL6)):
-        c = adjust(cal.images, cal.observations, cal.camera_nominal, priors(cal, free=free), cal.gcps,
+        c = adjust(cal.images, cal.observations, cal.camera_nominal, gnss_priors(cal, free=free), cal.gcps,
                    cal.gcp_observations)
         certs[name] = c
         out[name] = {"gcp_rmse": control_rmse(c), "f": c.camera.f, "b1": c.camera.b1, "b2": c.camera.b2,
@@ -186,7 +171,7 @@ def run_model(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
     self_cal = {}
     for year, sim in years.items():
         checks = as_checks(sim.gcps)
-        fixed_cfg = priors(sim, use_gcps=False)
+        fixed_cfg = gnss_priors(sim, use_gcps=False)
         s1 = run_strategy("fixed", sim.images, sim.observations, certs["CAL4"].camera, fixed_cfg, checks,
                           sim.gcp_observations).block
         s2 = self_calibrate(sim, model, checks)
@@ -240,7 +225,7 @@ def diagnosis(cfg: StudyConfig, seed: int) -> dict:
     sim = simulate_flight(get_preset("conte-city"), seed=seed, effects=EXTENDED.effects,
                           max_images=cfg.city_images)
     d = diagnose(sim.images, sim.observations, sim.camera_nominal,
-                 priors(sim, use_gcps=False, free=TODAY.self_free), config=DiagnoseConfig(null_draws=10))
+                 gnss_priors(sim, use_gcps=False, free=TODAY.self_free), config=DiagnoseConfig(null_draws=10))
     twin = d.twin or {}
     return {"summary": d.summary(), "effects": [_plain(e.to_dict()) for e in d.effects],
             "twin_differs": sorted(twin.get("differs") or {}), "twin_summary": twin.get("summary", ""),
@@ -311,9 +296,9 @@ def _paper_rows(result: dict) -> dict:
     return {f"{r['strategy']} {r['year']}": r for r in result["paper"]["city"]}
 
 
-def _cell(v: dict, with_f: bool = True) -> str:
+def _cell(v: dict) -> str:
     text = f"{v['cp_mean']:.2f} +- {v['cp_std']:.2f}, {v['dod']:+.2f}"
-    return text + (f", {v['f']:.0f}" if with_f else "")
+    return text + f", {v['f']:.0f}"
 
 
 def markdown(result: dict) -> str:
@@ -397,7 +382,7 @@ def explain(result: dict) -> str:
     parts = [
         "**How the rows differ, and why.**",
         f"*Today's model* here: {result['city_images']} frames per year and planimetric check points, so its "
-        "numbers differ from `paper_setups.py`'s (150 frames, 3D check-point norm); the contrast is the same.",
+        "numbers differ from the earlier set-up's (150 frames, 3D check-point norm); the contrast is the same.",
         f"*STR1* (certificate): small DSM bias in both models ({today['STR1 2017']['dod']:+.2f} / "
         f"{ext['STR1 2017']['dod']:+.2f} m on 2017), as in the paper (1.18 / 0.28 m). With ground control on the "
         "calibration subset the focal length is pinned by the GCP heights; in the extended model CAL4's affinity "

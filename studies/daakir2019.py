@@ -18,7 +18,7 @@ px/degC at the image corner).
 
 Columns of the table:
 
-* today's model (as ``studies/paper_setups.py``): a focal-only drift; the block adjusted with GNSS
+* today's model (the set-up the project simulated before this study): a focal-only drift; the block adjusted with GNSS
   (3/5 cm) and IMU priors, IO fixed at the camera's 22.7 degC calibration; the correction a focal slope
   calibrated separately; residuals of all 20 ground points after the similarity.
 * extended model: the Eq. 2 field hidden; the paper's workflow: relative orientation from the tie points
@@ -31,7 +31,7 @@ Columns of the table:
   three times Table 8's measures what the paper's gain would take.
 * the size of the thermal deformation itself: the same runs without survey and with little image noise.
 
-Run: ``python -m studies.daakir2019`` (five seeds, ~15 min of CPU; ``--quick``: one seed, a 24-image corridor,
+Run: ``python -m studies.daakir2019`` (five seeds, 698 s on 2 shared cores; ``--quick``: one seed, a 24-image corridor,
 < 90 s). Writes ``studies/output/daakir2019.md`` (``daakir2019_quick.md``) and a PNG.
 """
 
@@ -43,7 +43,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
 import pyarrow.compute as pc
 
 from aerocal.adjust import AdjustConfig, run_strategy
@@ -51,9 +50,7 @@ from aerocal.camera import LinearThermalModel
 from aerocal.geometry import estimate_similarity
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
-from studies.papers import save_png, study_parser, write_study
-
-ROOT = Path(__file__).resolve().parents[1]
+from studies.papers import as_checks, gnss_priors, save_png, stats, study_parser, write_study
 
 PRESET = "daakir-uav"
 #: focal drift (px/degC, Sec. 4.2.3: 0.07-0.08) and the uncertainty of its separate calibration (px/degC)
@@ -102,18 +99,6 @@ class StudyConfig:
         return noise_free(spec) if quiet else spec
 
 
-# ----------------------------------------------------------------------------- helpers (from paper_setups)
-def _stats(v: np.ndarray) -> dict:
-    """Residual statistics (m) of the GCPs pooled over seeds."""
-    return {"mean": float(np.mean(v)), "std": float(np.std(v)), "min": float(np.min(v)),
-            "max": float(np.max(v)), "rmse": float(np.sqrt(np.mean(v**2)))}
-
-
-def _as_checks(gcps):
-    """The GCP table with every point a check point (kept out of the adjustment, triangulated afterwards)."""
-    i = gcps.schema.get_field_index("role")
-    return gcps.set_column(i, "role", pa.array(["check"] * gcps.num_rows))
-
 
 def noise_free(spec: FlightSpec) -> FlightSpec:
     """``spec`` without survey noise and with little image noise: what is left is the thermal deformation."""
@@ -133,7 +118,7 @@ def similarity_residuals(sim, camera, config: AdjustConfig, thermal: LinearTherm
     if control_only:
         g = g.filter(pc.equal(g.column("role"), "control"))
         go = go.filter(pc.is_in(go.column("gcp_id"), value_set=g.column("gcp_id")))
-    g = _as_checks(g)
+    g = as_checks(g)
     res = run_strategy("fixed", sim.images, sim.observations, camera, config, g, go, thermal=thermal).block
     names = g.column("gcp_id").to_pylist()
     surveyed = np.column_stack([g.column(c).to_numpy() for c in ("X", "Y", "Z")])
@@ -142,12 +127,6 @@ def similarity_residuals(sim, camera, config: AdjustConfig, thermal: LinearTherm
     ok = np.isfinite(src).all(axis=1)
     s7 = estimate_similarity(src[ok], dst[ok])
     return np.linalg.norm(s7.apply(src[ok]) - dst[ok], axis=1)
-
-
-def _gnss_config(sim) -> AdjustConfig:
-    s = sim.spec.sensors
-    return AdjustConfig(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m),
-                        attitude_sigma_deg=s.imu_sigma_deg)
 
 
 def _relative_config() -> AdjustConfig:
@@ -188,10 +167,11 @@ def today(cfg: StudyConfig) -> dict:
         t0 = sim.spec.sensors.reference_temperature_c
         model = calibrated_models(t0, np.random.default_rng(seed), FOCAL_FIELD)["focal"]
         for label, th in (("original", None), ("corrected", model)):
-            rows[label].append(similarity_residuals(sim, sim.spec.camera_true, _gnss_config(sim), th, False))
+            config = gnss_priors(sim, attitude_sigma_deg=sim.spec.sensors.imu_sigma_deg)
+            rows[label].append(similarity_residuals(sim, sim.spec.camera_true, config, th, False))
         print(f"  today seed {seed}: {np.mean(rows['original'][-1]) * 1000:.2f} -> "
               f"{np.mean(rows['corrected'][-1]) * 1000:.2f} mm", flush=True)
-    return {k: {**_stats(np.concatenate(v)), "per_seed_mean": [float(np.mean(x)) for x in v]}
+    return {k: {**stats(np.concatenate(v)), "per_seed_mean": [float(np.mean(x)) for x in v]}
             for k, v in rows.items()}
 
 
@@ -219,7 +199,7 @@ def paper_workflow(cfg: StudyConfig, field: dict, quiet: bool) -> dict:
                                                     models[key], True))
         print(f"  paper workflow, {'+'.join(field)}{' (noise-free)' if quiet else ''}, seed {seed}: "
               + ", ".join(f"{k} {np.mean(v[-1]) * 1000:.2f}" for k, v in rows.items()) + " mm", flush=True)
-    return {k: {**_stats(np.concatenate(v)), "per_seed_mean": [float(np.mean(x)) for x in v]}
+    return {k: {**stats(np.concatenate(v)), "per_seed_mean": [float(np.mean(x)) for x in v]}
             for k, v in rows.items()}
 
 

@@ -18,7 +18,7 @@ the simulation and reports every DZ in that convention.
 
 Set-ups compared (the table's columns):
 
-* today's model: preset ``mitishita-block`` as ``studies/paper_setups.py`` runs it (true focal 100.534
+* today's model: preset ``mitishita-block`` as the project simulated it before this study (true focal 100.534
   mm, the paper's in-situ value; a 7"/4" boresight; check points intersected from all images; in-situ
   IOP from the middle five images of the N-S strips).
 * extended model: the paper's two sub-blocks and models (block 1 and model 1 on the E-W strips, block 2
@@ -45,12 +45,12 @@ import numpy as np
 from aerocal.adjust import AdjustConfig, adjust, select_images
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
 from aerocal.camera import Camera
-from aerocal.geometry import attitude_to_R_cw, matrix_from_quat_wxyz, rotvec_from_matrix, small_rotation
+from aerocal.geometry import rotvec_from_matrix, small_rotation
+from aerocal.poses import poses_arrays
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
-from studies.papers import reference, save_png, study_parser, write_study
-
-ROOT = Path(__file__).resolve().parents[1]
+from aerocal.simulate.sensors import recorded_R_cw
+from studies.papers import reference, save_png, stats, study_parser, write_study
 
 PRESET = "mitishita-block"
 #: the boresight of today's set-up (degrees about camera x, y, z): the size of the paper's angular residuals
@@ -98,18 +98,6 @@ def extended_spec() -> FlightSpec:
               "sub-block's recorded heights (c-Zs correlation).")
 
 
-# ----------------------------------------------------------------------------- helpers (from paper_setups)
-def _stats(v: np.ndarray) -> dict:
-    return {"mean": float(np.mean(v)), "std": float(np.std(v)), "min": float(np.min(v)),
-            "max": float(np.max(v)), "rmse": float(np.sqrt(np.mean(v**2)))}
-
-
-def recorded_R(images) -> np.ndarray:
-    """Recorded world-to-camera rotations (N, 3, 3) of an images table."""
-    conv = images.column("attitude_convention").to_pylist()
-    a, b, c = (images.column(k).to_numpy() for k in ("roll", "pitch", "yaw"))
-    return np.stack([attitude_to_R_cw(cv, x, y, z) for cv, x, y, z in zip(conv, a, b, c, strict=True)])
-
 
 def direct_georeferencing(sim, camera: Camera, boresight_deg=(0.0, 0.0, 0.0),
                           image_ids: list[int] | None = None) -> np.ndarray:
@@ -121,7 +109,7 @@ def direct_georeferencing(sim, camera: Camera, boresight_deg=(0.0, 0.0, 0.0),
     im = sim.images
     ids = im.column("image_id").to_numpy()
     row = {int(v): k for k, v in enumerate(ids)}
-    R = recorded_R(im)
+    R = recorded_R_cw(im)
     B = small_rotation(np.radians(np.asarray(boresight_deg, dtype=float)))
     R = np.einsum("ab,nbc->nac", B, R)
     C = np.column_stack([im.column(k).to_numpy() for k in ("gnss_x", "gnss_y", "gnss_z")])
@@ -171,11 +159,10 @@ def in_situ(sim, ids: list[int], images=None):
     sub = select_images(images, ids)
     res = adjust(sub, select_images(sim.observations, ids), sim.camera_nominal, IN_SITU, sim.gcps,
                  select_images(sim.gcp_observations, ids))
-    R_rec = recorded_R(sub)
+    R_rec = recorded_R_cw(sub)
     order = {int(v): k for k, v in enumerate(sub.column("image_id").to_numpy())}
-    q = np.column_stack([res.poses.column(k).to_numpy() for k in ("qw", "qx", "qy", "qz")])
-    R_adj = matrix_from_quat_wxyz(q)
-    R_r = R_rec[[order[int(v)] for v in res.poses.column("image_id").to_numpy()]]
+    pose_ids, R_adj, _ = poses_arrays(res.poses)
+    R_r = R_rec[[order[int(v)] for v in pose_ids]]
     b = np.degrees(np.mean([rotvec_from_matrix(Ra @ Rr.T) for Ra, Rr in zip(R_adj, R_r, strict=True)], axis=0))
     return res, b
 
@@ -184,12 +171,13 @@ def _summary(errs: list[np.ndarray]) -> dict:
     """DH and DZ statistics in the paper's convention (DZ = surveyed minus computed), metres."""
     e = np.vstack(errs)
     e = e[np.isfinite(e).all(axis=1)]
-    return {"dh": _stats(np.linalg.norm(e[:, :2], axis=1)), "dz": _stats(-e[:, 2]), "n": int(len(e))}
+    return {"dh": stats(np.linalg.norm(e[:, :2], axis=1)), "dz": stats(-e[:, 2]), "n": int(len(e))}
 
 
 # ----------------------------------------------------------------------------- the two set-ups
 def today(cfg: StudyConfig) -> dict:
-    """Today's set-up (as in paper_setups): one sub-block on the N-S strips, check points from all images."""
+    """Today's set-up (as the project simulated it before this study): one sub-block on the N-S strips, check
+    points from all images."""
     out = {k: [] for k in ROWS}
     focal, bores = [], []
     for seed in cfg.seeds:

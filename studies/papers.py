@@ -8,6 +8,10 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+import pyarrow as pa
+
+from aerocal.adjust import AdjustConfig
 from aerocal.io import atomic_path, write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -23,6 +27,24 @@ def reference(name: str) -> list[dict]:
         return []
     with path.open() as fh:
         return list(csv.DictReader(fh))
+
+
+def stats(v: np.ndarray) -> dict:
+    """Mean, standard deviation, min, max and RMS of residuals (their units)."""
+    return {"mean": float(np.mean(v)), "std": float(np.std(v)), "min": float(np.min(v)),
+            "max": float(np.max(v)), "rmse": float(np.sqrt(np.mean(v**2)))}
+
+
+def as_checks(gcps: pa.Table) -> pa.Table:
+    """The GCP table with every point a check point (kept out of the adjustment, triangulated afterwards)."""
+    i = gcps.schema.get_field_index("role")
+    return gcps.set_column(i, "role", pa.array(["check"] * gcps.num_rows))
+
+
+def gnss_priors(sim, **kw) -> AdjustConfig:
+    """A simulated flight's GNSS sigmas (E, N, Up metres) as an adjustment configuration, ``kw`` added."""
+    s = sim.spec.sensors
+    return AdjustConfig(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m), **kw)
 
 
 def save_png(fig, path: Path) -> None:

@@ -35,10 +35,10 @@ from aerocal.geometry import (
     R_cw_to_dji_gimbal,
     R_cw_to_opk,
     projected_to_lonlat,
-    quat_wxyz_from_matrix,
 )
 from aerocal.io import write_json_atomic
 from aerocal.pipeline.dataset import MemoryDataset
+from aerocal.poses import poses_table
 from aerocal.simulate.exposure import Exposure
 from aerocal.simulate.flight_plan import Trajectory, footprint_m, overlaps, plan_flight
 from aerocal.simulate.measured import trajectory
@@ -267,12 +267,8 @@ def simulate_flight(
 
 def true_poses(sim: SimulatedFlight) -> pa.Table:
     """The true poses as a ``poses`` table (world-to-camera quaternion and projection centre)."""
-    q = quat_wxyz_from_matrix(np.stack([ex.R_cw for ex in sim.exposures]))
-    C = np.stack([ex.C for ex in sim.exposures])
-    return tables.from_columns("poses", {
-        "image_id": [ex.image_id for ex in sim.exposures], "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2],
-        "qz": q[:, 3], "X": C[:, 0], "Y": C[:, 1], "Z": C[:, 2],
-    }, crs=sim.crs)
+    return poses_table(np.array([ex.image_id for ex in sim.exposures]), np.stack([ex.R_cw for ex in sim.exposures]),
+                       np.stack([ex.C for ex in sim.exposures]), sim.crs)
 
 
 # ----------------------------------------------------------------------------------- writing
