@@ -274,6 +274,6 @@ def distortion_for_camera(camera: Camera) -> Figure:
         caption = (f"How far the lens model ({', '.join(terms)}) moves each pixel from where an ideal "
                    f"pinhole camera with the same focal length and principal point would put it: at most "
                    f"{n['max_displacement_px']:.3g} px over the frame (arrows drawn x{n['exaggeration']:g}); "
-                   "right, the displacement along the line from the principal point (+) to the right edge, "
+                   "right, the displacement along the line from the principal point (+) out to the farthest corner, "
                    "positive outwards; the dotted line is half the shorter image side.")
     return dataclasses.replace(fig, caption=caption)

@@ -46,7 +46,6 @@ from aerocal.report.flight_figures import (
 from aerocal.report.html import REPORT_NAME, SUMMARY_NAME, CertificateTable, machine_summary, render
 
 #: where a flight folder keeps its reference surface, as the report names it when there is none
-REFERENCE_DSM_NAME = "reference/dsm.tif"
 
 #: what a ground point's error cells say when the block could not intersect it (seen in one image)
 NOT_MEASURED = "not measured"
@@ -85,7 +84,7 @@ def write_flight_report(
     extra: Mapping | None = None,
     measured_within_m: float = MEASURED_WITHIN_M,
     step_seconds: Mapping[str, float] | None = None,
-    reference_dsm_name: str = REFERENCE_DSM_NAME,
+    reference_dsm_name: str = "reference/dsm.tif",
 ) -> dict:
     """Write ``out_dir/report.html`` and ``out_dir/summary.json`` for a processed flight; return the summary
     document (what ``summary.json`` holds).
@@ -168,8 +167,8 @@ def write_flight_report(
         "summary_name": SUMMARY_NAME,
         "sections": SECTIONS,
         "subtitle": _subtitle(flight, cert),
-        "verdict": _verdict(assessment, adjustment),
-        "key_figures": _summary_rows(summary, flight, cert, adjustment, figures, extra or {}),
+        "verdict": _verdict(assessment),
+        "key_figures": _summary_rows(summary, flight, cert, adjustment, extra or {}),
         "figures": {n: _figure_view(f) for n, f in figures.items()},
         "skipped": skipped,
         "tie_points": _tie_point_rows(adjustment, points, assessment),
@@ -293,7 +292,7 @@ def _subtitle(flight: Mapping, cert: Certificate) -> str:
 
 
 def _summary_rows(summary: Mapping, flight: Mapping, cert: Certificate, adjustment: Mapping,
-                  figures: Mapping[str, Figure], extra: Mapping) -> list[tuple[str, str]]:
+                  extra: Mapping) -> list[tuple[str, str]]:
     """The key figures a reader looks at first, in words; the details are in the sections below."""
     say = wording.say
     skipped = flight.get("skipped_images") or []
@@ -335,7 +334,7 @@ def _summary_rows(summary: Mapping, flight: Mapping, cert: Certificate, adjustme
     return rows
 
 
-def _verdict(assessment: Mapping, adjustment: Mapping) -> str:
+def _verdict(assessment: Mapping) -> str:
     cp = assessment.get("check_points") or {}
     verdict = cp.get("verdict")
     if not verdict:
@@ -431,7 +430,7 @@ def _point_table(ids: list, errs: np.ndarray, sigmas: np.ndarray | None, where: 
 def _screening_view(screening: Mapping | None) -> dict:
     if screening is None:
         return {"sentences": ["The ground control was not screened against the block."], "rows": []}
-    sentences = [wording.sentence(s) for s in wording.screening_text(screening).split("; ") if s]
+    sentences = [wording.sentence(s) for s in wording.screening_parts(screening)]
     datum = {"gnss": "the recorded GNSS positions", "control": "the other control points",
              "none": "nothing (no datum to test against)"}.get(str(screening.get("datum")), "an unknown datum")
     sentences.insert(0, f"Each ground point was intersected from the block and compared with its survey, the "

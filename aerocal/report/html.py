@@ -13,7 +13,6 @@ import base64
 import dataclasses
 import datetime as dt
 import functools
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,7 +66,7 @@ def _data_uri(png: bytes) -> str:
 def environment() -> jinja2.Environment:
     """The Jinja2 environment of the report templates: loaded from the installed package
     (``aerocal/report/templates``), HTML autoescaped, undefined names an error, ``datauri`` filter (PNG
-    bytes to a ``data:`` URI) and ``say`` filter (:func:`aerocal.report.wording.say`)."""
+    bytes to a ``data:`` URI)."""
     env = jinja2.Environment(
         loader=jinja2.PackageLoader("aerocal.report", TEMPLATES),
         autoescape=jinja2.select_autoescape(["html", "j2"]),
@@ -76,7 +75,6 @@ def environment() -> jinja2.Environment:
         lstrip_blocks=True,
     )
     env.filters["datauri"] = _data_uri
-    env.filters["say"] = wording.say
     return env
 
 
@@ -89,7 +87,7 @@ def machine_summary(title: str, summary: Mapping, figures: Sequence[Figure] = ()
                     certificate: CertificateTable | None = None) -> dict:
     """The ``summary.json`` document: title, creation time (UTC), ``summary``, every figure's numbers under
     ``figures.<name>``, the ``notes`` (one sentence per figure not drawn) and the certificate table.
-    Raises ``ValueError`` when figure names repeat or a value is not JSON-serialisable."""
+    Raises ``ValueError`` when figure names repeat."""
     names = [f.name for f in figures]
     if len(set(names)) != len(names):
         raise ValueError(f"write_report: figure names must be unique, got {names}")
@@ -99,7 +97,6 @@ def machine_summary(title: str, summary: Mapping, figures: Sequence[Figure] = ()
         "notes": [str(n) for n in notes],
         "certificate": certificate.to_dict() if certificate else None,
     }
-    json.dumps(doc, default=str)  # fail before writing anything if it is not serialisable
     return doc
 
 

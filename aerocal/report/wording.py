@@ -117,7 +117,7 @@ def label(key: str) -> tuple[str, str]:
 
 def number(v: float | int | None, digits: int = 4) -> str:
     """A number for a reader: integers as they are, floats to ``digits`` significant digits (fixed
-    notation between 1e-4 and 1e6), :data:`MISSING` for ``None`` or a non-finite value."""
+    notation between 1e-4 and 1e6), :data:`MISSING` for ``None``, "not available" for a non-finite value."""
     if v is None or isinstance(v, bool):
         return MISSING if v is None else ("yes" if v else "no")
     if isinstance(v, int):
@@ -202,20 +202,27 @@ def skipped_images_text(names: list[str]) -> str:
     return f"{len(names)}: {name_list(names)} (see the ingest errors)" if names else "none"
 
 
-def screening_text(screening: Mapping) -> str:
-    """One line of what the ground-control screening found (:mod:`aerocal.adjust.control`)."""
+def screening_parts(screening: Mapping) -> list[str]:
+    """What the ground-control screening found (:mod:`aerocal.adjust.control`), one statement each: the counts,
+    then one per point it says something of."""
     if screening.get("datum") == "none":
-        return "; ".join(screening.get("notes") or []) or "none"
+        return list(screening.get("notes") or []) or ["none"]
     verdicts = screening.get("verdicts") or []
     kept = sum(v["status"] == "kept" for v in verdicts)
     untested = sum(v["status"] == "not tested" for v in verdicts)
     head = f"{kept} point(s) consistent with the block, {len(screening.get('demoted') or [])} demoted, " \
            f"{untested} not testable"
-    return "; ".join([head] + list(screening.get("lines") or []))
+    return [head, *(screening.get("lines") or [])]
+
+
+def screening_text(screening: Mapping) -> str:
+    """One line of what the ground-control screening found: :func:`screening_parts` joined."""
+    return "; ".join(screening_parts(screening))
 
 
 def recorded_eo_text(checks: Mapping) -> str:
-    """One line per recorded-EO check of a diagnosis (``Diagnosis.recorded_eo``): estimate ± sigma, status."""
+    """The recorded-EO checks of a diagnosis (``Diagnosis.recorded_eo``) in one line, ``"; "`` between them:
+    name, estimate +- sigma (``?`` where none), units, status."""
     parts = []
     for name, c in checks.items():
         if "estimate" in c:

@@ -97,7 +97,7 @@ def print_run(summary: dict[str, Any]) -> None:
     if summary.get("diagnosis"):
         console.print(f"diagnosis: {summary['diagnosis']}")
     if summary.get("recorded_eo"):
-        # lazy: the report wording loads numpy and the certificate schema (pydantic); --help must not pay them
+        # lazy: aerocal.report loads matplotlib, rasterio and Jinja2 (about 1 s); --help must not pay them
         from aerocal.report.wording import recorded_eo_text
 
         console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
