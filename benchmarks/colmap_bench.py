@@ -61,7 +61,7 @@ from aerocal.pipeline.match_step import match_images, terrain_height
 from aerocal.poses import poses_arrays, poses_table
 from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
-from benchmarks.common import record
+from benchmarks.common import flight_document, record
 
 AXES = ("E", "N", "Up")
 
@@ -114,10 +114,6 @@ class _Stopwatch:
                 print(f"  {run.name}: {stage} {run.stages[stage]:.1f} s", flush=True)
 
         return _Stage()
-
-
-def _flight(folder: Path) -> dict:
-    return json.loads((folder / "flight.json").read_text()) | {"folder": str(folder)}
 
 
 # ----------------------------------------------------------------------------------------- COLMAP
@@ -200,7 +196,7 @@ def run_colmap(folder: Path, work: Path, datum: str = "auto", max_distance: floa
     # the flight's records (not part of COLMAP's pipeline: the image list, GNSS and GCPs it is given)
     res = ingest_folder(folder)
     images, gcps, gobs = res.images, res.gcps, res.gcp_observations
-    flight = _flight(folder)
+    flight = flight_document(folder)
     nominal = Camera.from_dict(json.loads((folder / "camera.json").read_text())["camera"])
     run.n_images = images.num_rows
     if max_distance is None:
@@ -305,7 +301,7 @@ def run_aerocal(folder: Path) -> PipelineRun:
     with clock("ingest"):
         res = ingest_folder(folder)
         images, gcps, gobs, camera = res.images, res.gcps, res.gcp_observations, res.camera
-        flight = _flight(folder)
+        flight = flight_document(folder)
     run.n_images = images.num_rows
     with clock("enhance + match (Dask, 2 workers)"):
         kp, matches, obs, n_pairs = match_images(images, camera, gcps, flight, config.match)

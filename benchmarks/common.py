@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as dt
+import json
 import os
 import platform
 import resource
@@ -50,3 +51,8 @@ def record(title: str, lines: list[str]) -> None:
     print("\n".join(block))
     with RESULTS.open("a") as fh:
         fh.write("\n".join(block) + "\n")
+
+
+def flight_document(folder: Path) -> dict:
+    """A flight folder's ``flight.json`` with the folder's path under ``folder`` (what the match step reads)."""
+    return json.loads((folder / "flight.json").read_text()) | {"folder": str(folder)}

@@ -28,8 +28,7 @@ from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
 from aerocal.pipeline.match_step import match_images
 from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
-from benchmarks.colmap_bench import _flight
-from benchmarks.common import record
+from benchmarks.common import flight_document, record
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -42,7 +41,7 @@ def main(argv: list[str] | None = None) -> None:
         folder = subset_folder(full, args.frames, work) if args.frames else full
         res = ingest_folder(folder)
         images, gcps, gobs, camera = res.images, res.gcps, res.gcp_observations, res.camera
-        flight = _flight(folder)
+        flight = flight_document(folder)
         config = ProcessConfig()
         t0 = time.perf_counter()
         _, _, obs, _ = match_images(images, camera, gcps, flight, config.match)

@@ -45,9 +45,10 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, adjust, run_strategy
+from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
-from studies.papers import as_checks, gnss_priors, reference, save_png, study_parser, write_study
+from studies.papers import as_checks, gnss_priors, pyplot, reference, save_png, study_parser, write_study
 
 #: the focal drift hidden in every simulated flight (px/degC; 5 um/degC at 23.5 um pixels is 0.21 px/degC, a
 #: non-athermalised germanium lens; NOTES.md) and the 2016 flight's colder start (degC)
@@ -220,8 +221,6 @@ def sweep(cfg: StudyConfig, seed: int, log=print) -> list[dict]:
 
 def diagnosis(cfg: StudyConfig, seed: int) -> dict:
     """The diagnosis of the extended 2017 block adjusted with today's model (STR2's self-calibration)."""
-    from aerocal.diagnose.engine import DiagnoseConfig, diagnose
-
     sim = simulate_flight(get_preset("conte-city"), seed=seed, effects=EXTENDED.effects,
                           max_images=cfg.city_images)
     d = diagnose(sim.images, sim.observations, sim.camera_nominal,
@@ -472,11 +471,7 @@ def sweep_comment(result: dict) -> str:
 
 def figure(result: dict, path: Path) -> None:
     """DSM bias per row: paper, today's model, extended model."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     paper = _paper_rows(result)
     today, ext = result["summary"]["today"], result["summary"]["extended"]
     x = np.arange(len(ROWS))

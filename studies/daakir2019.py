@@ -50,7 +50,7 @@ from aerocal.camera import LinearThermalModel
 from aerocal.geometry import estimate_similarity
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
-from studies.papers import as_checks, gnss_priors, save_png, stats, study_parser, write_study
+from studies.papers import as_checks, gnss_priors, pyplot, save_png, stats, study_parser, write_study
 
 PRESET = "daakir-uav"
 #: focal drift (px/degC, Sec. 4.2.3: 0.07-0.08) and the uncertainty of its separate calibration (px/degC)
@@ -366,11 +366,7 @@ def markdown(result: dict) -> str:
 
 
 def figure(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     t, e = result["today"], result["workflow"]["eq2"]
     fig, ax = plt.subplots(figsize=(6.0, 3.8))
     x = np.arange(2)

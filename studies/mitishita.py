@@ -41,6 +41,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, adjust, select_images
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
@@ -50,7 +51,7 @@ from aerocal.poses import poses_arrays
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
 from aerocal.simulate.sensors import recorded_R_cw
-from studies.papers import reference, save_png, stats, study_parser, write_study
+from studies.papers import pyplot, reference, save_png, stats, study_parser, write_study
 
 PRESET = "mitishita-block"
 #: the boresight of today's set-up (degrees about camera x, y, z): the size of the paper's angular residuals
@@ -145,8 +146,6 @@ def sub_block(images, strips) -> list[int]:
 
 def with_height_error(images, image_ids, dz_m: float):
     """``images`` with the recorded GNSS heights of ``image_ids`` raised by ``dz_m`` metres."""
-    import pyarrow as pa
-
     sel = np.isin(images.column("image_id").to_numpy(), np.asarray(image_ids))
     z = images.column("gnss_z").to_numpy().copy()
     z[sel] += dz_m
@@ -371,11 +370,7 @@ def markdown(result: dict) -> str:
 
 
 def figure(result: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 3.8))
     x = np.arange(len(ROWS))
     t, e = result["today"], result["extended"]

@@ -8,6 +8,8 @@ import json
 from collections.abc import Callable
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 import pyarrow as pa
 
@@ -47,10 +49,14 @@ def gnss_priors(sim, **kw) -> AdjustConfig:
     return AdjustConfig(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m), **kw)
 
 
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (files only, no display)."""
+    matplotlib.use("Agg")
+    return plt
+
+
 def save_png(fig, path: Path) -> None:
     """Write a matplotlib figure as PNG atomically (100 dpi) and close it."""
-    import matplotlib.pyplot as plt  # lazy: matplotlib costs ~0.5 s and only figures need it
-
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", dpi=100)
