@@ -275,3 +275,18 @@ def test_an_io_error_within_the_certificates_sigma_is_not_named():
     k3 = next(e for e in aware.hypotheses if e.name == "radial_k3" and e.round == 1)
     assert abs(k3.estimate[0] + k3_sigma) < 3 * k3.sigma[0] and k3.sigma[0] >= 0.9 * k3_sigma, (
         f"seed {seed}: {k3.estimate} +- {k3.sigma}")
+
+
+def test_summary_gives_no_clean_bill_when_the_twin_differs():
+    """A block with no catalogue effect named but unlike its simulated twin is not 'no systematic effect found'."""
+    from aerocal.diagnose.engine import Diagnosis
+
+    clean = Diagnosis(effects=[], hypotheses=[], gain=None, sigma0_before=1.0, sigma0_after=1.0,
+                      reference_temperature=20.0, twin={"differs": {}})
+    assert clean.summary() == "no systematic effect found"
+    unlike = Diagnosis(effects=[], hypotheses=[], gain=None, sigma0_before=2.8, sigma0_after=2.8,
+                       reference_temperature=20.0,
+                       twin={"differs": {"sigma0": [2.81, 1.0], "image_plane_field_px": [0.39, 0.05]}})
+    text = unlike.summary()
+    assert "no systematic effect found" not in text
+    assert "image_plane_field_px" in text and "sigma0" in text and "model lacks something" in text

@@ -183,7 +183,14 @@ class Diagnosis:
         }
 
     def summary(self) -> str:
+        """The effects named, each with its size +- sigma; without one, "no systematic effect found" only when
+        the flight's twin agrees: a block that differs from its simulated twin lacks something the catalogue
+        does not hold, and the summary says so instead of a clean bill."""
         if not self.effects:
+            differs = sorted((self.twin or {}).get("differs") or {})
+            if differs:
+                return ("no effect of the catalogue named, but the block differs from its simulated twin in "
+                        f"{', '.join(differs)}: the model lacks something (see the twin)")
             return "no systematic effect found"
         parts = []
         for e in self.effects:
