@@ -149,7 +149,7 @@ def _predict(
     prob = Problem(blk, cfg.adjust, t0=float(np.nanmedian(blk.temperature)) if cfg.adjust.thermal else 0.0)
     _, _, _, r, Jc, Jp, Hpp = prob.residuals(state, jac=True)
     S, *_ = schur_complement(Jc, Jp, Hpp, np.zeros_like(r), 0.0)
-    cov = inverse_spd(S)
+    cov = inverse_spd(S.toarray())  # a calibration sub-block: tens of images
     ng = prob.layout.n_global
     names = list(cfg.adjust.free) + [f"d{n}/dT" for n in cfg.adjust.thermal]
     return dict(zip(names, np.sqrt(np.maximum(np.diag(cov)[:ng], 0.0)).tolist(), strict=True)), gids

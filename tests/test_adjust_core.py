@@ -174,6 +174,8 @@ def test_structured_schur_complement_equals_the_sparse_products(free):
     for lam in (0.0, 1e-3):
         S0, rhs0, Hi0, Hcp0, gp0 = schur_complement(Jc, Jp, Hpp, r, lam)
         S1, rhs1, Hi1, Hcp1, gp1 = schur_complement(Jc, Jp, Hpp, r, lam, prob.blocks)
+        assert sp.issparse(S0) and sp.issparse(S1)
+        S0, S1 = S0.toarray(), S1.toarray()
         scale = np.abs(S0).max()
         assert np.abs(S1 - S0).max() < 1e-9 * scale, f"seed {seed}"
         assert np.allclose(S1, S1.T, rtol=0, atol=1e-9 * scale)

@@ -108,6 +108,11 @@ class ObsBlocks:
     Ji: np.ndarray  # (M, 2, 6)
     Jx: np.ndarray  # (M, 2, 3)
     n_global: int
+    Jg: np.ndarray | None = None  # (M, 2, n_global) IO and slope columns
+    r: np.ndarray | None = None  # (M, 2) the rows' residuals, scaled like the Jacobian
+    prior_info: np.ndarray | None = None  # (N, 6) diagonal information of the GNSS / attitude priors
+    prior_grad: np.ndarray | None = None  # (N, 6) their J^T r
+    point_grad: np.ndarray | None = None  # (P, 3) J^T r of the control-point rows (zero for tie points)
 
 
 def _robust(s: np.ndarray, loss: str, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -154,7 +159,11 @@ class Problem:
             )
 
     # ------------------------------------------------------------------ residuals
-    def residuals(self, st: State, jac: bool) -> tuple:
+    def residuals(self, st: State, jac: bool, sparse: bool = True) -> tuple:
+        """``(cost, res_px, w)``, with ``jac`` also ``(r, Jc, Jp, Hpp)``: the scaled residual vector, the
+        camera-side and point-side Jacobians (``scipy.sparse`` CSR) and the 3 x 3 point blocks of J^T J.
+        With ``sparse=False`` ``Jc`` and ``Jp`` are ``None``: :attr:`blocks` holds everything
+        :func:`schur_complement` needs, without the sparse matrices' indices (~0.5 kB per observation)."""
         b, lay = self.b, self.layout
         i, j = b.obs_image, b.obs_point
         dtemp = self.dtemp_img[i]
@@ -197,7 +206,28 @@ class Problem:
         Ji = np.concatenate([pr.d_rot, -pr.d_point], axis=2) * sw
         Jx = pr.d_point * sw
         ng = lay.n_global
-        self.blocks = ObsBlocks(image=i, point=j, Ji=Ji, Jx=Jx, n_global=ng)
+        rw = r_obs * np.sqrt(w)[:, None]
+        self.blocks = ObsBlocks(image=i, point=j, Ji=Ji, Jx=Jx, n_global=ng, Jg=Jg, r=rw)
+        Nimg = b.n_images
+        info, grad = np.zeros((Nimg, 6)), np.zeros((Nimg, 6))
+        if self.gnss_sigma is not None:
+            info[:, 3:] += 1.0 / self.gnss_sigma**2
+            grad[:, 3:] += parts[1].reshape(Nimg, 3) / self.gnss_sigma
+        if self.att_sigma is not None:
+            info[:, :3] += 1.0 / self.att_sigma**2
+            grad[:, :3] += parts[2 if self.gnss_sigma is not None else 1].reshape(Nimg, 3) / self.att_sigma
+        pgrad = np.zeros((lay.n_points, 3))
+        if G:
+            pgrad[b.n_tie :] = parts[-1].reshape(G, 3) / b.control_sigma
+        self.blocks.prior_info, self.blocks.prior_grad, self.blocks.point_grad = info, grad, pgrad
+        # point blocks of J^T J, accumulated directly (each row touches one point)
+        Hpp = np.zeros((lay.n_points, 3, 3))
+        np.add.at(Hpp, j, np.einsum("mki,mkj->mij", Jx, Jx))
+        if G:
+            Hpp[b.n_tie :] += np.einsum("gi,ij->gij", 1.0 / b.control_sigma**2, np.eye(3))
+        r_all = [rw.ravel()] + parts[1:]
+        if not sparse:
+            return cost, res_px, w, np.concatenate(r_all), None, None, Hpp
         rr, cc, vv = [], [], []
         if ng:
             rr.append(np.repeat(rows_obs[:, :, None], ng, axis=2).ravel())
@@ -210,28 +240,23 @@ class Problem:
         pr_rows = [np.repeat(rows_obs[:, :, None], 3, axis=2).ravel()]
         pr_cols = [np.broadcast_to((3 * j)[:, None, None] + np.arange(3), (M, 2, 3)).ravel()]
         pr_vals = [Jx.ravel()]
-        r_all = [(r_obs * np.sqrt(w)[:, None]).ravel()]
         row = 2 * M
-        Nimg = b.n_images
         allimg = lay.image_cols(np.arange(Nimg))
         if self.gnss_sigma is not None:
             rr.append(row + np.arange(3 * Nimg))
             cc.append(allimg[:, 3:].ravel())
             vv.append(np.tile(1.0 / self.gnss_sigma, Nimg))
-            r_all.append(parts[1])
             row += 3 * Nimg
         if self.att_sigma is not None:
             # d log(exp(w) R R_rec^T)/dw ~ identity for the small angles between recorded and adjusted
             rr.append(row + np.arange(3 * Nimg))
             cc.append(allimg[:, :3].ravel())
             vv.append(np.tile(1.0 / self.att_sigma, Nimg))
-            r_all.append(parts[2 if self.gnss_sigma is not None else 1])
             row += 3 * Nimg
         if G:
             pr_rows.append(row + np.arange(3 * G))
             pr_cols.append(3 * b.n_tie + np.arange(3 * G))
             pr_vals.append((1.0 / b.control_sigma).ravel())
-            r_all.append(parts[-1])
             row += 3 * G
         Jc = sp.csr_matrix(
             (np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))), shape=(row, lay.n_camera)
@@ -240,11 +265,6 @@ class Problem:
             (np.concatenate(pr_vals), (np.concatenate(pr_rows), np.concatenate(pr_cols))),
             shape=(row, 3 * lay.n_points),
         )
-        # point blocks of J^T J, accumulated directly (each row touches one point)
-        Hpp = np.zeros((lay.n_points, 3, 3))
-        np.add.at(Hpp, j, np.einsum("mki,mkj->mij", Jx, Jx))
-        if G:
-            Hpp[b.n_tie :] += np.einsum("gi,ij->gij", 1.0 / b.control_sigma**2, np.eye(3))
         return cost, res_px, w, np.concatenate(r_all), Jc, Jp, Hpp
 
     # ------------------------------------------------------------------ updates
@@ -297,26 +317,30 @@ def _damped_point_inverse(Hpp: np.ndarray, lam: float) -> np.ndarray:
 
 
 def schur_complement(Jc, Jp, Hpp, r, lam: float, blocks: ObsBlocks | None = None):
-    """Reduced camera system (dense) and the pieces to back-substitute the points.
+    """Reduced camera system (sparse) and the pieces to back-substitute the points.
 
     Returns ``(S, rhs, Hpp_inv, Hcp, gp)``: ``S dc = rhs`` gives the camera-side step, then
-    ``dp = -Hpp_inv (gp + Hcp^T dc)`` point by point. With ``blocks`` (the structure of the observation
-    rows, :class:`ObsBlocks`) the image-image part of ``Hcp Hpp^-1 Hcp^T`` is summed over the pairs of
-    observations of each point with numpy, and ``Hcp`` is an operator; without, general sparse products.
+    ``dp = -Hpp_inv (gp + Hcp^T dc)`` point by point; ``lam`` scales the diagonal of the camera-side
+    normal matrix and of the point blocks by ``1 + lam`` (Levenberg-Marquardt). ``S`` is a ``scipy.sparse``
+    CSC matrix: an image couples only with the images it shares tie points with, so it holds
+    ~36 x (1 + neighbours) entries per image instead of (6 N)^2 (2745 images: 2.2 GB dense per copy).
+    With ``blocks`` (:class:`ObsBlocks` of the Jacobian, :meth:`Problem.residuals`) everything is formed
+    from the observations' blocks and ``Jc``, ``Jp`` and ``r`` are not read (they may be ``None``), and
+    ``Hcp`` is an operator; without, from general sparse products of ``Jc`` and ``Jp``.
     """
-    Hcc = (Jc.T @ Jc).toarray()
+    if blocks is not None:
+        return _structured_schur(Hpp, lam, blocks)
+    Hcc = (Jc.T @ Jc).tocsr()
     gc = Jc.T @ r
     gp = Jp.T @ r
     if lam:
-        Hcc[np.diag_indices_from(Hcc)] *= 1.0 + lam
+        Hcc = (Hcc + sp.diags(lam * Hcc.diagonal())).tocsr()
     Hpp_inv = _damped_point_inverse(Hpp, lam)
-    if blocks is not None:
-        return _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, blocks)
     Hcp = (Jc.T @ Jp).tocsr()
     P = len(Hpp)
     Hpp_inv_sp = sp.bsr_matrix((Hpp_inv, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
     HcpHi = (Hcp @ Hpp_inv_sp).tocsr()
-    S = Hcc - (HcpHi @ Hcp.T).toarray()
+    S = (Hcc - HcpHi @ Hcp.T).tocsc()
     rhs = -gc + HcpHi @ gp
     return S, rhs, Hpp_inv, Hcp, gp
 
@@ -326,27 +350,38 @@ def schur_complement(Jc, Jp, Hpp, r, lam: float, blocks: ObsBlocks | None = None
 SCHUR_PAIR_CHUNK = 400_000
 
 
-def _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, b: ObsBlocks):
+def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     """:func:`schur_complement` from the observations' blocks.
 
-    The image-image part of ``Hcp Hpp^-1 Hcp^T`` is ``sum_p sum_(m, m' of p) W_m Hpp_p^-1 W_m'^T`` with
-    ``W_m = Ji_m^T Jx_m`` (6 x 3): the 6 x 6 blocks of every ordered pair of observations of a point
-    (points with the same number of observations together), summed per image pair. Written for this
-    project and measured against the general sparse products it replaces (scipy ``csr_matmat``): see
-    ``benchmarks/RESULTS.md``; ``tests/test_adjust_core.py`` checks the agreement (1e-9 relative).
+    ``J^T J`` and ``J^T r`` of the camera side are sums over observations of ``Ji^T Ji``, ``Jg^T Ji``,
+    ``Ji^T r`` ... per image, plus the priors' diagonals. The image-image part of ``Hcp Hpp^-1 Hcp^T`` is
+    ``sum_p sum_(m, m' of p) W_m Hpp_p^-1 W_m'^T`` with ``W_m = Ji_m^T Jx_m`` (6 x 3): the 6 x 6 blocks of
+    every ordered pair of observations of a point (points with the same number of observations together),
+    summed per image pair into a block-sparse (BSR, 6 x 6) matrix. Written for this project and measured
+    against the general sparse products it replaces (scipy ``csr_matmat``): see ``benchmarks/RESULTS.md``;
+    ``tests/test_adjust_core.py`` checks the agreement (1e-9 relative).
     """
-    ng, N = b.n_global, (Hcc.shape[0] - b.n_global) // 6
-    P = len(Hpp_inv)
+    ng, N, P = b.n_global, len(b.prior_info), len(Hpp)
+    n_camera = ng + 6 * N
+    damp = 1.0 + lam
+    Hpp_inv = _damped_point_inverse(Hpp, lam)
     W = np.matmul(np.swapaxes(b.Ji, 1, 2), b.Jx)  # (M, 6, 3)
     T = np.matmul(W, Hpp_inv[b.point])  # (M, 6, 3): W_m Hpp^-1
-    S = Hcc
-    S_ii = (S if not ng else np.ascontiguousarray(S[ng:, ng:])).reshape(N, 6, N, 6)  # a view when ng = 0
-    rhs = -np.asarray(gc, dtype=float).copy()
-    gpp = np.asarray(gp, dtype=float).reshape(-1, 3)
+    # gradients J^T r: camera side per image (+ priors) and global; point side per point (+ control rows)
+    gc = np.zeros(n_camera)
+    gc[ng:] = (_sum_by(b.image, np.einsum("mki,mk->mi", b.Ji, b.r), N) + b.prior_grad).ravel()
+    gpp = _sum_by(b.point, np.einsum("mki,mk->mi", b.Jx, b.r), P) + b.point_grad
+    gp = gpp.ravel()
+    rhs = -gc
     # rhs, image part: sum over observations of W_m Hpp^-1 gp
-    tg = np.einsum("mij,mj->mi", T, gpp[b.point])
-    rhs[ng:] += _sum_by(b.image, tg, N).ravel()
-    # the points grouped by their number of observations L: each group's L x L pairs at once
+    rhs[ng:] += _sum_by(b.image, np.einsum("mij,mj->mi", T, gpp[b.point]), N).ravel()
+    # the image's own 6 x 6 block of J^T J (its observations and priors), damped
+    Hii = _sum_by(b.image, np.einsum("mki,mkj->mij", b.Ji, b.Ji).reshape(-1, 36), N).reshape(N, 6, 6)
+    Hii[:, np.arange(6), np.arange(6)] += b.prior_info
+    Hii[:, np.arange(6), np.arange(6)] *= damp
+    # the points grouped by their number of observations L: each group's L x L pairs at once, summed per
+    # image pair (key i * N + j); the keys and 6 x 6 sums of every chunk are merged once at the end
+    keys, sums = [np.arange(N, dtype=np.int64) * (N + 1)], [Hii.reshape(N, 36)]
     order = np.argsort(b.point, kind="stable")
     count = np.bincount(b.point, minlength=P)
     start = np.concatenate([[0], np.cumsum(count)[:-1]])
@@ -358,24 +393,33 @@ def _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, b: ObsBlocks):
             blk = np.einsum("plir,pmjr->plmij", T[obs], W[obs], optimize=True)  # (n, L, L, 6, 6)
             img = b.image[obs].astype(np.int64)
             uk, inv = np.unique((img[:, :, None] * N + img[:, None, :]).ravel(), return_inverse=True)
-            acc = np.bincount((inv[:, None] * 36 + np.arange(36)).ravel(), weights=blk.ravel(),
-                              minlength=36 * len(uk))
-            S_ii[uk // N, :, uk % N, :] -= acc.reshape(-1, 6, 6)
+            keys.append(uk)
+            sums.append(-_sum_by(inv, blk.reshape(-1, 36), len(uk)))
+    uk, inv = np.unique(np.concatenate(keys), return_inverse=True)
+    acc = _sum_by(inv, np.concatenate(sums), len(uk)).reshape(-1, 6, 6)
+    del keys, sums, inv
+    rows, cols = uk // N, uk % N  # sorted by row, then column: the BSR layout
+    S_ii = sp.bsr_matrix((acc, cols, np.searchsorted(rows, np.arange(N + 1))), shape=(6 * N, 6 * N)).tocsr()
     if ng:
-        S[ng:, ng:] = S_ii.reshape(6 * N, 6 * N)
-        # global columns: their rows of Hcp are few, general sparse products are cheap
-        Hcp_g = (Jc[:, :ng].T @ Jp).toarray().reshape(ng, P, 3)  # (ng, P, 3)
+        # global columns (IO, thermal slopes): few, so their blocks are dense
+        Hgg = np.einsum("mkg,mkh->gh", b.Jg, b.Jg)
+        Hgg[np.diag_indices(ng)] *= damp
+        gc[:ng] = np.einsum("mkg,mk->g", b.Jg, b.r)
+        rhs[:ng] = -gc[:ng]
+        Hgi = _sum_by(b.image, np.einsum("mkg,mki->mgi", b.Jg, b.Ji).reshape(len(b.image), -1), N)
+        Hcp_g = _sum_by(b.point, np.einsum("mkg,mki->mgi", b.Jg, b.Jx).reshape(len(b.point), -1), P)
+        Hcp_g = Hcp_g.reshape(P, ng, 3).transpose(1, 0, 2)  # (ng, P, 3)
         Tg = np.einsum("gpi,pij->gpj", Hcp_g, Hpp_inv)  # (ng, P, 3): Hcp_g Hpp^-1
-        S[:ng, :ng] -= np.einsum("gpj,hpj->gh", Tg, Hcp_g)
-        # global-image: sum over observations of Tg[:, p] W_m^T
+        S_gg = Hgg - np.einsum("gpj,hpj->gh", Tg, Hcp_g)
+        # global-image: Hgi minus the sum over observations of Tg[:, p] W_m^T
         gi = np.einsum("gmj,mkj->mgk", Tg[:, b.point], W)  # (M, ng, 6)
-        block_gi = _sum_by(b.image, gi.reshape(len(gi), -1), N).reshape(N, ng, 6)
-        block_gi = block_gi.transpose(1, 0, 2).reshape(ng, 6 * N)
-        S[:ng, ng:] -= block_gi
-        S[ng:, :ng] -= block_gi.T
+        S_gi = Hgi - _sum_by(b.image, gi.reshape(len(gi), -1), N)
+        S_gi = S_gi.reshape(N, ng, 6).transpose(1, 0, 2).reshape(ng, 6 * N)
+        S = sp.bmat([[sp.csr_matrix(S_gg), sp.csr_matrix(S_gi)], [sp.csr_matrix(S_gi.T), S_ii]], format="csc")
         rhs[:ng] += np.einsum("gpj,pj->g", Tg, gpp)
     else:
         Hcp_g = np.zeros((0, P, 3))
+        S = S_ii.tocsc()
 
     def hcp_t(dc: np.ndarray) -> np.ndarray:
         """``Hcp^T dc`` (3P,): per point, the sum over its observations of ``W_m^T dc_image``."""
@@ -389,13 +433,13 @@ def _structured_schur(Hcc, gc, gp, Jc, Jp, Hpp_inv, b: ObsBlocks):
     def hcp(dp: np.ndarray) -> np.ndarray:
         """``Hcp dp`` (n_camera,): per image, the sum over its observations of ``W_m dp_point``."""
         dp = np.asarray(dp, dtype=float).reshape(P, 3)
-        out = np.zeros(Hcc.shape[0])
+        out = np.zeros(n_camera)
         out[ng:] = _sum_by(b.image, np.einsum("mij,mj->mi", W, dp[b.point]), N).ravel()
         if ng:
             out[:ng] = np.einsum("gpj,pj->g", Hcp_g, dp)
         return out
 
-    Hcp = spla.LinearOperator((Hcc.shape[0], 3 * P), matvec=hcp, rmatvec=hcp_t, dtype=float)
+    Hcp = spla.LinearOperator((n_camera, 3 * P), matvec=hcp, rmatvec=hcp_t, dtype=float)
     return S, rhs, Hpp_inv, Hcp, gp
 
 
@@ -404,23 +448,51 @@ def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     return np.stack([np.bincount(index, weights=values[:, c], minlength=n) for c in range(values.shape[1])], 1)
 
 
-# The reduced camera system is Jacobi-scaled, then factorised with SuperLU (single-threaded): on this
-# 2-core machine under load a multi-threaded LAPACK Cholesky of a 272 x 272 matrix took 80 ms against
-# 6 ms for splu; both gave the same solution to 1e-12 (conte-calibration, k3 free).
-def _solve_dense(S: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    if not (np.isfinite(S).all() and np.isfinite(rhs).all()):
-        bad = np.flatnonzero(~np.isfinite(np.diag(S)) | ~np.isfinite(rhs))
+#: Fill-reducing ordering of the reduced camera system for SuperLU. See :func:`factorise`.
+ORDERING = "MMD_AT_PLUS_A"
+
+
+def factorise(S) -> tuple:
+    """Sparse LU of the Jacobi-scaled reduced camera system: ``(lu, d)`` with ``S = D (L U) D``,
+    ``D = diag(d)``; ``lu`` is ``None`` when ``S`` is exactly singular.
+
+    SuperLU (scipy) with a symmetric minimum-degree ordering of ``S + S^T`` and no pivoting off the diagonal
+    (``S`` is symmetric positive definite once GNSS/attitude priors or GCPs fix the datum), so the factor
+    keeps the fill of a sparse Cholesky. Measured on conte-city plans (observations mode, IO fixed; see
+    ``benchmarks/RESULTS.md``) against scipy's default COLAMD column ordering with partial pivoting, and
+    against the dense LAPACK Cholesky this replaces.
+    """
+    S = sp.csc_matrix(S)
+    diag = S.diagonal()
+    if not (np.isfinite(S.data).all()):
+        bad = np.flatnonzero(~np.isfinite(diag))
         raise AdjustmentError(
             f"the reduced normal matrix has non-finite entries (camera-side unknowns {bad[:6].tolist()}...): "
             "a projection overflowed; the start poses or a tie point are far from any consistent geometry"
         )
-    d = np.sqrt(np.maximum(np.diag(S), 1e-300))
-    Ss = S / d[:, None] / d[None, :]
+    d = np.sqrt(np.maximum(diag, 1e-300))
+    Dinv = sp.diags(1.0 / d)
+    Ss = (Dinv @ S @ Dinv).tocsc()
     try:
-        x = spla.splu(sp.csc_matrix(Ss)).solve(rhs / d)
+        lu = spla.splu(Ss, permc_spec=ORDERING, diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:  # exactly singular
-        x = np.linalg.lstsq(Ss, rhs / d, rcond=None)[0]
-    return x / d
+        lu = None
+    return lu, d
+
+
+def _solve_sparse(S, rhs: np.ndarray) -> np.ndarray:
+    """``S x = rhs`` for the sparse reduced camera system (see :func:`factorise`); least squares if singular."""
+    if not np.isfinite(rhs).all():
+        bad = np.flatnonzero(~np.isfinite(rhs))
+        raise AdjustmentError(
+            f"the reduced normal equations have non-finite entries (camera-side unknowns {bad[:6].tolist()}...): "
+            "a projection overflowed; the start poses or a tie point are far from any consistent geometry"
+        )
+    lu, d = factorise(S)
+    if lu is None:
+        Ss = np.asarray(sp.csc_matrix(S).toarray()) / d[:, None] / d[None, :]
+        return np.linalg.lstsq(Ss, rhs / d, rcond=None)[0] / d
+    return lu.solve(rhs / d) / d
 
 
 def inverse_spd(S: np.ndarray) -> np.ndarray:
@@ -462,16 +534,12 @@ class SparseInverse:
     the whole inverse when it is really wanted.
     """
 
-    def __init__(self, S: np.ndarray) -> None:
-        self.n = len(S)
-        self.d = np.sqrt(np.maximum(np.diag(S), 1e-300))
-        Ss = S / self.d[:, None] / self.d[None, :]
-        self._lu = None
+    def __init__(self, S) -> None:
+        self.n = S.shape[0]
+        self._lu, self.d = factorise(S)
         self._dense = None
-        try:
-            self._lu = spla.splu(sp.csc_matrix(Ss))
-        except RuntimeError:  # exactly singular: fall back to the pseudo-inverse
-            self._dense = inverse_spd(S)
+        if self._lu is None:  # exactly singular: fall back to the pseudo-inverse
+            self._dense = inverse_spd(sp.csc_matrix(S).toarray())
         self._cols: dict[int, np.ndarray] = {}
 
     def columns(self, cols: np.ndarray) -> np.ndarray:
@@ -507,7 +575,7 @@ def solve(problem: Problem, start: State) -> Solution:
     """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
     cfg = problem.cfg
     st = start
-    cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True)
+    cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
     lam = 1e-4
     history = [cost]
     converged = False
@@ -515,7 +583,7 @@ def solve(problem: Problem, start: State) -> Solution:
     for _ in range(cfg.max_iterations):
         it += 1
         S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
-        dc = _solve_dense(S, rhs)
+        dc = _solve_sparse(S, rhs)
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
         cand = problem.apply(st, dc, dp)
         problem.hold_close_points(st, cand)
@@ -525,7 +593,7 @@ def solve(problem: Problem, start: State) -> Solution:
             st, cost = cand, new_cost
             history.append(cost)
             lam = max(lam / 10.0, 1e-12)
-            cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True)
+            cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
             # camera-side step in its own metric (dc' S dc = dc' rhs): below step_tolerance^2 the cameras
             # and IO moved by less than step_tolerance of their standard deviation; what still moves then
             # are tie points without a determined position (e.g. a two-ray track with a blunder under a

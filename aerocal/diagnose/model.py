@@ -15,12 +15,11 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from aerocal.adjust.bundle import initial_state, warm_start
 from aerocal.adjust.problem import AdjustConfig, Block, build_block
 from aerocal.adjust.projection import project
-from aerocal.adjust.solver import Problem, Solution, State, inverse_spd, schur_complement, solve
+from aerocal.adjust.solver import Problem, Solution, State, factorise, inverse_spd, schur_complement, solve
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
 from aerocal.camera import Camera
 
@@ -151,7 +150,7 @@ def linearise(base: Baseline, state: State | None = None) -> Linear:
 class Reduced:
     """Reduced normal equations (points eliminated) of [camera | extra] columns at the solution."""
 
-    S: np.ndarray
+    S: sp.csc_matrix  # sparse: images couple only with the images they share tie points with
     g: np.ndarray  # reduced gradient J^T r (after elimination)
     n_camera: int
 
@@ -159,7 +158,7 @@ class Reduced:
 def reduce(lin: Linear, extra: np.ndarray) -> Reduced:
     Jc = sp.hstack([lin.Jc, sp.csr_matrix(extra)], format="csr") if extra.shape[1] else lin.Jc
     S, rhs, *_ = schur_complement(Jc, lin.Jp, lin.Hpp, lin.r, 0.0)
-    return Reduced(S, -np.asarray(rhs).ravel(), lin.Jc.shape[1])
+    return Reduced(sp.csc_matrix(S), -np.asarray(rhs).ravel(), lin.Jc.shape[1])
 
 
 class Conditional:
@@ -167,27 +166,31 @@ class Conditional:
 
     For columns ``t`` given free columns ``b`` of the reduced system: ``I = S_tt - S_tb S_bb^-1 S_bt`` and
     ``g_t|b = g_t - S_tb S_bb^-1 g_b``; the chi-square drop of freeing ``t`` is ``g^T I^-1 g`` and the
-    Gauss-Newton estimate ``-I^-1 g``. ``S_bb`` is factorised once (sparse LU) for every test.
+    Gauss-Newton estimate ``-I^-1 g``. ``S_bb`` is factorised once (sparse LU,
+    :func:`aerocal.adjust.solver.factorise`) for every test.
     """
 
     def __init__(self, red: Reduced, base: np.ndarray, tests: np.ndarray) -> None:
-        S, g = red.S, red.g
+        S, g = sp.csc_matrix(red.S), red.g
         self.S, self.g, self.base = S, g, base
         self.tests = tests
-        Sbb = S[np.ix_(base, base)]
-        rhs = np.column_stack([S[np.ix_(base, tests)], g[base]])
-        d = np.sqrt(np.maximum(np.diag(Sbb), 1e-300))
-        try:  # the reduced system is sparse (images couple with their neighbours): sparse LU, Jacobi-scaled
-            lu = spla.splu(sp.csc_matrix(Sbb / d[:, None] / d[None, :]))
+        self._S_base = S[base, :].tocsc()  # the base rows, sliced by column for each test
+        Sbb = self._S_base[:, base]
+        rhs = np.column_stack([self._S_base[:, tests].toarray(), g[base]])
+        lu, d = factorise(Sbb)
+        if lu is not None:
             self.X = lu.solve(rhs / d[:, None]) / d[:, None]
-        except RuntimeError:
-            self.X = inverse_spd(Sbb) @ rhs
+        else:  # exactly singular: the pseudo-inverse
+            self.X = inverse_spd(Sbb.toarray()) @ rhs
         self.pos = {int(t): k for k, t in enumerate(tests)}
+
+    def _block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        return self.S[:, cols][rows, :].toarray()
 
     def __call__(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         cols = [self.pos[int(t)] for t in idx]
-        Sbt = self.S[np.ix_(self.base, idx)]
-        info = self.S[np.ix_(idx, idx)] - Sbt.T @ self.X[:, cols]
+        Sbt = self._S_base[:, idx].toarray()
+        info = self._block(idx, idx) - Sbt.T @ self.X[:, cols]
         grad = self.g[idx] - Sbt.T @ self.X[:, -1]
         return 0.5 * (info + info.T), grad
 
@@ -195,8 +198,8 @@ class Conditional:
         """Conditional cross-information ``S_io - S_ib S_bb^-1 S_bo`` of test columns ``idx`` and ``other``
         (both among the tests)."""
         cols = [self.pos[int(t)] for t in other]
-        Sbt = self.S[np.ix_(self.base, idx)]
-        return self.S[np.ix_(idx, other)] - Sbt.T @ self.X[:, cols]
+        Sbt = self._S_base[:, idx].toarray()
+        return self._block(idx, other) - Sbt.T @ self.X[:, cols]
 
 
 def triangulate_checks(base: Baseline, block: Block | None = None) -> np.ndarray:
