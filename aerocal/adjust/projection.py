@@ -50,11 +50,14 @@ def project(
     C: np.ndarray,
     X: np.ndarray,
     jacobians: bool = True,
+    io_jacobians: bool = True,
 ) -> Projection:
     """Project points ``X`` (M, 3) through poses ``R`` (M, 3, 3), ``C`` (M, 3), one row per observation.
 
     ``io`` is the IO vector at the reference temperature (PARAM_NAMES order), ``slopes`` the thermal
     slopes of (f, cx, cy) in pixels per degC, ``dtemp`` (M,) the frame temperature minus the reference.
+    With ``io_jacobians=False`` (IO and slopes held fixed) ``d_io`` and ``d_slope`` are empty (M, 2, 0):
+    208 bytes per observation a fixed-IO block does not need.
     """
     f0, cx0, cy0, k1, k2, k3, p1, p2, b1, b2 = (float(v) for v in io)
     f = f0 + slopes[0] * dtemp
@@ -102,6 +105,10 @@ def project(
     px[:, 1, 0], px[:, 1, 2] = -p[:, 2], p[:, 0]
     px[:, 2, 0], px[:, 2, 1] = p[:, 1], -p[:, 0]
     d_rot = np.einsum("mij,mjk->mik", A, px)
+    del px
+    if not io_jacobians:
+        empty = np.zeros((M, 2, 0))
+        return Projection(uv, d_point, d_rot, empty, empty, z)
 
     d_io = np.zeros((M, 2, len(PARAM_NAMES)))
     d_io[:, 0, 0], d_io[:, 1, 0] = xd, yd

@@ -167,7 +167,10 @@ class Problem:
         b, lay = self.b, self.layout
         i, j = b.obs_image, b.obs_point
         dtemp = self.dtemp_img[i]
-        pr = project(st.io, st.slopes, dtemp, st.R[i], st.C[i], st.X[j], jacobians=jac)
+        if jac:
+            self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
+        pr = project(st.io, st.slopes, dtemp, st.R[i], st.C[i], st.X[j], jacobians=jac,
+                     io_jacobians=lay.n_global > 0)
         res_px = pr.uv - b.obs_uv
         r_obs = res_px / b.obs_sigma[:, None]
         s = np.sum(r_obs * r_obs, axis=1)
@@ -585,6 +588,10 @@ def solve(problem: Problem, start: State) -> Solution:
         S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
         dc = _solve_sparse(S, rhs)
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
+        step_metric = float(dc @ rhs)
+        # the reduced system and the operator's per-observation blocks (~0.3 kB per observation) are not
+        # needed past the step: freed before the next residuals are evaluated next to them
+        del S, Hpp_inv, Hcp, gp
         cand = problem.apply(st, dc, dp)
         problem.hold_close_points(st, cand)
         new_cost = problem.residuals(cand, jac=False)[0]
@@ -598,7 +605,7 @@ def solve(problem: Problem, start: State) -> Solution:
             # and IO moved by less than step_tolerance of their standard deviation; what still moves then
             # are tie points without a determined position (e.g. a two-ray track with a blunder under a
             # robust loss, which slides off along its rays and would keep the cost creeping down)
-            if rel < cfg.tolerance or abs(float(dc @ rhs)) < cfg.step_tolerance**2:
+            if rel < cfg.tolerance or abs(step_metric) < cfg.step_tolerance**2:
                 converged = True
                 break
         else:
