@@ -372,14 +372,14 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     T = np.matmul(W, Hpp_inv[b.point])  # (M, 6, 3): W_m Hpp^-1
     # gradients J^T r: camera side per image (+ priors) and global; point side per point (+ control rows)
     gc = np.zeros(n_camera)
-    gc[ng:] = (_sum_by(b.image, np.einsum("mki,mk->mi", b.Ji, b.r), N) + b.prior_grad).ravel()
-    gpp = _sum_by(b.point, np.einsum("mki,mk->mi", b.Jx, b.r), P) + b.point_grad
+    gc[ng:] = (_sum_by(b.image, np.matmul(b.r[:, None, :], b.Ji)[:, 0], N) + b.prior_grad).ravel()
+    gpp = _sum_by(b.point, np.matmul(b.r[:, None, :], b.Jx)[:, 0], P) + b.point_grad
     gp = gpp.ravel()
     rhs = -gc
     # rhs, image part: sum over observations of W_m Hpp^-1 gp
     rhs[ng:] += _sum_by(b.image, np.einsum("mij,mj->mi", T, gpp[b.point]), N).ravel()
     # the image's own 6 x 6 block of J^T J (its observations and priors), damped
-    Hii = _sum_by(b.image, np.einsum("mki,mkj->mij", b.Ji, b.Ji).reshape(-1, 36), N).reshape(N, 6, 6)
+    Hii = _sum_by(b.image, np.matmul(np.swapaxes(b.Ji, 1, 2), b.Ji).reshape(-1, 36), N).reshape(N, 6, 6)
     Hii[:, np.arange(6), np.arange(6)] += b.prior_info
     Hii[:, np.arange(6), np.arange(6)] *= damp
     # the points grouped by their number of observations L: each group's L x L pairs at once, summed per
@@ -405,12 +405,12 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     S_ii = sp.bsr_matrix((acc, cols, np.searchsorted(rows, np.arange(N + 1))), shape=(6 * N, 6 * N)).tocsr()
     if ng:
         # global columns (IO, thermal slopes): few, so their blocks are dense
-        Hgg = np.einsum("mkg,mkh->gh", b.Jg, b.Jg)
+        Hgg = b.Jg.reshape(-1, ng).T @ b.Jg.reshape(-1, ng)
         Hgg[np.diag_indices(ng)] *= damp
-        gc[:ng] = np.einsum("mkg,mk->g", b.Jg, b.r)
+        gc[:ng] = b.Jg.reshape(-1, ng).T @ b.r.ravel()
         rhs[:ng] = -gc[:ng]
-        Hgi = _sum_by(b.image, np.einsum("mkg,mki->mgi", b.Jg, b.Ji).reshape(len(b.image), -1), N)
-        Hcp_g = _sum_by(b.point, np.einsum("mkg,mki->mgi", b.Jg, b.Jx).reshape(len(b.point), -1), P)
+        Hgi = _sum_by(b.image, np.matmul(np.swapaxes(b.Jg, 1, 2), b.Ji).reshape(len(b.image), -1), N)
+        Hcp_g = _sum_by(b.point, np.matmul(np.swapaxes(b.Jg, 1, 2), b.Jx).reshape(len(b.point), -1), P)
         Hcp_g = Hcp_g.reshape(P, ng, 3).transpose(1, 0, 2)  # (ng, P, 3)
         Tg = np.einsum("gpi,pij->gpj", Hcp_g, Hpp_inv)  # (ng, P, 3): Hcp_g Hpp^-1
         S_gg = Hgg - np.einsum("gpj,hpj->gh", Tg, Hcp_g)
@@ -447,8 +447,16 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
 
 
 def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """``out[k]``: the sum of ``values[index == k]`` for (M, c) values: (n, c), one ``bincount`` per column."""
-    return np.stack([np.bincount(index, weights=values[:, c], minlength=n) for c in range(values.shape[1])], 1)
+    """``out[k]``: the sum of ``values[index == k]`` for (M, c) values: (n, c).
+
+    One sparse (n, M) indicator product for all columns; measured against one ``np.bincount`` per column
+    (60 images, IO free, 36-42 columns: 0.96 s of a 4.4 s adjustment) and ``np.add.at`` (slower still)."""
+    values = np.asarray(values, dtype=float)
+    if values.shape[1] <= 3:
+        return np.stack([np.bincount(index, weights=values[:, c], minlength=n) for c in range(values.shape[1])], 1)
+    M = len(index)
+    ind = sp.csr_matrix((np.ones(M), (index, np.arange(M))), shape=(n, M))
+    return np.asarray(ind @ values)
 
 
 #: Fill-reducing ordering of the reduced camera system for SuperLU. See :func:`factorise`.
