@@ -1,15 +1,15 @@
 """How the adjustment's cost grows with the block: 800, 3200 and 12,800 images (observations mode).
 
 The conte-city flight plan over a larger area, ``max_images`` frames of it (the most compact set). Each
-block is simulated once in a process of its own and kept as Parquet under ``--work`` (a 12,800-image
-simulation peaks at ~7.5 GB, more than the adjustment), then adjusted in a fresh process that reads the
-tables, IO fixed (the production case) and, up to ``--self-cal-max`` images, self-calibrating (f, cx, cy,
-k1, k2, k3, p1, p2), so that each peak memory is the adjustment's own.
+block is simulated once in a process of its own and kept as Parquet under ``--work`` (a 12,509-image
+simulation peaked at 7.4 GB), then adjusted in a fresh process that reads the tables, IO fixed (the
+production case) and, up to ``--self-cal-max`` images, self-calibrating (f, cx, cy, k1, k2, k3, p1, p2),
+so that each peak memory is the adjustment's own.
 
 Run: ``python -m benchmarks.adjust_scaling_bench [--sizes 800,3200,12800] [--work DIR]``. 25,600 images
-are not in the default sizes: their simulation would peak near 15 GB and the adjustment, at the ~1.5 kB per
-observation measured at 12,800 images (9.8 GB), near 19 GB, more than this 24 GB machine holds at once
-with anything else running.
+are not in the default sizes: extrapolated, their simulation would peak near 15 GB and the adjustment, at
+the ~1.5 kB per observation measured at 12,800 images (9.8 GB), near 19 GB, more than this 24 GB machine
+holds at once with anything else running.
 """
 
 from __future__ import annotations
@@ -18,12 +18,11 @@ import argparse
 import dataclasses
 import json
 import math
-import multiprocessing as mp
 import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import peak_rss_mb, record
+from benchmarks.common import in_fresh_process, peak_rss_mb, record
 
 FULL = 818  # frames of conte-city
 TABLES = ("images", "observations", "gcps", "gcp_observations")
@@ -78,22 +77,12 @@ def _adjust(folder: str, mode: str, queue) -> None:
                "peak_mb": peak_rss_mb(), "tables_mb": before})
 
 
-def _child(target, *args):
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue()
-    p = ctx.Process(target=target, args=(*args, q))
-    p.start()
-    out = q.get()
-    p.join()
-    return out
-
-
 def block(n: int, work: Path) -> Path:
     """The simulated n-image block's folder under ``work``, simulated first if it is not there."""
     folder = work / f"conte-city-{n}"
     if not (folder / "done.json").exists():
         print(f"simulating {n} images into {folder} ...", flush=True)
-        _child(_simulate, n, str(folder))
+        in_fresh_process(_simulate, n, str(folder))
     return folder
 
 
@@ -110,9 +99,9 @@ def main(argv: list[str] | None = None) -> None:
     fixed = []
     for n in sizes:
         folder = block(n, args.work)
-        fx = _child(_adjust, str(folder), "fixed")
+        fx = in_fresh_process(_adjust, str(folder), "fixed")
         fixed.append(fx)
-        sc = _child(_adjust, str(folder), "self") if n <= args.self_cal_max else None
+        sc = in_fresh_process(_adjust, str(folder), "self") if n <= args.self_cal_max else None
         selfcal = (f"{sc['seconds']:.1f} s | {sc['iterations']} | {sc['peak_mb']:.0f} MB" if sc
                    else "not run | | ")
         lines.append(f"| {fx['images']} | {fx['observations']} | {fx['seconds']:.1f} s | {fx['iterations']} | "

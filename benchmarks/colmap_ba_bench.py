@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import multiprocessing as mp
 import os
 import tempfile
 import time
@@ -27,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.adjust_scaling_bench import TABLES, block
-from benchmarks.common import peak_rss_mb, record
+from benchmarks.common import in_fresh_process, peak_rss_mb, record
 
 CONTROL_SIGMA_M = 1e-4
 
@@ -118,16 +117,6 @@ def _pycolmap(folder: str, queue) -> None:
                "solver": str(ceres["linear_solver_type_used"]).split(".")[-1]})
 
 
-def _child(target, folder: str) -> dict:
-    ctx = mp.get_context("spawn")
-    q = ctx.Queue()
-    p = ctx.Process(target=target, args=(folder, q))
-    p.start()
-    out = q.get()
-    p.join()
-    return out
-
-
 def _rotation_angles(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
     """(N, 3) small rotation vector of ``Rb Ra^T`` (rad), per image."""
     D = np.einsum("nij,nkj->nik", Rb, Ra)
@@ -145,8 +134,8 @@ def main(argv: list[str] | None = None) -> None:
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for n in [int(v) for v in args.sizes.split(",")]:
         folder = str(block(n, args.work))
-        a = _child(_aerocal, folder)
-        c = _child(_pycolmap, folder)
+        a = in_fresh_process(_aerocal, folder)
+        c = in_fresh_process(_pycolmap, folder)
         dC = np.abs(c["C"] - a["C"]) / a["sigma"][:, 3:]
         dw = np.abs(_rotation_angles(a["R"], c["R"])) / a["sigma"][:, :3]
         lines.append(f"| {a['images']} | {a['observations']} | {a['seconds']:.1f} s | {a['iterations']} | "

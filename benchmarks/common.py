@@ -44,6 +44,19 @@ def best_of(fn: Callable[[], object], repeat: int = 3) -> float:
     return min(times)
 
 
+def in_fresh_process(target: Callable, *args):
+    """``target(*args, queue)`` run in a spawned process (its own peak memory); returns what it put on the queue."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    q = ctx.Queue()
+    p = ctx.Process(target=target, args=(*args, q))
+    p.start()
+    out = q.get()
+    p.join()
+    return out
+
+
 def record(title: str, lines: list[str]) -> None:
     """Print ``lines`` and append them under ``title`` with the machine and exact command to RESULTS.md."""
     command = " ".join(getattr(sys, "orig_argv", sys.argv))

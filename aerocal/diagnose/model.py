@@ -158,7 +158,7 @@ class Reduced:
 def reduce(lin: Linear, extra: np.ndarray) -> Reduced:
     Jc = sp.hstack([lin.Jc, sp.csr_matrix(extra)], format="csr") if extra.shape[1] else lin.Jc
     S, rhs, *_ = schur_complement(Jc, lin.Jp, lin.Hpp, lin.r, 0.0)
-    return Reduced(sp.csc_matrix(S), -np.asarray(rhs).ravel(), lin.Jc.shape[1])
+    return Reduced(S, -np.asarray(rhs).ravel(), lin.Jc.shape[1])
 
 
 class Conditional:
@@ -171,7 +171,7 @@ class Conditional:
     """
 
     def __init__(self, red: Reduced, base: np.ndarray, tests: np.ndarray) -> None:
-        S, g = sp.csc_matrix(red.S), red.g
+        S, g = red.S, red.g
         self.S, self.g, self.base = S, g, base
         self.tests = tests
         self._S_base = S[base, :].tocsc()  # the base rows, sliced by column for each test
