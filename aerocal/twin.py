@@ -222,8 +222,10 @@ class TwinComparison:
         for k in (k for k in self.differs if k not in self.cause and k not in as_whole):
             tried = [(v["gap_closed"][k], n) for n, v in self.extended.items() if k in v["gap_closed"]]
             best = max(tried, default=None)
+            # an extension beyond its physical bound was ruled out above: its closure is no near-explanation
+            beyond = " at a size beyond its physical bound" if best and not self.extended[best[1]]["plausible"] else ""
             parts.append(f"{k}: no extension tried explains it" + (
-                f" (the most: {best[1]}, {100 * best[0]:.0f} % of its gap)" if best else ""))
+                f" (the most: {best[1]}, {100 * best[0]:.0f} % of its gap{beyond})" if best else ""))
         if self.combined:
             c = self.combined
             closed = ", ".join(f"{k} {100 * v:.0f} %" for k, v in c["gap_closed"].items())

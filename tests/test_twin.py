@@ -106,3 +106,19 @@ def test_mismatches_left_in_a_least_squares_block_are_named_and_take_the_per_ima
     assert not {"per-frame focal jitter", "per-frame readout motion"} & set(c.cause.values()), c.summary()
     closed = c.combined["gap_closed"]
     assert 0.8 < closed["tail_fraction"] < 1.25 and 0.8 < closed["variance_tie"] < 1.25, f"seed {seed}: {c.summary()}"
+
+
+def test_an_implausible_extension_is_not_offered_as_the_nearest_explanation():
+    """A statistic no extension explains quotes the extension closing most of its gap; when that one is beyond
+    its physical bound (already ruled out), the summary says so instead of offering it as a near miss."""
+    from aerocal.twin import TwinComparison
+
+    c = TwinComparison(
+        real={"gnss_lag1": 0.82}, twin_mean={"gnss_lag1": 0.02}, twin_sd={"gnss_lag1": 0.01}, z={"gnss_lag1": 80.0},
+        differs={"gnss_lag1": "time-correlated GNSS errors"}, n_twins=3,
+        extended={"time-correlated GNSS": {"size": 1.0, "physical": 1.0, "unit": "correlation", "bound": 0.98,
+                                           "plausible": False, "gap_closed": {"gnss_lag1": 1.05}}})
+    text = c.summary()
+    assert "it is not the cause" in text
+    assert "gnss_lag1: no extension tried explains it (the most: time-correlated GNSS, 105 % of its gap at a size " \
+           "beyond its physical bound)" in text, text
