@@ -10,6 +10,7 @@ coordinates. Check points stay out of the adjustment and are triangulated afterw
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -294,8 +295,12 @@ def adjust(
     gcp_observations: pa.Table | None = None,
     thermal_correction: LinearThermalModel | None = None,
     initial_poses: pa.Table | None = None,
+    solver: Callable[[Problem, State], Solution] | None = None,
 ) -> AdjustmentResult:
     """Bundle adjustment with self-calibration (IO free or fixed per parameter) and an optional thermal model.
+
+    ``solver``: what solves each least-squares problem (default :func:`aerocal.adjust.solver.solve`; a
+    partitioned one, :func:`aerocal.adjust.partition.partitioned_solver`, for city-scale blocks).
 
     ``initial_poses``: starting poses from an orientation (a poses table) for blocks without recorded
     GNSS/IMU; the priors must then be off and at least 3 control GCPs give the datum.
@@ -309,7 +314,7 @@ def adjust(
         used = thin_tracks(observations, camera.width, camera.height, config.tie_thinning)
         inner = adjust(images, observations.take(pa.array(used, pa.int64())), camera,
                        dataclasses.replace(config, tie_thinning=None), gcps, gcp_observations,
-                       thermal_correction, initial_poses)
+                       thermal_correction, initial_poses, solver)
         return _intersect_left_out(inner, images, observations, used, camera, thermal_correction,
                                    config.tie_thinning)
     n_rows = observations.num_rows
@@ -322,7 +327,7 @@ def adjust(
         # (data snooping): sigma0, covariances and the check-point prediction then describe clean data
         robust_cfg = dataclasses.replace(config, adaptive=False, max_iterations=config.robust_iterations)
         first = adjust(images, observations, camera, dataclasses.replace(robust_cfg, reject_chi2=None), gcps,
-                       gcp_observations, thermal_correction, initial_poses)
+                       gcp_observations, thermal_correction, initial_poses, solver)
         kept, why, variance_factor = _snoop(observations, first, config.reject_chi2)
         rejection.append(why)
         observations = observations.take(pa.array(kept, pa.int64()))
@@ -347,7 +352,7 @@ def adjust(
         t0 = 0.0
 
     def run(cfg: AdjustConfig) -> AdjustmentResult:
-        sol = solve(Problem(block, cfg, t0), start)
+        sol = (solver or solve)(Problem(block, cfg, t0), start)
         return _result(block, sol, camera, cfg, observations.num_rows)
 
     final = None  # the least-squares result with the final tie sigma, when it is already at hand

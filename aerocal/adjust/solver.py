@@ -132,7 +132,9 @@ def _robust(s: np.ndarray, loss: str, c: float) -> tuple[np.ndarray, np.ndarray]
 class Problem:
     """Residuals and Jacobians of a :class:`Block` under an :class:`AdjustConfig`."""
 
-    def __init__(self, block: Block, config: AdjustConfig, t0: float) -> None:
+    def __init__(self, block: Block, config: AdjustConfig, t0: float, check_datum: bool = True) -> None:
+        """``check_datum=False`` for a sub-block of a partitioned adjustment, whose datum is the whole block's
+        (:mod:`aerocal.adjust.partition`)."""
         self.b = block
         self.cfg = config
         self.t0 = t0
@@ -143,6 +145,9 @@ class Problem:
             n_points=block.n_points,
         )
         self.dtemp_img = np.nan_to_num(block.temperature - t0) if config.thermal else np.zeros(block.n_images)
+        #: (N,) 1 where an image's GNSS / attitude priors count, 0 where another sub-block of a partitioned
+        #: adjustment counts them (each prior enters the whole block's normal equations once)
+        self.prior_weight = np.ones(block.n_images)
         self.blocks: ObsBlocks | None = None  # of the last Jacobian (see :class:`ObsBlocks`)
         self.depth_floor: float | None = None  # metres, set from the first state a step starts from
         self.gnss_sigma = None if config.gnss_sigma_m is None else np.asarray(config.gnss_sigma_m, float)
@@ -151,7 +156,7 @@ class Problem:
             if config.attitude_sigma_deg is None
             else np.radians(np.asarray(config.attitude_sigma_deg, float))
         )
-        if self.gnss_sigma is None and len(block.control_ids) < 3:
+        if check_datum and self.gnss_sigma is None and len(block.control_ids) < 3:
             raise AdjustmentError(
                 "the datum is not defined: GNSS priors are off (AdjustConfig.gnss_sigma_m=None) and "
                 f"there are "
@@ -184,13 +189,14 @@ class Problem:
             rho, w = s, np.ones_like(s)
         parts = [r_obs.ravel()]
         cost_parts = [float(np.sum(rho))]
+        pw = self.prior_weight[:, None]
         if self.gnss_sigma is not None:
-            r = ((st.C - b.gnss) / self.gnss_sigma).ravel()
+            r = ((st.C - b.gnss) / self.gnss_sigma * pw).ravel()
             parts.append(r)
             cost_parts.append(float(r @ r))
         if self.att_sigma is not None:
             rot = rotation_log(np.einsum("nij,nkj->nik", st.R, b.R_rec))
-            r = (rot / self.att_sigma).ravel()
+            r = (rot / self.att_sigma * pw).ravel()
             parts.append(r)
             cost_parts.append(float(r @ r))
         G = len(b.control_ids)
@@ -213,10 +219,10 @@ class Problem:
         Nimg = b.n_images
         info, grad = np.zeros((Nimg, 6)), np.zeros((Nimg, 6))
         if self.gnss_sigma is not None:
-            info[:, 3:] += 1.0 / self.gnss_sigma**2
+            info[:, 3:] += pw / self.gnss_sigma**2
             grad[:, 3:] += parts[1].reshape(Nimg, 3) / self.gnss_sigma
         if self.att_sigma is not None:
-            info[:, :3] += 1.0 / self.att_sigma**2
+            info[:, :3] += pw / self.att_sigma**2
             grad[:, :3] += parts[2 if self.gnss_sigma is not None else 1].reshape(Nimg, 3) / self.att_sigma
         pgrad = np.zeros((lay.n_points, 3))
         if G:
@@ -248,13 +254,13 @@ class Problem:
         if self.gnss_sigma is not None:
             rr.append(row + np.arange(3 * Nimg))
             cc.append(allimg[:, 3:].ravel())
-            vv.append(np.tile(1.0 / self.gnss_sigma, Nimg))
+            vv.append((pw / self.gnss_sigma).ravel())
             row += 3 * Nimg
         if self.att_sigma is not None:
             # d log(exp(w) R R_rec^T)/dw ~ identity for the small angles between recorded and adjusted
             rr.append(row + np.arange(3 * Nimg))
             cc.append(allimg[:, :3].ravel())
-            vv.append(np.tile(1.0 / self.att_sigma, Nimg))
+            vv.append((pw / self.att_sigma).ravel())
             row += 3 * Nimg
         if G:
             pr_rows.append(row + np.arange(3 * G))

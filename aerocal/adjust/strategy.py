@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +20,7 @@ import pyarrow.compute as pc
 
 from aerocal.adjust.bundle import AdjustmentResult, adjust
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError
+from aerocal.adjust.solver import Problem, Solution, State
 from aerocal.camera import Camera, LinearThermalModel
 
 STRATEGIES = ("fixed", "self", "certificate")
@@ -47,13 +49,16 @@ def adjust_fixed_io(
     gcps: pa.Table | None = None,
     gcp_observations: pa.Table | None = None,
     thermal: LinearThermalModel | None = None,
+    solver: Callable[[Problem, State], Solution] | None = None,
 ) -> AdjustmentResult:
     """Full-block adjustment with IO fixed at ``camera`` (IO at ``thermal.t0`` when a model is given).
+    ``solver``: see :func:`aerocal.adjust.bundle.adjust`.
 
     With ``thermal`` the tie-point and GCP measurements are corrected to T0 before adjusting (Daakir 2019).
     """
     config = dataclasses.replace(config or AdjustConfig(), free=(), thermal=(), adaptive=False)
-    result = adjust(images, observations, camera, config, gcps, gcp_observations, thermal_correction=thermal)
+    result = adjust(images, observations, camera, config, gcps, gcp_observations, thermal_correction=thermal,
+                    solver=solver)
     if result.converged:
         return result
     # a weakly determined direction (real h20t_forest: two opposite strips, consumer GNSS, no attitude
@@ -61,7 +66,8 @@ def adjust_fixed_io(
     # converge with sigma0 the same to 5e-6; adjust again with a longer budget rather than report a
     # solution as unfinished
     longer = dataclasses.replace(config, max_iterations=SLOW_TAIL_FACTOR * config.max_iterations)
-    again = adjust(images, observations, camera, longer, gcps, gcp_observations, thermal_correction=thermal)
+    again = adjust(images, observations, camera, longer, gcps, gcp_observations, thermal_correction=thermal,
+                   solver=solver)
     again.selection = again.selection + [
         f"the adjustment stopped after {result.iterations} iterations without converging; adjusted again with up "
         f"to {longer.max_iterations}: {'converged' if again.converged else 'did not converge either'} in "

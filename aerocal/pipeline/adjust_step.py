@@ -9,9 +9,11 @@ import dataclasses
 import numpy as np
 
 from aerocal.adjust import AdjustConfig, adjust_fixed_io
+from aerocal.adjust.partition import PartitionedSolver
 from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
 from aerocal.eo_checks import correct_gnss_offset
+from aerocal.matching import dask_client
 from aerocal.pipeline.config import BlockStepConfig
 from aerocal.pipeline.runner import ArrayOutput, JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
@@ -23,7 +25,8 @@ def linear_thermal(cert: Certificate) -> LinearThermalModel | None:
 
 
 def adjust_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
-                config: BlockStepConfig | None = None, adjust_config: AdjustConfig | None = None) -> StepResult:
+                config: BlockStepConfig | None = None, adjust_config: AdjustConfig | None = None,
+                dask_address: str | None = None) -> StepResult:
     """Adjust the whole flight with the certificate's IO.
 
     Outputs: ``poses``, ``points`` (tables), ``adjustment`` (summary, check-point and control residuals,
@@ -31,7 +34,9 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
     tested on the recorded positions and removed where they passed, with the notes), ``residuals``
     ((M, 2) pixels, predicted minus observed, aligned with the observations table) and ``obs_weight``
     ((M,) the weight of each observation at the solution: 0 for a blunder the screening rejected, NaN for one
-    the block left out).
+    the block left out). A block of ``config.partition_min_images`` images or more is adjusted in sub-blocks on
+    the Dask cluster (``dask_address``, or a local one of ``config.dask_workers``); ``adjustment["partitioned"]``
+    then says how it was cut.
     """
     config = config or BlockStepConfig()
     acfg = adjust_config or config.adjust
@@ -50,7 +55,10 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
             images = eo.images
             corrections = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
                            "time_sigma_s": eo.time_sigma_s, "notes": eo.notes}
-        res = adjust_fixed_io(images, obs, cert.camera, acfg, gcps, gobs, thermal)
+        solver = PartitionedSolver(config.partition_min_images, config.partition_max_images, config.dask_workers)
+        with dask_client(dask_address, config.dask_workers, solver.n_parts(images.num_rows) < 2) as client:
+            solver.client = client
+            res = adjust_fixed_io(images, obs, cert.camera, acfg, gcps, gobs, thermal, solver=solver)
         summary = res.summary()
         summary.update({
             "certificate_id": cert.id,
@@ -63,6 +71,7 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
             "control_ids": list(res.control_ids),
             "control_errors_m": np.asarray(res.control_errors).tolist(),
             "recorded_eo_corrections": corrections,
+            "partitioned": solver.runs[-1] if solver.runs else None,
         })
         return {
             "poses": TableOutput(res.poses, "poses"),

@@ -81,11 +81,20 @@ class BlockStepConfig:
     the certificate's linear thermal model to the measurements; ``recorded_eo_images`` (200): test the
     recorded positions for a GNSS time lag (and, with 3 control GCPs, a horizontal offset) on this many
     central images and remove what passes before adjusting (:func:`aerocal.eo_checks.correct_gnss_offset`;
-    0 = use the positions as recorded)."""
+    0 = use the positions as recorded).
+
+    City-scale blocks: from ``partition_min_images`` images (PARTITION_MIN_IMAGES; 0 = never) the adjustment
+    runs in sub-blocks on the Dask cluster (``dask_workers`` local workers, 2, when no scheduler address is
+    given), each of at most about ``partition_max_images`` (3200) images, joined exactly on the images they
+    share (:mod:`aerocal.adjust.partition`: the same solution as one adjustment, the memory of the
+    observations spread over the workers)."""
 
     adjust: AdjustConfig = field(default_factory=AdjustConfig)
     thermal_correction: bool = True
     recorded_eo_images: int = 200
+    partition_min_images: int = 1000
+    partition_max_images: int = 3200
+    dask_workers: int = 2
 
 
 @dataclass(frozen=True)

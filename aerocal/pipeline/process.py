@@ -208,7 +208,8 @@ def process(
     cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
 
     if not calibrate_only:
-        adj = steps["adjust"] = adjust_step(runner, ing, observations, cert_ref, config.block, adjustments.block)
+        adj = steps["adjust"] = adjust_step(runner, ing, observations, cert_ref, config.block, adjustments.block,
+                                            dask_address)
         mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, dask_address)
         ass = steps["assess"] = assess_step(runner, ing, observations, adj)
         dia = steps["diagnose"] = diagnose_step(runner, ing, observations, cert_ref, config.diagnose,
