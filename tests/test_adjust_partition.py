@@ -1,6 +1,7 @@
-"""Partitioned adjustment (:mod:`aerocal.adjust.partition`): sub-blocks reduced onto the images they share, in
-this process and as actors on a real Dask cluster, give the single adjustment's solution and covariances; the
-pipeline's adjust step partitions a block past its threshold and the flight's products stay the same."""
+"""Partitioned adjustment (:mod:`aerocal.adjust.partition`): sub-blocks that eliminate their own points and sum
+their shares of the reduced camera system, in this process and as actors on a real Dask cluster, give the single
+adjustment's solution and covariances; the pipeline's adjust step partitions a block past its threshold and the
+flight's products stay the same."""
 
 from __future__ import annotations
 

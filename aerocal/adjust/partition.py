@@ -1,25 +1,30 @@
-"""Partitioned bundle adjustment: sub-blocks reduce themselves onto the cameras they share, in parallel.
+"""Partitioned bundle adjustment: sub-blocks on the Dask workers, one reduced camera system.
 
 The block's images are cut into spatially compact sub-blocks (recursive median bisection of the projection
 centres); every tie point (and control GCP) goes to the sub-block holding most of its observations, with all
-its observations. An image observed in several sub-blocks is a *boundary* image; the others are *interior*.
-Each Levenberg-Marquardt iteration then runs as in :func:`aerocal.adjust.solver.solve`, but split:
+its observations, and each image's GNSS / attitude priors to the sub-block the image was cut into. An image
+observed in several sub-blocks is a *boundary* image. Each Levenberg-Marquardt iteration then runs as in
+:func:`aerocal.adjust.solver.solve`, split:
 
-1. every sub-block forms its own reduced camera system (its points eliminated,
-   :func:`~aerocal.adjust.solver.schur_complement`) and eliminates its interior images too, leaving a dense
-   system on its boundary images and the global unknowns (IO, thermal slopes);
-2. those systems are summed (a boundary image's normal-equation blocks are the sums of its sub-blocks'
-   shares, each GNSS / attitude prior counted once, by the image's own sub-block) and solved;
-3. every sub-block back-substitutes its interior images and its points, tries the step and returns its share
-   of the cost.
+1. every sub-block linearises its observations and eliminates its points, giving its share of the reduced
+   camera system (:func:`~aerocal.adjust.solver.schur_complement`; a boundary image's blocks are summed
+   from its sub-blocks' shares);
+2. the shares are summed into the whole block's sparse reduced camera system and solved (one sparse
+   factorisation, as in the single adjustment);
+3. every sub-block back-substitutes its points, tries the step and returns its share of the cost.
 
-This is the single adjustment's normal equations solved by nested elimination, not a consensus between
-separately adjusted sub-blocks: the steps, the damping and the stopping rule are the same, so the result is
-the single adjustment's to rounding (``tests/test_adjust_partition.py``). What changes is where the work and
-the memory are: the per-observation blocks (the bulk, ~1.5 kB per observation) live in the sub-blocks, on
-the Dask workers when a client is given (one :class:`SubBlock` actor each), and only the boundary system is
-formed on the caller's side. The covariances reported (IO, check points) come from the same factorisations,
-column by column (:class:`PartitionedInverse`), never as a dense inverse.
+This is the single adjustment's normal equations, not a consensus between separately adjusted sub-blocks: the
+steps, the damping and the stopping rule are the same, so the result is the single adjustment's to rounding
+(``tests/test_adjust_partition.py``), covariances included. What changes is where the work and the memory
+are: the per-observation blocks (the bulk: ~1.5 kB per observation) and the Schur sums over point tracks
+(most of an iteration's time) live in the sub-blocks, on the Dask workers when a client is given (one
+:class:`SubBlock` actor each, in parallel); the caller holds the reduced camera system (~36 numbers per pair
+of images sharing points) and the block's arrays.
+
+Measured against eliminating each sub-block's interior images too and solving only the boundary images'
+dense system (the textbook nested dissection): on 800 conte-city images in 2 sub-blocks the dense
+interior-boundary solves (SuperLU, 534 right-hand sides) took 2.9 s of a 16 s adjustment and made the
+partitioned run slower than the single one; summing sparse shares costs ~0.1 s per iteration there.
 """
 
 from __future__ import annotations
@@ -36,7 +41,7 @@ from aerocal.adjust.solver import (
     Solution,
     SparseInverse,
     State,
-    factorise,
+    _solve_sparse,
     schur_complement,
     solve,
 )
@@ -127,50 +132,22 @@ def sub_block(block: Block, plan: Plan, k: int) -> Block:
     )
 
 
-class _Factor:
-    """Sparse LU (:func:`~aerocal.adjust.solver.factorise`) solving for vectors and matrices; dense least
-    squares where the matrix is exactly singular."""
-
-    def __init__(self, A) -> None:
-        self.A = sp.csc_matrix(A)
-        self.lu, self.d = factorise(self.A)
-
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        rhs = np.asarray(rhs, dtype=float)
-        d = self.d if rhs.ndim == 1 else self.d[:, None]
-        if self.lu is None:
-            As = self.A.toarray() / self.d[:, None] / self.d[None, :]
-            return np.linalg.lstsq(As, rhs / d, rcond=None)[0] / d
-        return self.lu.solve(rhs / d) / d
-
-
 class SubBlock:
-    """One sub-block of a partitioned adjustment: its observations, its linearisation and its factorisations.
+    """One sub-block of a partitioned adjustment: its observations, its state and its last linearisation.
 
     Stateful (a Dask actor when the adjustment runs on a cluster): it keeps its current and candidate state
     and its last Jacobian between the calls of :func:`solve_partitioned`. Camera-side vectors handed in and
-    out are in the sub-block's local layout restricted to the boundary: ``[globals | 6 per boundary image]``
-    in the order of ``boundary_local``.
+    out are in the sub-block's local layout (``[globals | 6 per local image]``).
     """
 
-    def __init__(self, block: Block, config: AdjustConfig, t0: float, owned: np.ndarray,
-                 boundary_local: np.ndarray, start: State) -> None:
+    def __init__(self, block: Block, config: AdjustConfig, t0: float, owned: np.ndarray, start: State) -> None:
         self.problem = Problem(block, config, t0, check_datum=False)
         self.problem.prior_weight = np.asarray(owned, dtype=float)
-        lay = self.problem.layout
-        ng, N = lay.n_global, block.n_images
-        boundary_local = np.asarray(boundary_local, dtype=np.int64)
-        interior = np.setdiff1d(np.arange(N), boundary_local)
-        self.b_cols = np.concatenate([np.arange(ng), lay.image_cols(boundary_local).ravel()]).astype(np.int64)
-        self.a_cols = lay.image_cols(interior).ravel().astype(np.int64)
-        self.interior = interior
         self.state = start
         self.candidate: State | None = None
-        self.lin: tuple | None = None
+        self.Hpp: np.ndarray | None = None
         self.step_parts: tuple | None = None
-        self.final: tuple | None = None
 
-    # -- set-up
     def tie_depths(self) -> np.ndarray:
         """Depths (metres, > 0) of the tie observations at the start state: the whole block's median sets the
         floor below which a point is held (:meth:`Problem.hold_close_points`)."""
@@ -184,47 +161,20 @@ class SubBlock:
 
     def linearise(self) -> float:
         """Jacobian at the current state; returns this sub-block's share of the cost."""
-        cost, _, _, _, _, _, Hpp = self.problem.residuals(self.state, jac=True, sparse=False)
-        self.lin = (Hpp,)
+        cost, _, _, _, _, _, self.Hpp = self.problem.residuals(self.state, jac=True, sparse=False)
         return cost
 
-    # -- one iteration
-    def _reduce(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
-        (Hpp,) = self.lin
-        S, rhs, Hpp_inv, Hcp, gp = schur_complement(None, None, Hpp, None, lam, self.problem.blocks)
-        S = sp.csc_matrix(S)
-        a, b = self.a_cols, self.b_cols
-        Sb = S[b]
-        C = Sb[:, b].toarray()
-        r_b = rhs[b].copy()
-        fac, B = None, None
-        if len(a):
-            fac = _Factor(S[a][:, a])
-            B = sp.csc_matrix(S[a][:, b])
-            AinvB = fac.solve(B.toarray())
-            C -= B.T @ AinvB
-            del AinvB
-            r_b -= B.T @ fac.solve(rhs[a])
-        self.step_parts = (rhs, Hpp_inv, Hcp, gp, fac, B)
-        return 0.5 * (C + C.T), r_b
+    def reduce(self, lam: float) -> tuple[sp.coo_matrix, np.ndarray]:
+        """This sub-block's share of the reduced camera system and its right-hand side (local layout), its
+        points eliminated, with damping ``lam``."""
+        S, rhs, Hpp_inv, Hcp, gp = schur_complement(None, None, self.Hpp, None, lam, self.problem.blocks)
+        self.step_parts = (rhs, Hpp_inv, Hcp, gp)
+        return sp.coo_matrix(S), rhs
 
-    def reduce(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
-        """This sub-block's reduced system on its boundary, ``(S_b, rhs_b)``, with damping ``lam``."""
-        return self._reduce(lam)
-
-    def _back_substitute(self, dc_b: np.ndarray) -> np.ndarray:
-        rhs, Hpp_inv, Hcp, gp, fac, B = self.step_parts
-        dc = np.zeros(self.problem.layout.n_camera)
-        dc[self.b_cols] = dc_b
-        if fac is not None:
-            dc[self.a_cols] = fac.solve(rhs[self.a_cols] - B @ dc_b)
-        return dc
-
-    def try_step(self, dc_b: np.ndarray) -> tuple[float, float]:
-        """Back-substitute the boundary step, form the candidate state and return ``(cost, dc . rhs)``: its
-        share of the candidate's cost and of the step's metric."""
-        rhs, Hpp_inv, Hcp, gp, _, _ = self.step_parts
-        dc = self._back_substitute(dc_b)
+    def try_step(self, dc: np.ndarray) -> tuple[float, float]:
+        """Back-substitute the camera step ``dc`` (local layout) into the points, form the candidate state and
+        return ``(cost, dc . rhs)``: its share of the candidate's cost and of the step's metric."""
+        rhs, Hpp_inv, Hcp, gp = self.step_parts
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
         metric = float(dc @ rhs)
         self.step_parts = None  # the per-observation operator goes before the next residuals
@@ -241,29 +191,11 @@ class SubBlock:
     def reject(self) -> None:
         self.candidate = None
 
-    # -- the end
-    def finish(self) -> tuple[np.ndarray, np.ndarray]:
-        """The undamped reduced boundary system at the solution; its interior factor is kept for
-        :meth:`covariance_reduce` / :meth:`covariance_back`."""
-        S_b, r_b = self._reduce(0.0)
-        _, _, _, _, fac, B = self.step_parts
-        self.final = (fac, B)
-        self.step_parts = None
-        self.lin = None
-        self.problem.blocks = None
-        return S_b, r_b
-
-    def covariance_reduce(self, E_a: np.ndarray) -> np.ndarray:
-        """``-B^T A^-1 E_a``: the boundary right-hand side of unit columns ``E_a`` on the interior."""
-        fac, B = self.final
-        if fac is None:  # every image of this sub-block is a boundary image
-            return np.zeros((len(self.b_cols), E_a.shape[1]))
-        return -(B.T @ fac.solve(E_a))
-
-    def covariance_back(self, E_a: np.ndarray, X_b: np.ndarray) -> np.ndarray:
-        """``A^-1 (E_a - B X_b)``: the interior rows of the inverse's columns."""
-        fac, B = self.final
-        return E_a if fac is None else fac.solve(E_a - B @ X_b)
+    def finish(self) -> tuple[sp.coo_matrix, np.ndarray]:
+        """The undamped reduced system at the solution (for the covariances); frees the linearisation."""
+        out = self.reduce(0.0)
+        self.step_parts, self.Hpp, self.problem.blocks = None, None, None
+        return out
 
     def result(self) -> tuple[State, np.ndarray, np.ndarray, float]:
         """``(state, res_px, w, cost)`` at the solution: the local state, the observations' residuals (pixels)
@@ -277,98 +209,44 @@ def _gather(calls: list) -> list:
     return [c.result() if hasattr(c, "result") else c for c in calls]
 
 
-class PartitionedInverse(SparseInverse):
-    """Columns of the inverse of the whole block's reduced camera system, by the partitioned elimination:
-    for unit columns ``E``, each sub-block reduces its interior rows onto the boundary, the boundary system is
-    solved with its factor, and each sub-block back-substitutes its interior rows."""
-
-    def __init__(self, n: int, boundary_factor: _Factor | None, boundary_cols: np.ndarray, parts: list,
-                 part_b_pos: list[np.ndarray], part_a_cols: list[np.ndarray]) -> None:
-        self.n = n
-        self._dense = None
-        self._cols = {}
-        self.fb, self.bcols = boundary_factor, boundary_cols
-        self.parts, self.part_b_pos, self.part_a_cols = parts, part_b_pos, part_a_cols
-        self.d = np.ones(n)
-
-    def columns(self, cols: np.ndarray) -> np.ndarray:
-        cols = np.asarray(cols, dtype=np.int64)
-        missing = [int(c) for c in cols if int(c) not in self._cols]
-        if missing:
-            miss = np.asarray(missing)
-            c = len(miss)
-            nb = len(self.bcols)
-            bpos = np.full(self.n, -1)
-            bpos[self.bcols] = np.arange(nb)
-            E_b = np.zeros((nb, c))
-            on_b = bpos[miss] >= 0
-            E_b[bpos[miss[on_b]], np.flatnonzero(on_b)] = 1.0
-            E_as = []
-            for a_cols in self.part_a_cols:
-                E_a = np.zeros((len(a_cols), c))
-                hit = np.isin(miss, a_cols)
-                if hit.any():
-                    E_a[np.searchsorted(a_cols, miss[hit]), np.flatnonzero(hit)] = 1.0
-                E_as.append(E_a)
-            reduced = _gather([p.covariance_reduce(E) for p, E in zip(self.parts, E_as, strict=True)])
-            rhs = E_b
-            for pos, y in zip(self.part_b_pos, reduced, strict=True):
-                np.add.at(rhs, pos, y)
-            X_b = self.fb.solve(rhs) if nb else rhs
-            backs = _gather([p.covariance_back(E, X_b[pos]) for p, E, pos in
-                             zip(self.parts, E_as, self.part_b_pos, strict=True)])
-            X = np.zeros((self.n, c))
-            X[self.bcols] = X_b
-            for a_cols, x in zip(self.part_a_cols, backs, strict=True):
-                X[a_cols] = x
-            for k, col in enumerate(missing):
-                self._cols[col] = X[:, k]
-        return np.column_stack([self._cols[int(c)] for c in cols]) if len(cols) else np.zeros((self.n, 0))
-
-
-def solve_partitioned(problem: Problem, start: State, n_parts: int, client: object | None = None) -> Solution:
-    """:func:`aerocal.adjust.solver.solve` with the block cut into ``n_parts`` sub-blocks (see the module),
-    on ``client``'s Dask workers (one actor per sub-block) or, without a client, in this process.
+def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: object | None = None) -> Solution:
+    """:func:`aerocal.adjust.solver.solve` with the block cut by ``plan`` (or into that many sub-blocks, see the
+    module), on ``client``'s Dask workers (one actor per sub-block) or, without a client, in this process.
 
     The returned :class:`Solution` is the single adjustment's: same state, sigma0, dof, iterations and
-    covariances (:class:`PartitionedInverse`, which keeps the sub-blocks until it is dropped)."""
+    covariances."""
     cfg, block, lay = problem.cfg, problem.b, problem.layout
     ng = lay.n_global
-    plan = plan_partition(block, start.C[:, :2], n_parts)
-    K = plan.n_parts
-    # the boundary vector: globals, then 6 per boundary image; and each sub-block's place in it
-    bcols = np.concatenate([np.arange(ng), lay.image_cols(plan.boundary).ravel()]).astype(np.int64)
-    b_index = np.full(block.n_images, -1, dtype=np.int64)
-    b_index[plan.boundary] = np.arange(len(plan.boundary))
-    part_b_pos, part_a_cols, parts = [], [], []
-    for k in range(K):
-        imgs = plan.images[k]
-        is_b = b_index[imgs] >= 0
-        local_b = np.flatnonzero(is_b)
-        local_b = local_b[np.argsort(b_index[imgs[local_b]], kind="stable")]
-        part_b_pos.append(np.concatenate([np.arange(ng), (ng + 6 * b_index[imgs[local_b]][:, None]
-                                                          + np.arange(6)).ravel()]).astype(np.int64))
-        part_a_cols.append(lay.image_cols(imgs[~is_b]).ravel().astype(np.int64))
-        sub = sub_block(block, plan, k)
+    if not isinstance(plan, Plan):
+        plan = plan_partition(block, start.C[:, :2], plan)
+    # each sub-block's local camera columns in the whole block's layout
+    cols = [np.concatenate([np.arange(ng), lay.image_cols(imgs).ravel()]).astype(np.int64) for imgs in plan.images]
+    parts = []
+    # sub-blocks dealt to the workers in turn: left to the scheduler, two actors can land on one worker
+    workers = sorted(client.scheduler_info()["workers"]) if client is not None else []  # type: ignore[attr-defined]
+    for k, imgs in enumerate(plan.images):
         st = State(start.io.copy(), start.slopes.copy(), start.R[imgs], start.C[imgs], start.X[plan.points[k]])
-        args = (sub, cfg, problem.t0, plan.owned[k], local_b, st)
-        parts.append(client.submit(SubBlock, *args, actor=True).result() if client is not None  # type: ignore[attr-defined]
-                     else SubBlock(*args))
+        args = (sub_block(block, plan, k), cfg, problem.t0, plan.owned[k], st)
+        parts.append(client.submit(SubBlock, *args, actor=True, workers=[workers[k % len(workers)]],  # type: ignore[attr-defined]
+                                   allow_other_workers=False) if client is not None else SubBlock(*args))
+    parts = [p.result() if client is not None else p for p in parts]
     depths = np.concatenate(_gather([p.tie_depths() for p in parts]))
     floor = MIN_DEPTH_FRACTION * float(np.median(depths)) if len(depths) else 0.0
     _gather([p.set_depth_floor(floor) for p in parts])
-    nb = len(bcols)
+    n = lay.n_camera
 
-    def boundary_system(lam: float | None) -> tuple[sp.csc_matrix, np.ndarray]:
+    def reduced_system(lam: float | None) -> tuple[sp.csc_matrix, np.ndarray]:
+        """The whole block's reduced camera system: the sub-blocks' shares summed (``lam`` None: undamped, and
+        the sub-blocks free their linearisation)."""
         out = _gather([p.reduce(lam) if lam is not None else p.finish() for p in parts])
-        rows, cols, vals = [], [], []
-        r = np.zeros(nb)
-        for pos, (S_k, r_k) in zip(part_b_pos, out, strict=True):
-            rows.append(np.repeat(pos, len(pos)))
-            cols.append(np.tile(pos, len(pos)))
-            vals.append(S_k.ravel())
-            np.add.at(r, pos, r_k)
-        S = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(nb, nb))
+        rows, cols_, vals = [], [], []
+        r = np.zeros(n)
+        for c, (S_k, r_k) in zip(cols, out, strict=True):
+            rows.append(c[S_k.row])
+            cols_.append(c[S_k.col])
+            vals.append(S_k.data)
+            np.add.at(r, c, r_k)
+        S = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols_))), shape=(n, n))
         return S, r
 
     cost = sum(_gather([p.linearise() for p in parts]))
@@ -378,10 +256,10 @@ def solve_partitioned(problem: Problem, start: State, n_parts: int, client: obje
     it = 0
     for _ in range(cfg.max_iterations):
         it += 1
-        S_b, r_b = boundary_system(lam)
-        dc_b = _Factor(S_b).solve(r_b) if nb else np.zeros(0)
-        del S_b
-        out = _gather([p.try_step(dc_b[pos]) for p, pos in zip(parts, part_b_pos, strict=True)])
+        S, rhs = reduced_system(lam)
+        dc = _solve_sparse(S, rhs)
+        del S
+        out = _gather([p.try_step(dc[c]) for p, c in zip(parts, cols, strict=True)])
         new_cost = sum(c for c, _ in out)
         step_metric = sum(m for _, m in out)
         if np.isfinite(new_cost) and new_cost <= cost:
@@ -398,9 +276,11 @@ def solve_partitioned(problem: Problem, start: State, n_parts: int, client: obje
             if lam > 1e8:
                 converged = True
                 break
-    S_b, _ = boundary_system(None)
-    fb = _Factor(S_b) if nb else None
+    S, _ = reduced_system(None)
+    cov = SparseInverse(S)
+    del S
     results = _gather([p.result() for p in parts])
+    parts.clear()  # the actors are released with their last reference
     st = start.copy()
     M = len(block.obs_image)
     res_px, w = np.full((M, 2), np.nan), np.ones(M)
@@ -417,11 +297,9 @@ def solve_partitioned(problem: Problem, start: State, n_parts: int, client: obje
     dof = n_res - n_unk
     if dof <= 0:
         raise AdjustmentError(f"the adjustment has {n_res} observations for {n_unk} unknowns: no redundancy")
-    cov = PartitionedInverse(lay.n_camera, fb, bcols, parts, part_b_pos, part_a_cols)
     return Solution(state=st, layout=lay, cov_camera=cov, sigma0=float(np.sqrt(2.0 * cost / dof)), dof=dof,
                     cost=cost, iterations=it, converged=converged, obs_residual_px=res_px, obs_weight=w,
                     t0=problem.t0, history=history)
-
 
 
 @dataclasses.dataclass
@@ -447,9 +325,8 @@ class PartitionedSolver:
         K = self.n_parts(problem.b.n_images)
         if K < 2:
             return solve(problem, start)
-        sol = solve_partitioned(problem, start, K, self.client)
-        cov = sol.cov_camera
-        self.runs.append({"images": problem.b.n_images, "sub_blocks": K,
-                          "boundary_images": (len(cov.bcols) - problem.layout.n_global) // 6,
+        plan = plan_partition(problem.b, start.C[:, :2], K)
+        sol = solve_partitioned(problem, start, plan, self.client)
+        self.runs.append({"images": problem.b.n_images, "sub_blocks": K, "boundary_images": len(plan.boundary),
                           "iterations": sol.iterations})
         return sol

@@ -14,6 +14,7 @@ from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
 from aerocal.eo_checks import correct_gnss_offset
 from aerocal.matching import dask_client
+from aerocal.matching.cluster import n_workers
 from aerocal.pipeline.config import BlockStepConfig
 from aerocal.pipeline.runner import ArrayOutput, JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
@@ -57,7 +58,8 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
                            "time_sigma_s": eo.time_sigma_s, "notes": eo.notes}
         solver = PartitionedSolver(config.partition_min_images, config.partition_max_images, config.dask_workers)
         with dask_client(dask_address, config.dask_workers, solver.n_parts(images.num_rows) < 2) as client:
-            solver.client = client
+            if client is not None:  # one sub-block per worker at least, on the cluster the step was given
+                solver.client, solver.n_workers = client, n_workers(client)
             res = adjust_fixed_io(images, obs, cert.camera, acfg, gcps, gobs, thermal, solver=solver)
         summary = res.summary()
         summary.update({
