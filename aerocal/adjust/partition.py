@@ -226,9 +226,16 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
     workers = sorted(client.scheduler_info()["workers"]) if client is not None else []  # type: ignore[attr-defined]
     for k, imgs in enumerate(plan.images):
         st = State(start.io.copy(), start.slopes.copy(), start.R[imgs], start.C[imgs], start.X[plan.points[k]])
-        args = (sub_block(block, plan, k), cfg, problem.t0, plan.owned[k], st)
-        parts.append(client.submit(SubBlock, *args, actor=True, workers=[workers[k % len(workers)]],  # type: ignore[attr-defined]
-                                   allow_other_workers=False) if client is not None else SubBlock(*args))
+        sub = sub_block(block, plan, k)
+        if client is None:
+            parts.append(SubBlock(sub, cfg, problem.t0, plan.owned[k], st))
+            continue
+        # the arrays go to the worker as data, not inside the task graph (Dask warns past a few MB)
+        where = [workers[k % len(workers)]]
+        sub_f, st_f = client.scatter([sub, st], workers=where)  # type: ignore[attr-defined]
+        parts.append(client.submit(SubBlock, sub_f, cfg, problem.t0, plan.owned[k], st_f, actor=True,  # type: ignore[attr-defined]
+                                   workers=where, allow_other_workers=False))
+        del sub_f, st_f
     parts = [p.result() if client is not None else p for p in parts]
     depths = np.concatenate(_gather([p.tie_depths() for p in parts]))
     floor = MIN_DEPTH_FRACTION * float(np.median(depths)) if len(depths) else 0.0

@@ -542,6 +542,10 @@ def inverse_spd(S: np.ndarray) -> np.ndarray:
     return inv / d[:, None] / d[None, :]
 
 
+#: Most bytes of inverse columns a :class:`SparseInverse` keeps between calls.
+CACHE_BYTES = 256e6
+
+
 class SparseInverse:
     """Blocks of the inverse of a sparse symmetric positive definite matrix, computed on demand.
 
@@ -568,6 +572,11 @@ class SparseInverse:
         if self._dense is not None:
             return self._dense[:, cols]
         missing = [int(c) for c in cols if int(c) not in self._cols]
+        if missing and (len(self._cols) + len(missing)) * self.n * 8 > CACHE_BYTES:
+            # the cached columns are whole columns (n each): at city scale the check points' ~2400 columns
+            # of a 12,800-image block would hold 1.5 GB; keep only what this call asks for
+            asked = set(cols.tolist())
+            self._cols = {c: v for c, v in self._cols.items() if c in asked}
         if missing:
             E = np.zeros((self.n, len(missing)))
             E[missing, np.arange(len(missing))] = 1.0 / self.d[missing]
