@@ -41,9 +41,9 @@ from aerocal.adjust.solver import (
     Solution,
     SparseInverse,
     State,
-    _solve_sparse,
     schur_complement,
     solve,
+    solve_reduced,
 )
 
 
@@ -264,7 +264,7 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
     for _ in range(cfg.max_iterations):
         it += 1
         S, rhs = reduced_system(lam)
-        dc = _solve_sparse(S, rhs)
+        dc = solve_reduced(S, rhs)
         del S
         out = _gather([p.try_step(dc[c]) for p, c in zip(parts, cols, strict=True)])
         new_cost = sum(c for c, _ in out)

@@ -500,7 +500,7 @@ def factorise(S) -> tuple:
     return lu, d
 
 
-def _solve_sparse(S, rhs: np.ndarray) -> np.ndarray:
+def solve_reduced(S, rhs: np.ndarray) -> np.ndarray:
     """``S x = rhs`` for the sparse reduced camera system (see :func:`factorise`); least squares if singular."""
     if not np.isfinite(rhs).all():
         bad = np.flatnonzero(~np.isfinite(rhs))
@@ -612,7 +612,7 @@ def solve(problem: Problem, start: State) -> Solution:
     for _ in range(cfg.max_iterations):
         it += 1
         S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
-        dc = _solve_sparse(S, rhs)
+        dc = solve_reduced(S, rhs)
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
         step_metric = float(dc @ rhs)
         # the reduced system and the operator's per-observation blocks (~0.3 kB per observation) are not
