@@ -6,10 +6,10 @@ simulation peaked at 7.4 GB), then adjusted in a fresh process that reads the ta
 production case) and, up to ``--self-cal-max`` images, self-calibrating (f, cx, cy, k1, k2, k3, p1, p2),
 so that each peak memory is the adjustment's own.
 
-Run: ``python -m benchmarks.adjust_scaling_bench [--sizes 800,3200,12800] [--work DIR]``. 25,600 images
-are not in the default sizes: extrapolated, their simulation would peak near 15 GB and the adjustment, at
-the ~1.5 kB per observation measured at 12,800 images (9.8 GB), near 19 GB, more than this 24 GB machine
-holds at once with anything else running.
+Run: ``python -m benchmarks.adjust_scaling_bench [--sizes 800,3200,12800] [--work DIR]``. This is the
+single adjustment in one process; 25,600 images are not in its default sizes: at the ~1.5 kB per
+observation measured at 12,800 images (9.8 GB) it would need near 19 GB. The partitioned adjustment
+(``benchmarks/partition_bench.py``) spreads that over the Dask workers and adjusts 25,600 images.
 """
 
 from __future__ import annotations
