@@ -91,6 +91,9 @@ def _run_flow(
     summary["storage"] = where.describe()
     summary["files"]["provenance"] = str(write_json_atomic(out / "provenance.json", prov))
     summary["files"]["run"] = str(write_json_atomic(out / "run.json", summary))
+    # a failed run's traceback left in a folder this run completed in would sit beside outputs it does not
+    # describe; the failed run and its error stay in the database
+    (out / FAILURE_LOG).unlink(missing_ok=True)
     return summary
 
 

@@ -37,6 +37,7 @@ def _statuses(db: Path) -> list[str]:
 
 def test_a_failing_run_is_one_line_and_leaves_a_run_json_that_says_so(tmp_path):
     flight = _flight(tmp_path / "flight", 6)
+    camera = (flight / "camera.json").read_bytes()
     (flight / "camera.json").unlink()
     db = tmp_path / "a.db"
     done = subprocess.run([AEROCAL, "process", str(flight), "--database-url", f"sqlite:///{db}", "--artifacts",
@@ -49,6 +50,15 @@ def test_a_failing_run_is_one_line_and_leaves_a_run_json_that_says_so(tmp_path):
     assert run["status"] == "failed" and "camera.json is missing" in run["error"] and "again" in run["resume"]
     assert "Traceback" in (tmp_path / "run" / "aerocal-error.log").read_text()
     assert _statuses(db) == ["failed"]
+    # the input mended, the same command completes in the same folder: no stale error log beside its outputs
+    (flight / "camera.json").write_bytes(camera)
+    again = subprocess.run([AEROCAL, "process", str(flight), "--database-url", f"sqlite:///{db}", "--artifacts",
+                            str(tmp_path / "art"), "--out", str(tmp_path / "run")],
+                           capture_output=True, text=True, timeout=600, cwd=tmp_path)
+    assert again.returncode == 0, f"seed {SEED}: {again.stdout}\n{again.stderr}"
+    assert json.loads((tmp_path / "run" / "run.json").read_text())["run_id"] != run.get("run_id")
+    assert not (tmp_path / "run" / "aerocal-error.log").exists(), "a failed run's log was left beside a completed run"
+    assert _statuses(db) == ["failed", "completed"]
 
 
 @pytest.mark.parametrize("delay_s", [1.0, 0.1])
