@@ -300,7 +300,7 @@ def adjust(
     """Bundle adjustment with self-calibration (IO free or fixed per parameter) and an optional thermal model.
 
     ``solver``: what solves each least-squares problem (default :func:`aerocal.adjust.solver.solve`; a
-    partitioned one, :func:`aerocal.adjust.partition.partitioned_solver`, for city-scale blocks).
+    partitioned one, :class:`aerocal.adjust.partition.PartitionedSolver`, for city-scale blocks).
 
     ``initial_poses``: starting poses from an orientation (a poses table) for blocks without recorded
     GNSS/IMU; the priors must then be off and at least 3 control GCPs give the datum.

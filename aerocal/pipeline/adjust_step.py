@@ -57,7 +57,8 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
             corrections = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
                            "time_sigma_s": eo.time_sigma_s, "notes": eo.notes}
         solver = PartitionedSolver(config.partition_min_images, config.partition_max_images, config.dask_workers)
-        with dask_client(dask_address, config.dask_workers, solver.n_parts(images.num_rows) < 2) as client:
+        parted = solver.n_parts(images.num_rows) > 1  # a smaller block needs no cluster, not even a given one
+        with dask_client(dask_address if parted else None, config.dask_workers, not parted) as client:
             if client is not None:  # one sub-block per worker at least, on the cluster the step was given
                 solver.client, solver.n_workers = client, n_workers(client)
             res = adjust_fixed_io(images, obs, cert.camera, acfg, gcps, gobs, thermal, solver=solver)
