@@ -77,6 +77,12 @@ def _adjust(folder: str, mode: str, queue) -> None:
                "peak_mb": peak_rss_mb(), "tables_mb": before})
 
 
+def add_work_argument(ap: argparse.ArgumentParser) -> None:
+    """``--work``: where the simulated blocks are kept, shared by the adjustment benchmarks."""
+    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "aerocal-adjust-scaling",
+                    help="where the simulated blocks are kept (reused by later runs of every adjustment benchmark)")
+
+
 def block(n: int, work: Path) -> Path:
     """The simulated n-image block's folder under ``work``, simulated first if it is not there."""
     folder = work / f"conte-city-{n}"
@@ -90,8 +96,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="800,3200,12800", help="block sizes (images), comma-separated")
     ap.add_argument("--self-cal-max", type=int, default=3200, help="self-calibrate blocks up to this size")
-    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "aerocal-adjust-scaling",
-                    help="where the simulated blocks are kept (reused by later runs)")
+    add_work_argument(ap)
     args = ap.parse_args(argv)
     sizes = [int(v) for v in args.sizes.split(",")]
     lines = ["| images | observations | IO fixed | iterations | peak memory (tables alone) | self-calibrating | "

@@ -20,13 +20,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.adjust_scaling_bench import TABLES, block
+from benchmarks.adjust_scaling_bench import TABLES, add_work_argument, block
 from benchmarks.common import in_fresh_process, peak_rss_mb, record
 
 CONTROL_SIGMA_M = 1e-4
@@ -139,8 +138,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--sizes", default="800", help="block sizes (images), comma-separated")
     ap.add_argument("--parts", type=int, default=1,
                     help="aerocal's adjustment in this many sub-blocks on 2 local Dask workers (1: single)")
-    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "aerocal-adjust-scaling",
-                    help="where the simulated blocks are kept (shared with the scaling benchmark)")
+    add_work_argument(ap)
     args = ap.parse_args(argv)
     lines = ["| images | observations | aerocal | iterations | peak | pycolmap (Ceres) | iterations | peak | "
              "speed-up | max |dC| / sigma | max |dw| / sigma | cost aerocal / pycolmap |",

@@ -12,11 +12,10 @@ Run: ``python -m benchmarks.partition_bench [--sizes 800,3200] [--parts 2,4] [--
 from __future__ import annotations
 
 import argparse
-import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.adjust_scaling_bench import TABLES, block
+from benchmarks.adjust_scaling_bench import TABLES, add_work_argument, block
 from benchmarks.common import in_fresh_process, peak_rss_mb, record
 
 
@@ -68,8 +67,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--single-max", type=int, default=3200,
                     help="run the single adjustment (and the differences) up to this size; beyond, see "
                          "adjust_scaling_bench")
-    ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "aerocal-adjust-scaling",
-                    help="where the simulated blocks are kept (shared with adjust_scaling_bench)")
+    add_work_argument(ap)
     args = ap.parse_args(argv)
     lines = ["| images | observations | solve | sub-blocks (boundary images) | time | ratio to single | "
              "peak memory caller / largest worker | max pose difference | max check-point difference |",

@@ -23,8 +23,9 @@ of images sharing points) and the block's arrays.
 
 Measured against eliminating each sub-block's interior images too and solving only the boundary images'
 dense system (the textbook nested dissection): on 800 conte-city images in 2 sub-blocks the dense
-interior-boundary solves (SuperLU, 534 right-hand sides) took 2.9 s of a 16 s adjustment and made the
-partitioned run slower than the single one; summing sparse shares costs ~0.1 s per iteration there.
+interior-boundary solves (SuperLU, 534 right-hand sides) took 2.9 s of a 16 s adjustment (in-process
+profile), and on 2 Dask workers that design took 14.8 s against the single solve's 11.8 s; summing the sparse
+shares instead, the same block took 9.5 s against 14.8 s (``benchmarks/partition_bench.py``).
 """
 
 from __future__ import annotations
@@ -34,13 +35,15 @@ import dataclasses
 import numpy as np
 import scipy.sparse as sp
 
-from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block
+from aerocal.adjust.problem import AdjustConfig, Block
 from aerocal.adjust.solver import (
     MIN_DEPTH_FRACTION,
     Problem,
     Solution,
     SparseInverse,
     State,
+    levenberg_marquardt,
+    redundancy,
     schur_complement,
     solve,
     solve_reduced,
@@ -252,37 +255,20 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
             rows.append(c[S_k.row])
             cols_.append(c[S_k.col])
             vals.append(S_k.data)
-            np.add.at(r, c, r_k)
+            r[c] += r_k  # a sub-block's columns are distinct
         S = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols_))), shape=(n, n))
         return S, r
 
-    cost = sum(_gather([p.linearise() for p in parts]))
-    lam = 1e-4
-    history = [cost]
-    converged = False
-    it = 0
-    for _ in range(cfg.max_iterations):
-        it += 1
+    def step(lam: float) -> tuple[float, float]:
         S, rhs = reduced_system(lam)
         dc = solve_reduced(S, rhs)
         del S
         out = _gather([p.try_step(dc[c]) for p, c in zip(parts, cols, strict=True)])
-        new_cost = sum(c for c, _ in out)
-        step_metric = sum(m for _, m in out)
-        if np.isfinite(new_cost) and new_cost <= cost:
-            rel = (cost - new_cost) / max(cost, 1e-300)
-            history.append(new_cost)
-            lam = max(lam / 10.0, 1e-12)
-            cost = sum(_gather([p.accept() for p in parts]))
-            if rel < cfg.tolerance or abs(step_metric) < cfg.step_tolerance**2:
-                converged = True
-                break
-        else:
-            _gather([p.reject() for p in parts])
-            lam *= 10.0
-            if lam > 1e8:
-                converged = True
-                break
+        return sum(c for c, _ in out), sum(m for _, m in out)
+
+    _, it, converged, history = levenberg_marquardt(
+        cfg, sum(_gather([p.linearise() for p in parts])), step,
+        accept=lambda: sum(_gather([p.accept() for p in parts])), reject=lambda: _gather([p.reject() for p in parts]))
     S, _ = reduced_system(None)
     cov = SparseInverse(S)
     del S
@@ -298,12 +284,7 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
         st.X[plan.points[k]] = st_k.X
         res_px[plan.observations[k]], w[plan.observations[k]] = res_k, w_k
         cost += cost_k
-    n_res = 2 * M + (3 * block.n_images if problem.gnss_sigma is not None else 0) \
-        + (3 * block.n_images if problem.att_sigma is not None else 0) + 3 * len(block.control_ids)
-    n_unk = lay.n_camera + 3 * lay.n_points
-    dof = n_res - n_unk
-    if dof <= 0:
-        raise AdjustmentError(f"the adjustment has {n_res} observations for {n_unk} unknowns: no redundancy")
+    dof = redundancy(problem)
     return Solution(state=st, layout=lay, cov_camera=cov, sigma0=float(np.sqrt(2.0 * cost / dof)), dof=dof,
                     cost=cost, iterations=it, converged=converged, obs_residual_px=res_px, obs_weight=w,
                     t0=problem.t0, history=history)
@@ -312,7 +293,7 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
 @dataclasses.dataclass
 class PartitionedSolver:
     """A ``solver`` for :func:`aerocal.adjust.bundle.adjust`: blocks of at least ``min_images`` images are solved
-    by :func:`solve_partitioned` in ``max(n_workers, ceil(N / max_images))`` sub-blocks (each holds at most
+    by :func:`solve_partitioned` in ``max(2, n_workers, ceil(N / max_images))`` sub-blocks (each holds at most
     about ``max_images`` images, bounding a worker's memory), smaller ones by the single solve. ``client``:
     a Dask client whose workers hold the sub-blocks (``None``: in this process). ``runs`` records, per solve,
     the images, sub-blocks and boundary images, for the step's summary."""

@@ -18,6 +18,7 @@ positions (3 per image), attitudes (3 per image, ``log(R R_rec^T)``), control GC
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -573,8 +574,10 @@ class SparseInverse:
             return self._dense[:, cols]
         missing = [int(c) for c in cols if int(c) not in self._cols]
         if missing and (len(self._cols) + len(missing)) * self.n * 8 > CACHE_BYTES:
-            # the cached columns are whole columns (n each): at city scale the check points' ~2400 columns
-            # of a 12,800-image block would hold 1.5 GB; keep only what this call asks for
+            # the cached columns are whole columns (n each): 50 check points seen in ~8 images each ask for
+            # ~2400 columns, 1.5 GB at 12,800 images (76,800 rows); keep only what this call asks for (the
+            # partitioned 12,800-image benchmark's caller peaked at 3.6 GB before this and the scattering of
+            # the sub-blocks, 2.9 GB after)
             asked = set(cols.tolist())
             self._cols = {c: v for c, v in self._cols.items() if c in asked}
         if missing:
@@ -600,33 +603,28 @@ class SparseInverse:
         return (self.n, self.n)
 
 
-def solve(problem: Problem, start: State) -> Solution:
-    """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
-    cfg = problem.cfg
-    st = start
-    cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
+def levenberg_marquardt(
+    cfg: AdjustConfig, cost: float, step: Callable[[float], tuple[float, float]], accept: Callable[[], float],
+    reject: Callable[[], None],
+) -> tuple[float, int, bool, list[float]]:
+    """The damping and stopping rule of :func:`solve` and :func:`aerocal.adjust.partition.solve_partitioned`.
+
+    ``cost``: at the start, already linearised there; ``step(lam)``: solve the normal equations damped by
+    ``lam``, form the candidate state and return ``(its cost, dc . rhs)``; ``accept()``: move to the candidate,
+    linearise there and return the cost; ``reject()``: drop it. Returns ``(cost, iterations, converged,
+    history)``."""
     lam = 1e-4
     history = [cost]
     converged = False
     it = 0
     for _ in range(cfg.max_iterations):
         it += 1
-        S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
-        dc = solve_reduced(S, rhs)
-        dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
-        step_metric = float(dc @ rhs)
-        # the reduced system and the operator's per-observation blocks (~0.3 kB per observation) are not
-        # needed past the step: freed before the next residuals are evaluated next to them
-        del S, Hpp_inv, Hcp, gp
-        cand = problem.apply(st, dc, dp)
-        problem.hold_close_points(st, cand)
-        new_cost = problem.residuals(cand, jac=False)[0]
+        new_cost, step_metric = step(lam)
         if np.isfinite(new_cost) and new_cost <= cost:
             rel = (cost - new_cost) / max(cost, 1e-300)
-            st, cost = cand, new_cost
-            history.append(cost)
+            history.append(new_cost)
             lam = max(lam / 10.0, 1e-12)
-            cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
+            cost = accept()
             # camera-side step in its own metric (dc' S dc = dc' rhs): below step_tolerance^2 the cameras
             # and IO moved by less than step_tolerance of their standard deviation; what still moves then
             # are tie points without a determined position (e.g. a two-ray track with a blunder under a
@@ -635,18 +633,60 @@ def solve(problem: Problem, start: State) -> Solution:
                 converged = True
                 break
         else:
+            reject()
             lam *= 10.0
             if lam > 1e8:
                 converged = True  # no further decrease possible: at the minimum to machine precision
                 break
+    return cost, it, converged, history
+
+
+def redundancy(problem: Problem) -> int:
+    """Degrees of freedom of ``problem``: its residuals (2 per image observation, 3 per image and prior, 3 per
+    control GCP) less its unknowns; an :class:`AdjustmentError` when there is no redundancy."""
+    b, lay = problem.b, problem.layout
+    priors = (problem.gnss_sigma is not None) + (problem.att_sigma is not None)
+    n_res = 2 * len(b.obs_image) + 3 * b.n_images * priors + 3 * len(b.control_ids)
+    n_unk = lay.n_camera + 3 * lay.n_points
+    if n_res <= n_unk:
+        raise AdjustmentError(f"the adjustment has {n_res} observations for {n_unk} unknowns: no redundancy")
+    return n_res - n_unk
+
+
+def solve(problem: Problem, start: State) -> Solution:
+    """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
+    now = {"state": start, "candidate": None}
+    lin = list(problem.residuals(start, jac=True, sparse=False))  # cost, res_px, w, r, Jc, Jp, Hpp
+
+    def step(lam: float) -> tuple[float, float]:
+        _, _, _, r, Jc, Jp, Hpp = lin
+        S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
+        dc = solve_reduced(S, rhs)
+        dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
+        step_metric = float(dc @ rhs)
+        # the reduced system and the operator's per-observation blocks (~0.3 kB per observation) are not
+        # needed past the step: freed before the next residuals are evaluated next to them
+        del S, Hpp_inv, Hcp, gp
+        cand = problem.apply(now["state"], dc, dp)
+        problem.hold_close_points(now["state"], cand)
+        now["candidate"] = cand
+        return problem.residuals(cand, jac=False)[0], step_metric
+
+    def accept() -> float:
+        now["state"], now["candidate"] = now["candidate"], None
+        lin[:] = problem.residuals(now["state"], jac=True, sparse=False)
+        return lin[0]
+
+    def reject() -> None:
+        now["candidate"] = None
+
+    _, it, converged, history = levenberg_marquardt(problem.cfg, lin[0], step, accept, reject)
+    st = now["state"]
+    _, _, _, r, Jc, Jp, Hpp = lin
     S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0, problem.blocks)
     cov = SparseInverse(S)
     cost, res_px, w = problem.residuals(st, jac=False)
-    n_res = len(r)
-    n_unk = problem.layout.n_camera + 3 * problem.layout.n_points
-    dof = n_res - n_unk
-    if dof <= 0:
-        raise AdjustmentError(f"the adjustment has {n_res} observations for {n_unk} unknowns: no redundancy")
+    dof = redundancy(problem)
     sigma0 = float(np.sqrt(2.0 * cost / dof))
     return Solution(
         state=st,

@@ -13,8 +13,7 @@ from aerocal.adjust.partition import PartitionedSolver
 from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
 from aerocal.eo_checks import correct_gnss_offset
-from aerocal.matching import dask_client
-from aerocal.matching.cluster import n_workers
+from aerocal.matching.cluster import dask_client, n_workers
 from aerocal.pipeline.config import BlockStepConfig
 from aerocal.pipeline.runner import ArrayOutput, JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
