@@ -215,8 +215,10 @@ class TwinComparison:
             if not ext["plausible"]:
                 parts.append(f"a {name} would need {ext['physical']:.2g} {ext['unit']}, beyond what is physically "
                              f"possible (taken as at most {ext['bound']:.2g}, an assumption): it is not the cause")
-        as_whole = [k for k in self.differs if k not in self.cause and self.combined
-                    and k not in self.combined["still_differs"]]
+        c = self.combined
+        off = set(c.get("overshoots", ())) | set(c.get("undecided", ())) if c else set()
+        as_whole = [k for k in self.differs if k not in self.cause and c and k not in c["still_differs"]
+                    and k not in off]
         if as_whole:
             parts.append(f"{', '.join(as_whole)}: reproduced by the extended simulation as a whole")
         for k in (k for k in self.differs if k not in self.cause and k not in as_whole):
@@ -226,12 +228,17 @@ class TwinComparison:
             beyond = " at a size beyond its physical bound" if best and not self.extended[best[1]]["plausible"] else ""
             parts.append(f"{k}: no extension tried explains it" + (
                 f" (the most: {best[1]}, {100 * best[0]:.0f} % of its gap{beyond})" if best else ""))
-        if self.combined:
-            c = self.combined
+        if c:
             closed = ", ".join(f"{k} {100 * v:.0f} %" for k, v in c["gap_closed"].items())
             still = ", ".join(c["still_differs"]) or "nothing"
             parts.append(f"the simulation extended with {', '.join(c['extensions'])} at once closes {closed}; "
                          f"beyond its twins' spread still: {still}")
+            if c.get("overshoots"):
+                parts.append(f"it overshoots {', '.join(c['overshoots'])}: the extensions' sizes, each found on "
+                             "its own, add up when applied together, so they are upper bounds, not measurements")
+            if c.get("undecided"):
+                parts.append(f"{', '.join(c['undecided'])}: within the extended twins' spread only because it is "
+                             "wide; the twins cannot decide")
         return "; ".join(parts)
 
 
@@ -525,10 +532,22 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
                     for k in range(n_twins)]
         both_mean, both_sd = _spread(both)
         z_both, still = _differs(base, real, both_mean, both_sd, z_limit)
+        gap_closed = _closed(both_mean, real, mean, differs)
         out.combined = {"extensions": {n: sizes[n] for n in named}, "twin_mean": both_mean, "twin_sd": both_sd,
-                        "z": z_both, "gap_closed": _closed(both_mean, real, mean, differs),
-                        "still_differs": still}
+                        "z": z_both, "gap_closed": gap_closed, "still_differs": still,
+                        **_combined_misses(gap_closed, still)}
     return out
+
+
+def _combined_misses(gap_closed: dict[str, float], still: dict) -> dict[str, list[str]]:
+    """The statistics the twins extended by every named cause at once do not reproduce although they are within
+    those twins' spread: ``overshoots``, whose gap they over-close by more than 1 - :data:`NAMED_CLOSENESS`
+    (on real h20t, sizes found one at a time closed the per-image scale 181 % and the tail fraction 265 %
+    together, and a one-sided test against the twins had called that "reproduced"), and ``undecided``, whose gap
+    they close by less than :data:`NAMED_CLOSENESS` (within the spread only because it is wide)."""
+    over = [k for k, v in gap_closed.items() if k not in still and v > 2.0 - NAMED_CLOSENESS]
+    under = [k for k, v in gap_closed.items() if k not in still and v < NAMED_CLOSENESS]
+    return {"overshoots": over, "undecided": under}
 
 
 def _closeness(info: dict, stat: str) -> float:

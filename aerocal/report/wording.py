@@ -469,4 +469,12 @@ def twin_view(twin: Mapping) -> dict:
         still = [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get("still_differs") or []]
         out.append(f"The simulation extended with {', '.join(combined['extensions'])} at once reproduces the block"
                    + (f" except the {', '.join(still)}." if still else "."))
+        over = [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get("overshoots") or []]
+        if over:
+            out.append(f"It overshoots the {', '.join(over)}: the causes' sizes, each found on its own, add up when "
+                       "applied together; they are upper bounds, not measurements.")
+        undecided = [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get("undecided") or []]
+        if undecided:
+            out.append(f"The {', '.join(undecided)} {'is' if len(undecided) == 1 else 'are'} within the extended "
+                       "twins' spread only because that spread is wide: the twins cannot decide.")
     return {"lead": lead, "rows": rows, "sentences": out}
