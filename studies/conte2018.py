@@ -30,8 +30,8 @@ The diagnosis (``aerocal.diagnose``, with its twin ``aerocal.twin``) is run on t
 with today's model, to name what today's simulation lacks.
 
 The same strategies are also run as a user runs them (:func:`product_runs`): every flight through
-:func:`aerocal.pipeline.process`, certificates issued into and pinned from a SQLite database by the platform's
-store, the diagnosis step on every block. The product does not run away on STR2: it adjusts the recorded
+:func:`aerocal.pipeline.process`, certificates issued into and pinned from one certificate store across the
+flights, the diagnosis step on every block. The product does not run away on STR2: it adjusts the recorded
 attitude as an observation, which holds f (measured: the engine's STR2 with the flight's IMU sigmas, and the
 sweep over the attitude's weight).
 
@@ -53,13 +53,10 @@ import pyarrow as pa
 from aerocal.adjust import AdjustConfig, adjust, run_strategy
 from aerocal.certificate_selection import NoCertificateError
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
-from aerocal.pipeline import process
+from aerocal.pipeline import MemoryCertificates, process
 from aerocal.simulate import as_dataset, get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
-from flows.environment import resolve_storage
-from storage.steps import StepContext
-from studies.papers import OUT, as_checks, gnss_priors, pyplot, reference, save_png, study_parser, write_study
-from tasks.certificates import DatabaseCertificates
+from studies.papers import as_checks, gnss_priors, pyplot, reference, save_png, study_parser, write_study
 
 #: the focal drift hidden in every simulated flight (px/degC; 5 um/degC at 23.5 um pixels is 0.21 px/degC, a
 #: non-athermalised germanium lens; NOTES.md) and the 2016 flight's colder start (degC)
@@ -101,7 +98,7 @@ class StudyConfig:
     # STR2's adaptive selection (re-adjusts after each drop: 3x the time); the quick mode leaves it out, as it
     # changes the runaway by < 1 % (30 frames: DoD -183.5 m adaptive, -184.4 m not; 60 frames: -153.6 / -153.9)
     adaptive: bool = True
-    # the strategies run as a user runs them (aerocal.pipeline.process, certificates in a database)
+    # the strategies run as a user runs them (aerocal.pipeline.process, one certificate store across flights)
     product: bool = True
 
     @staticmethod
@@ -216,20 +213,17 @@ def run_model(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
     return out
 
 
-def product_runs(cfg: StudyConfig, model: Model, seed: int, work: Path, log=print) -> dict:
+def product_runs(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
     """The strategies as a user of aerocal runs them: every flight through :func:`aerocal.pipeline.process`
-    (observations mode, default configuration), certificates issued into and chosen from a SQLite database
-    by the platform's store (:class:`tasks.certificates.DatabaseCertificates`), the diagnosis step on every
-    block. STR1 pins the calibration flight's certificate; STR2 is the product's own self-calibration of the
-    GNSS-only city block (with its checks: what the block determines, the nominal camera as prior, held-out
-    strips), issued as a certificate; STR3 pins 2016's STR2 certificate on 2017. The product chooses its own
-    free set: the paper's per-strategy free sets are the engine runs' business (:func:`run_model`)."""
+    (observations mode, default configuration), certificates issued into and chosen from one certificate store
+    across the flights (:class:`aerocal.pipeline.MemoryCertificates`: the selection and issue rules the
+    platform's database store applies too), the diagnosis step on every block. STR1 pins the calibration
+    flight's certificate; STR2 is the product's own self-calibration of the GNSS-only city block (with its
+    checks: what the block determines, the nominal camera as prior, held-out strips), issued as a
+    certificate; STR3 pins 2016's STR2 certificate on 2017. The product chooses its own free set: the paper's
+    per-strategy free sets are the engine runs' business (:func:`run_model`)."""
     cal, years = flights(cfg, seed, model.effects)
-    work.mkdir(parents=True, exist_ok=True)
-    db = work / f"certificates-{model.name}-{seed}.sqlite"
-    db.unlink(missing_ok=True)
-    where = resolve_storage(f"sqlite:///{db}", work / "artifacts")
-    store = DatabaseCertificates(StepContext(where.database_url, where.artifact_root, f"conte2018-{seed}"))
+    store = MemoryCertificates()
     out: dict = {}
     run = process(as_dataset(cal, "conte-calibration"), certificates=store, calibrate_only=True)
     out["CAL"] = _certificate_row(run)
@@ -329,7 +323,7 @@ def _plain(obj):
     return json.loads(json.dumps(obj, default=lambda o: o.tolist() if hasattr(o, "tolist") else str(o)))
 
 
-def run(quick: bool = False, cfg: StudyConfig | None = None, log=print, work: Path = OUT) -> dict:
+def run(quick: bool = False, cfg: StudyConfig | None = None, log=print) -> dict:
     """All numbers of the study (plain JSON types): per model, seed and strategy/year; the sweep and the
     diagnosis when configured; the paper's rows."""
     cfg = cfg or (StudyConfig.for_quick() if quick else StudyConfig())
@@ -354,8 +348,7 @@ def run(quick: bool = False, cfg: StudyConfig | None = None, log=print, work: Pa
         for seed in cfg.seeds:
             for model in MODELS:
                 log(f"Conte 2018, seed {seed}, {model.name} model, through aerocal process")
-                out["product"][model.name][str(seed)] = product_runs(
-                    cfg, model, seed, work / f"conte2018{'_quick' if cfg.quick else ''}_runs", log)
+                out["product"][model.name][str(seed)] = product_runs(cfg, model, seed, log)
     if cfg.sweep:
         log("Conte 2018: STR2 runaway against readout and free set")
         out["sweep"] = sweep(cfg, cfg.seeds[0], log)
@@ -502,7 +495,7 @@ def product_markdown(result: dict) -> list[str]:
 
     L = ["### The strategies through the product (`aerocal.pipeline.process`)", "",
          "Every flight run as a user runs it (observations mode, default configuration; the city blocks' GCPs as "
-         "check points), certificates issued into and chosen from a SQLite database by the platform's store. "
+         "check points), certificates issued into and chosen from one certificate store across the flights. "
          "STR1 pins the calibration flight's certificate, STR2 is the product's own self-calibration of the "
          "city block (it chooses its free set, checks what the block determines and holds the rest at the "
          "nominal camera), STR3 pins 2016's STR2 certificate on 2017. Means over the seeds.", "",
@@ -740,7 +733,7 @@ def main(argv: list[str] | None = None) -> Path:
         cfg = dataclasses.replace(cfg, city_images=args.city_images)
     if args.seeds:
         cfg = dataclasses.replace(cfg, seeds=tuple(args.seeds))
-    result = json.loads(args.from_json.read_text()) if args.from_json else run(cfg=cfg, work=args.out)
+    result = json.loads(args.from_json.read_text()) if args.from_json else run(cfg=cfg)
     md = write_study("conte2018", result, markdown, figure, args.out, result["quick"])
     print(f"wrote {md} ({result['seconds']:.0f} s)")
     return md

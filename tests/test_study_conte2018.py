@@ -5,7 +5,7 @@ readout, CAL4's free set for the certificate) must show the paper's contrasts: t
 DSM on the ground, the self-calibration (STR2) runs away with the focal length while its check points stay
 good, STR3 carries the other year's runaway, and a certificate without b1/b2 (CAL6) fits the GCPs worse than
 CAL4; today's model (no readout) shows none of it. The same strategies through the product (the pipeline, a
-certificate database, the diagnosis step) do not run away, and the diagnosis names the readout.
+certificate store across the flights, the diagnosis step) do not run away, and the diagnosis names the readout.
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def test_conte2018_quick_reproduces_the_papers_contrasts(tmp_path):
     # with the recorded attitude as an observation (as the product adjusts) the same self-calibration holds f
     assert abs(ext[study.ATTITUDE_ROW]["dod"]) < 0.1 * abs(s2["dod"]), ext[study.ATTITUDE_ROW]
 
-    # through the product (aerocal.pipeline.process, certificates in a database): no runaway, the readout named
+    # through the product (aerocal.pipeline.process, one certificate store): no runaway, the readout named
     prod = result["product"]
     for year in ("2016", "2017"):
         row = prod["extended"]["1"][f"STR2 {year}"]
