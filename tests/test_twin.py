@@ -148,5 +148,11 @@ def test_an_extended_simulation_that_overshoots_is_not_said_to_reproduce_the_blo
     assert "it overshoots tail_fraction, per_image_scale" in text, text
     assert "per_image_row_field: within the extended twins' spread only because it is wide" in text, text
     assert "per_image_scale: no extension tried explains it" in text, text
+    # an extension whose own twins close the gap while the combined ones overshoot it: not attributed to it
+    c.extended["image-plane field"] = {"size": 0.5, "physical": 0.5, "unit": "px RMS", "bound": 3.0,
+                                       "plausible": True, "gap_closed": {"per_image_scale": 1.09}}
+    assert ("per_image_scale: not attributed: the image-plane field's twins close 109 % of its gap, the extended "
+            "simulation's as a whole 181 %") in c.summary(), c.summary()
     report = " ".join(twin_view(c.to_dict())["sentences"])
     assert "overshoots" in report and "cannot decide" in report, report
+    assert "reproduces the block except the" in report, report

@@ -466,14 +466,16 @@ def twin_view(twin: Mapping) -> dict:
                        "beyond what is physically possible: it is not the cause.")
     combined = twin.get("combined") or {}
     if combined.get("extensions"):
-        still = [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get("still_differs") or []]
+        def labels(key: str) -> list[str]:
+            return [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get(key) or []]
+
+        still, over, undecided = labels("still_differs"), labels("overshoots"), labels("undecided")
+        missed = still + over + undecided
         out.append(f"The simulation extended with {', '.join(combined['extensions'])} at once reproduces the block"
-                   + (f" except the {', '.join(still)}." if still else "."))
-        over = [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get("overshoots") or []]
+                   + (f" except the {', '.join(missed)}." if missed else "."))
         if over:
             out.append(f"It overshoots the {', '.join(over)}: the causes' sizes, each found on its own, add up when "
                        "applied together; they are upper bounds, not measurements.")
-        undecided = [TWIN_LABELS.get(k, humanise(k)[0]).lower() for k in combined.get("undecided") or []]
         if undecided:
             out.append(f"The {', '.join(undecided)} {'is' if len(undecided) == 1 else 'are'} within the extended "
                        "twins' spread only because that spread is wide: the twins cannot decide.")
