@@ -118,7 +118,7 @@ def correct_gnss_offset(
     cfg = dataclasses.replace(config, thermal=(), adaptive=False, tie_thinning=None)
     try:
         d = diagnose(images, observations, camera, cfg, gcps, gcp_observations,
-                     DiagnoseConfig(hypotheses=tested + TIME_LAG_RIVALS, max_effects=len(tested) + 1,
+                     DiagnoseConfig(hypotheses=tested + TIME_LAG_RIVALS, max_effects=len(tested + TIME_LAG_RIVALS),
                                     max_images=max_images, twins=0))
     except (AdjustmentError, np.linalg.LinAlgError, ValueError) as exc:
         return GnssCorrection(images, notes=[f"GNSS offset and time lag not tested: the block could not be adjusted "

@@ -655,11 +655,11 @@ def redundancy(problem: Problem) -> int:
 
 def solve(problem: Problem, start: State) -> Solution:
     """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
-    now = {"state": start, "candidate": None}
-    lin = list(problem.residuals(start, jac=True, sparse=False))  # cost, res_px, w, r, Jc, Jp, Hpp
+    st, cand = start, None
+    cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
 
     def step(lam: float) -> tuple[float, float]:
-        _, _, _, r, Jc, Jp, Hpp = lin
+        nonlocal cand
         S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
         dc = solve_reduced(S, rhs)
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
@@ -667,22 +667,21 @@ def solve(problem: Problem, start: State) -> Solution:
         # the reduced system and the operator's per-observation blocks (~0.3 kB per observation) are not
         # needed past the step: freed before the next residuals are evaluated next to them
         del S, Hpp_inv, Hcp, gp
-        cand = problem.apply(now["state"], dc, dp)
-        problem.hold_close_points(now["state"], cand)
-        now["candidate"] = cand
+        cand = problem.apply(st, dc, dp)
+        problem.hold_close_points(st, cand)
         return problem.residuals(cand, jac=False)[0], step_metric
 
     def accept() -> float:
-        now["state"], now["candidate"] = now["candidate"], None
-        lin[:] = problem.residuals(now["state"], jac=True, sparse=False)
-        return lin[0]
+        nonlocal st, cand, r, Jc, Jp, Hpp
+        st, cand = cand, None
+        new_cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
+        return new_cost
 
     def reject() -> None:
-        now["candidate"] = None
+        nonlocal cand
+        cand = None
 
-    _, it, converged, history = levenberg_marquardt(problem.cfg, lin[0], step, accept, reject)
-    st = now["state"]
-    _, _, _, r, Jc, Jp, Hpp = lin
+    _, it, converged, history = levenberg_marquardt(problem.cfg, cost, step, accept, reject)
     S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0, problem.blocks)
     cov = SparseInverse(S)
     cost, res_px, w = problem.residuals(st, jac=False)
