@@ -512,9 +512,15 @@ def product_markdown(result: dict) -> list[str]:
     named = [r for r in readouts if r is not None]
     today_named = [r for k in ROWS for r in prod["today"][k]["readout_ms"] if r is not None]
     s2 = [ext["STR2 2016"], ext["STR2 2017"]]
+    f_nominal = get_preset("conte-city").camera_nominal.f
+    # the certificates the product issued (calibration flight, STR2 per year) and which removed a GNSS lag
+    issued = [v[k] for v in result["product"]["extended"].values() for k in ("CAL", "STR2 2016", "STR2 2017")
+              if k in v and "notes" in v[k]]
+    lag_removed = sum(any(n.startswith("GNSS time lag") and "removed from" in n for n in r["notes"]) for r in issued)
     L += ["", "**What the product decided, and why.** "
           f"The calibration flight's certificate (STR1's) has f {cal['f']:.1f} px against the true "
-          f"{f_true:.1f} px ({', '.join(map(str, cal['status']))}): the 11 GCPs pin f, and the readout, which "
+          f"{f_true:.1f} px, nominal {f_nominal:.1f} px ({', '.join(map(str, cal['status']))}): the 11 GCPs "
+          "pin f, and the readout, which "
           "the product's camera model does not hold, moves it by "
           f"{cal['f'] - prod['today']['CAL']['f']:+.1f} px against today's model's certificate "
           f"({prod['today']['CAL']['f']:.1f} px). "
@@ -523,13 +529,14 @@ def product_markdown(result: dict) -> list[str]:
           f"{engine['STR2 2016']['dod']:+.0f} / {engine['STR2 2017']['dod']:+.0f} m: it frees f only where the "
           f"block determines it (f estimated in {sum(s2[0]['f_determined']) + sum(s2[1]['f_determined'])} of "
           f"{len(s2[0]['f_determined']) + len(s2[1]['f_determined'])} STR2 runs; elsewhere the nominal f, whose "
-          f"error H df / f is {H * (f_true - 1668.085) / f_true:+.1f} m at the reference temperature, plus the "
+          f"error H df / f is {H * (f_true - f_nominal) / f_true:+.1f} m at the reference temperature, plus the "
           "thermal drift). " + attitude_reason(result) + " "
           f"The diagnosis step names a rolling shutter on {len(named)} of {len(readouts)} extended city runs "
           + (f"({min(named):.1f}-{max(named):.1f} ms; simulated {1000 * result['readout_s']:.0f} ms)"
              if named else "") + f" and on {len(today_named)} of today's model's (which has none). "
           "The GNSS time lag that the readout mimics is tested beside it before the calibration "
-          "(`aerocal.eo_checks.TIME_LAG_RIVALS`), so no lag is removed from flights that have none. "
+          f"(`aerocal.eo_checks.TIME_LAG_RIVALS`): a lag was removed in {lag_removed} of the {len(issued)} "
+          "certificates the product issued on these flights, which have none. "
           "What the product still lacks: a readout term in the camera model, so that the named rolling shutter "
           "is corrected rather than only reported (STR1's certificate carries its f shift).", ""]
     return L
