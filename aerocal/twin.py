@@ -224,7 +224,7 @@ class TwinComparison:
         for k in (k for k in self.differs if k not in self.cause and k not in as_whole):
             tried = [(v["gap_closed"][k], n) for n, v in self.extended.items() if k in v["gap_closed"]]
             best = max(tried, default=None)
-            whole = (c.get("gap_closed") or {}).get(k) if c else None
+            whole = (c.get("gap_closed") or {}).get(k) if c and k not in c["still_differs"] else None
             if best and _closeness(self.extended[best[1]], k) >= NAMED_CLOSENESS and whole is not None:
                 # its own twins' mean lands near the statistic but the same causes' twins taken together do not
                 # (real h20t: the image-plane field's twins closed the per-image scale 109 %, the combined 181 %):
