@@ -60,7 +60,7 @@ def _run_flow(
     if not flight_dir.is_dir():
         raise FlowInputError(f"{flight_dir} is not a folder; give a flight folder (images/ or observations/)")
     if not certificate:
-        raise FlowInputError("certificate is empty; give auto, none or a certificate id")
+        raise FlowInputError("certificate is empty; give auto, none, nominal or a certificate id")
     config = config or ProcessConfig()
     out = Path(out_dir).resolve() if out_dir else flight_dir.with_name(flight_dir.name + "-processed")
     where = resolve_storage(database_url, artifact_root)  # a bad URL fails here, before any folder is made
@@ -134,7 +134,8 @@ def process_flight(
     computed or reused, output SHA-256s, files written, diagnosis, accuracy verdict).
 
     ``certificate``: ``"auto"`` (the stored certificate that applies, else self-calibrate and store one),
-    ``"none"`` (always self-calibrate) or a certificate id (pinned). ``out_dir`` defaults to
+    ``"none"`` (always self-calibrate), ``"nominal"`` (the flight's nominal camera, not calibrated) or a
+    certificate id (pinned). ``out_dir`` defaults to
     ``<flight_dir>-processed``. See :mod:`flows.environment` for the defaults of the other arguments.
     """
     return _run_flow(

@@ -74,6 +74,8 @@ class Provenance:
     outputs: list[ArtifactInfo] = field(default_factory=list)
     edges: list[tuple[int, int]] = field(default_factory=list)
     error: str | None = None
+    #: why the run used its certificate, or the nominal camera (then ``certificate`` is ``None``)
+    certificate_reason: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON types (times and dates as ISO-8601 text)."""
@@ -194,6 +196,7 @@ def provenance(session: Session, run_id: str) -> Provenance:
         outputs=outputs,
         edges=[(int(i), int(o)) for i, o in edges],
         error=run.error,
+        certificate_reason=run.certificate_reason,
     )
 
 

@@ -156,9 +156,15 @@ def record_timing(session: Session, run_id: str, step: str, seconds: float) -> N
     session.flush()
 
 
-def record_certificate(session: Session, run_id: str, certificate: Certificate | str, reason: str) -> None:
-    """Record the certificate the run uses and why it was chosen."""
+def record_certificate(session: Session, run_id: str, certificate: Certificate | str | None, reason: str) -> None:
+    """Record the certificate the run uses and why it was chosen (``None``: the flight's nominal camera, which is
+    no stored certificate; the reason says so)."""
     run = get_run(session, run_id)
+    if certificate is None:
+        run.certificate_id = None
+        run.certificate_reason = reason
+        session.flush()
+        return
     if isinstance(certificate, str):
         found = session.get(Certificate, certificate)
         if found is None:

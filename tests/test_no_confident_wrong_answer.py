@@ -108,3 +108,34 @@ def test_a_corridor_is_calibrated_whole_and_says_why(tmp_path, prefect_server):
     assert abs(cert.camera.f - truth["camera_true"]["f"]) < 4 * cert.sigmas["f"], f"seed {seed}: {cert.camera}"
     diagnosis = _cli("diagnose", summary["out_dir"], "--json")
     assert diagnosis.exit_code == 0, diagnosis.output
+
+
+def test_the_nominal_camera_is_used_as_given_and_never_stored(tmp_path, prefect_server):
+    """`--certificate nominal`: a metric camera's laboratory calibration (camera.json) adjusts the block as it is,
+    nothing is calibrated or issued (not even a focal length 0.2 % short of the truth), and the run's record
+    says so."""
+    seed = 11
+    spec = PRESETS["conte-calibration"]
+    flight = tmp_path / "flight"
+    write_flight(simulate_flight(spec, seed=seed), flight)
+    doc = json.loads((flight / "camera.json").read_text())
+    truth = json.loads((flight / "truth.json").read_text())
+    doc["camera"]["f"] = truth["camera_true"]["f"] * 0.998
+    (flight / "camera.json").write_text(json.dumps(doc))
+
+    summary = _process(flight, tmp_path / "run", tmp_path, certificate="nominal")
+    assert "nominal" in summary["certificate_reason"] and "calibrate" not in summary["steps"], summary
+    used = Certificate.from_json(Path(summary["files"]["certificate"]).read_text())
+    assert used.estimated == () and used.camera.f == doc["camera"]["f"], used.camera
+    assert "calibration_certificate" not in summary["files"]
+    listing = _cli("certificates", "list", "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}")
+    assert listing.exit_code == 0 and used.id not in listing.output, listing.output
+    runs = _cli("runs", "show", summary["run_id"], "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}")
+    assert runs.exit_code == 0 and "nominal" in runs.output, runs.output
+
+    # a calibration flight makes a certificate: asking it for the nominal camera is refused, naming the fix
+    from aerocal.pipeline import process
+    from aerocal.pipeline.dataset import FlightInputError
+
+    with pytest.raises(FlightInputError, match="give auto or none"):
+        process(flight, certificate="nominal", calibrate_only=True)

@@ -24,8 +24,11 @@ from aerocal.pipeline.dataset import IngestSettings
 from aerocal.pipeline.runner import configuration_json
 
 #: values of ``certificate`` that are not certificate ids: ``auto`` (the stored certificate that applies, else
-#: self-calibrate) and ``none`` (always self-calibrate)
-CERTIFICATE_MODES = ("auto", "none")
+#: self-calibrate), ``none`` (always self-calibrate) and ``nominal`` (the flight's nominal camera as given in its
+#: camera.json, e.g. a metric camera's laboratory calibration: neither calibrated nor stored)
+CERTIFICATE_MODES = ("auto", "none", "nominal")
+#: the ``certificate`` mode that adjusts the block with the nominal camera
+NOMINAL = "nominal"
 
 #: the ingest step's configuration (kept under this name for flow configurations)
 IngestStepConfig = IngestSettings

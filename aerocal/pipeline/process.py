@@ -30,9 +30,11 @@ from aerocal.pipeline.certificates import (
     choose_stored,
     identity_of,
     issue_calibration,
+    nominal_certificate,
 )
 from aerocal.pipeline.config import (
     CERTIFICATE_MODES,
+    NOMINAL,
     Adjustments,
     ProcessConfig,
     effective_adjustments,
@@ -78,8 +80,8 @@ class RunRecorder(Protocol):
         """The adjustment settings in effect (again when they change: a block oriented by SfM)."""
         ...
 
-    def certificate(self, certificate_id: str, reason: str) -> None:
-        """The certificate the run uses and why."""
+    def certificate(self, certificate_id: str | None, reason: str) -> None:
+        """The certificate the run uses and why (``None``: the nominal camera, which is no stored certificate)."""
         ...
 
 
@@ -135,7 +137,9 @@ def process(
         flight: a flight folder or a :class:`~aerocal.pipeline.dataset.FlightDataset`.
         config: every step's settings (default :class:`ProcessConfig`).
         certificate: ``"auto"`` (the stored certificate that applies, else self-calibrate and issue one),
-            ``"none"`` (always self-calibrate) or a certificate id (pinned).
+            ``"none"`` (always self-calibrate), ``"nominal"`` (the nominal camera of the flight's camera.json, as
+            a metric camera's laboratory calibration is used: not calibrated, not stored) or a certificate id
+            (pinned).
         out_dir: where the products, report and documents are written (:data:`EXPORTS`); ``None``: nowhere
             (read them from the returned :class:`FlightRun`).
         runner: computes the steps (default: a :class:`~aerocal.pipeline.runner.LocalRunner`, in memory).
@@ -151,7 +155,10 @@ def process(
         NoCertificateError: a pinned certificate does not apply.
     """
     if not certificate:
-        raise FlightInputError("certificate is empty; give auto, none or a certificate id")
+        raise FlightInputError("certificate is empty; give auto, none, nominal or a certificate id")
+    if certificate == NOMINAL and calibrate_only:
+        raise FlightInputError("certificate nominal with calibrate_only: a calibration flight makes a certificate; "
+                               "give auto or none")
     dataset = dataset_of(flight)
     config = config or ProcessConfig()
     runner = runner or LocalRunner()
@@ -190,6 +197,9 @@ def process(
     document, reason = None, "self-calibration asked for"
     if certificate == "auto" and not calibrate_only:
         document, reason = choose_stored(store, cam_doc, flight_doc, None, config.max_certificate_age_days)
+    elif certificate == NOMINAL:
+        document = nominal_certificate(cam_doc, runner.run_id, "asked for (certificate nominal)")
+        reason = "the nominal camera of the flight's camera.json, as asked (certificate nominal): not calibrated"
     elif certificate not in CERTIFICATE_MODES:
         document, reason = choose_stored(store, cam_doc, flight_doc, certificate, config.max_certificate_age_days)
     outputs: dict[str, str] = {"ground_control": ctl["screening"]}
@@ -204,7 +214,7 @@ def process(
             reason = f"{reason} ({why_not})"
     else:
         cert_id = document["id"]
-    record.certificate(cert_id, reason)
+    record.certificate(None if certificate == NOMINAL else cert_id, reason)
     cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
 
     if not calibrate_only:

@@ -251,8 +251,8 @@ def process(
     flight_dir: Path = typer.Argument(..., help="Flight folder (images/ or observations/, eo.csv, gcp files)."),
     certificate: str = typer.Option(
         "auto", "--certificate",
-        help="auto (stored certificate that applies, else self-calibrate), none (always self-calibrate) or a "
-        "certificate id.",
+        help="auto (stored certificate that applies, else self-calibrate), none (always self-calibrate), nominal "
+        "(the camera.json camera as given, e.g. a metric camera's laboratory calibration) or a certificate id.",
     ),
     out: Path | None = typer.Option(None, "--out", help="Run folder (default: FLIGHT_DIR-processed)."),
     dask: str | None = DASK_OPTION,

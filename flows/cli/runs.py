@@ -114,8 +114,9 @@ def runs_show(
         ("ended", prov.ended.isoformat() if prov.ended else "-"),
         ("code version", prov.code_version or "-"),
         ("flight", prov.flight or "-"),
-        ("certificate", f"{cert.id} v{cert.version} ({cert.camera})" if cert else "-"),
-        ("why", (cert.reason or "-") if cert else "-"),
+        ("certificate", f"{cert.id} v{cert.version} ({cert.camera})" if cert
+         else "the nominal camera (no stored certificate)" if prov.certificate_reason else "-"),
+        ("why", prov.certificate_reason or "-"),
         ("configuration", json.dumps(prov.configuration, sort_keys=True)),
     ):
         summary.add_row(key, value)
