@@ -12,6 +12,7 @@ from aerocal.adjust import AdjustConfig, adjust_fixed_io
 from aerocal.adjust.partition import PartitionedSolver
 from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
+from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.eo_checks import correct_gnss_offset
 from aerocal.matching.cluster import dask_client, n_workers
 from aerocal.pipeline.config import BlockStepConfig
@@ -51,7 +52,7 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
         corrections = None
         if config.recorded_eo_images and acfg.gnss_sigma_m is not None:
             eo = correct_gnss_offset(images, obs, cert.camera, dataclasses.replace(acfg, free=()), gcps, gobs,
-                                     config.recorded_eo_images)
+                                     config.recorded_eo_images, IOUncertainty.from_certificate(cert))
             images = eo.images
             corrections = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
                            "time_sigma_s": eo.time_sigma_s, "notes": eo.notes}
