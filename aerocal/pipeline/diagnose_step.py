@@ -1,22 +1,42 @@
 """The diagnosis step: residual analysis against the catalogue of unmodelled effects, IO fixed from the
-certificate (:func:`aerocal.diagnose.engine.diagnose`), with the flight's twin."""
+certificate (:func:`aerocal.diagnose.engine.diagnose`), with the flight's twin. The block's model is diagnosed: where
+the block adjustment corrected the measurements with the certificate's thermal model, so are the diagnosis's, and a
+thermal effect it names is what that model leaves."""
 
 from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
+from aerocal.camera import LinearThermalModel, correct_measurements
 from aerocal.certificate import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
 
 
+def corrected_to_t0(images: pa.Table, observations: pa.Table, camera, model: LinearThermalModel | None) -> pa.Table:
+    """``observations`` (tie points or GCP measurements, pixels) corrected to ``model``'s reference temperature
+    with each image's ``temperature_c``, as the block adjustment corrects them
+    (:func:`aerocal.camera.correct_measurements`); unchanged without a model or rows."""
+    if model is None or observations.num_rows == 0:
+        return observations
+    temp = dict(zip(images.column("image_id").to_pylist(), images.column("temperature_c").to_numpy(), strict=True))
+    T = np.array([temp[i] for i in observations.column("image_id").to_pylist()], dtype=float)
+    uv = np.column_stack([observations.column("x").to_numpy(), observations.column("y").to_numpy()])
+    uv = correct_measurements(camera, uv, T, model)
+    for k, name in enumerate(("x", "y")):
+        observations = observations.set_column(observations.schema.get_field_index(name), name,
+                                               pa.array(uv[:, k], observations.schema.field(name).type))
+    return observations
+
+
 def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
                   config: DiagnoseConfig | None = None, adjust_config: AdjustConfig | None = None,
-                  adjusted: StepResult | None = None) -> StepResult:
+                  adjusted: StepResult | None = None, thermal_correction: bool = False) -> StepResult:
     """Output ``diagnosis``: the hypotheses tested, the effects named with magnitude and evidence, the gain on
     check points, the recorded-EO checks, the twin, and a one-line verdict (``summary``).
 
@@ -24,6 +44,10 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
     0 in its ``obs_weight``) are left out and the diagnosis adjusts by least squares at once, instead of
     screening the same block again (a robust pass and a least-squares re-adjustment of the whole block: on the
     818-image city flight the block adjustment that does this took 180 s).
+
+    ``thermal_correction``: the block adjustment corrected the measurements with the certificate's linear thermal
+    model; the diagnosis does too. Without it, a Daakir corridor processed with a certificate holding the
+    principal point's slopes, its correction applied, still had that drift named (-0.084 / +0.272 px/degC).
     """
     inputs = {k: ingest[k] for k in ("images", "gcps", "gcp_observations")}
     inputs.update(observations=observations, certificate=certificate)
@@ -35,7 +59,11 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
         cert = Certificate.from_dict(inp.json("certificate"))
         t0 = getattr(None if cert.thermal is None else cert.thermal.model, "t0", None)
         dcfg = config or DiagnoseConfig(reference_temperature=t0)
-        obs = inp.table("observations")
+        thermal = cert.thermal.model if thermal_correction and cert.thermal is not None else None
+        thermal = thermal if isinstance(thermal, LinearThermalModel) else None
+        images = inp.table("images")
+        obs = corrected_to_t0(images, inp.table("observations"), cert.camera, thermal)
+        gobs = corrected_to_t0(images, inp.table("gcp_observations"), cert.camera, thermal)
         run_cfg = dataclasses.replace(acfg, free=(), thermal=(), adaptive=False)
         screening = None
         if inp.has("obs_weight"):
@@ -52,12 +80,13 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
             obs = scale_tie_sigma(obs.take(pa.array(keep, pa.int64())), tie_scale)
             screening += f"; tie-point sigma x {tie_scale:.3f} as estimated by the block adjustment"
             run_cfg = dataclasses.replace(run_cfg, robust_loss="none")
-        result = diagnose(inp.table("images"), obs, cert.camera, run_cfg, inp.table("gcps"),
-                          inp.table("gcp_observations"), dcfg, IOUncertainty.from_certificate(cert),
+        result = diagnose(images, obs, cert.camera, run_cfg, inp.table("gcps"), gobs, dcfg,
+                          IOUncertainty.from_certificate(cert),
                           (inp.table("poses"), inp.table("points")) if inp.has("poses") else None)
         doc = result.to_dict()
         doc["summary"] = result.summary()
         doc["screening"] = screening
         return {"diagnosis": JsonOutput(doc, "diagnosis")}
 
-    return runner.run("diagnose", inputs, {"diagnose": config or DiagnoseConfig(), "adjust": acfg}, compute)
+    return runner.run("diagnose", inputs, {"diagnose": config or DiagnoseConfig(), "adjust": acfg,
+                                           "thermal_correction": bool(thermal_correction)}, compute)

@@ -223,7 +223,7 @@ def process(
         mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, dask_address)
         ass = steps["assess"] = assess_step(runner, ing, observations, adj)
         dia = steps["diagnose"] = diagnose_step(runner, ing, observations, cert_ref, config.diagnose,
-                                                adjustments.block, adj)
+                                                adjustments.block, adj, config.block.thermal_correction)
         seconds = {name: res.seconds for name, res in steps.items() if not res.skipped}
         rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report, seconds)
         for res in (adj, mos, ass, dia, rep):
