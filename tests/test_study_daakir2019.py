@@ -47,3 +47,62 @@ def test_daakir_gain_needs_the_full_field_and_stays_below_the_paper(tmp_path):
     # so under the survey noise the gain stays far from 1.4x
     assert qn[orig]["mean"] * 1000 < study.needed_thermal_mm() / 2
     assert g(w["eq2"][orig], w["eq2"][corr]) < 1.2, w["eq2"]
+
+    # ---- through the product (aerocal.pipeline.process, one certificate store, the diagnosis on every block)
+    assert "### Through the product" in text and "What the diagnosis named" in text
+    prod = r["product"]["1"]
+    certs = prod["certificates"]
+    # no certificate rejected silently: both calibrations of the warming convergent block are accepted, and a
+    # rejected one would be refused when pinned (recorded as "refused" below)
+    for name, c in certs.items():
+        assert c["status"] == "accepted" and not c["problems"], (name, c["problems"], c["notes"])
+    # the default calibration (a focal slope only) recovers the simulated 0.075 px/degC within 3 of its sigmas,
+    # and the sigma is small enough for that to mean something (the corridor alone predicts 0.08 px/degC)
+    fo = certs["focal-only"]["slopes"]
+    assert set(fo) == {"df_dt"}, fo
+    v, s = fo["df_dt"]
+    assert abs(v - study.DAAKIR_SLOPE) < 3 * s and s < 0.01, fo
+    # freeing the principal point's slopes gives Eq. 2's translation: all three slopes within 3 sigma of the truth
+    eq = certs["Eq. 2"]["slopes"]
+    truth = {"df_dt": study.DAAKIR_SLOPE, "dcx_dt": study.PP_SLOPE[0], "dcy_dt": study.PP_SLOPE[1]}
+    assert set(eq) == set(truth), eq
+    for k, t_ in truth.items():
+        assert abs(eq[k][0] - t_) < 3 * eq[k][1] and eq[k][1] < 0.01, (k, eq[k], t_)
+    # the corridor: every run done with the pinned certificate, the correction applied exactly where asked
+    runs = prod["corridor"]
+    assert len(runs) == len(study.CERTIFICATES) * len(study.BLOCKS) * 2, sorted(runs)
+    for key, row in runs.items():
+        assert "refused" not in row, (key, row)
+        assert row["thermal_correction"] == key.endswith("corrected") and row["converged"], (key, row)
+        assert row["n"] == 10 and row["reason"].startswith("pinned by id"), (key, row)
+    summ = study.product_summary(r)["rows"]
+    # under the GCPs' 1 cm survey noise the product's gain is measured and, like the engine's, near 1 (the
+    # thermal deformation is millimetres); the residuals are the survey's tens of millimetres
+    for key, pair in summ.items():
+        if "noise-free" in key:
+            continue
+        assert 8e-3 < pair["original"]["mean"] < 40e-3, (key, pair)
+        assert 0.9 < pair["gain"] < 1.2, (key, pair)
+    # noise-free, the Eq. 2 certificate's correction takes out most of the deformation, as the engine's does;
+    # the focal-only certificate's does not (its calibration put the unmodelled principal-point drift elsewhere)
+    eq_q, fo_q = summ["Eq. 2 | relative, noise-free"], summ["focal-only | relative, noise-free"]
+    assert eq_q["gain"] > 1.5 and eq_q["gain"] > fo_q["gain"], (eq_q, fo_q)
+    assert abs(eq_q["corrected"]["mean"] - qn[corr]["mean"]) < 0.5e-3, (eq_q, qn[corr])
+    # the diagnosis names the principal-point drift the focal-only certificate lacks, near the simulated slopes,
+    # and nothing that was not simulated
+    named = runs["focal-only | relative | original"]["effects"]
+    assert "thermal_principal_point" in named, runs["focal-only | relative | original"]["diagnosis"]
+    pp = named["thermal_principal_point"]
+    for m, t_, sg in zip(pp["magnitude"], study.PP_SLOPE, pp["sigma"], strict=True):
+        assert abs(m - t_) < 3 * sg, pp
+    for key, row in runs.items():
+        assert set(row["effects"]) <= set(study.EQ2_FIELD), (key, row["diagnosis"])
+        assert row["diagnosis"], key
+    # the corridor as its own calibration flight cannot determine the slopes: its certificates hold none
+    for name, c in prod["corridor as calibration flight"].items():
+        assert c["status"] == "accepted" and not c["slopes"], (name, c)
+    # the diagnosis diagnoses the block's model: with the Eq. 2 certificate's correction applied nothing is left
+    # to name; without it the principal-point drift is named
+    for block in study.BLOCKS:
+        assert not runs[f"Eq. 2 | {block} | corrected"]["effects"], runs[f"Eq. 2 | {block} | corrected"]["diagnosis"]
+        assert "thermal_principal_point" in runs[f"Eq. 2 | {block} | original"]["effects"], block
