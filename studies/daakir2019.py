@@ -701,9 +701,10 @@ def product_explain(result: dict, summ: dict) -> list[str]:
             + (f", beyond 3 sigma: {', '.join(map(_slope_name, outside))}" if outside else "")
             + (f"; {', '.join(map(_slope_name, missing))} not in its model" if missing else "")
             + f"; its f at its reference temperature is off by {f_err} px"
-            + f" (its calibration measured the formal statistics {phi:.1f}x too optimistic on the block, with a "
-              f"model without thermal slopes, and raised its significance bar by {np.sqrt(max(phi, 1.0)):.1f}x; the "
-              "sigmas quoted are the formal ones)")
+            + (f" (its calibration measured the formal statistics {phi:.1f}x too optimistic on the block, on its "
+               f"own model with its thermal slopes, and raised its significance bar by {np.sqrt(phi):.1f}x: what "
+               "the model lacks; the sigmas quoted are the formal ones)" if phi > 1.0 else
+               " (its calibration measured no overdispersion on its own model, thermal slopes included)"))
     text = "; ".join(sent)
     out.append("**The certificates.** " + text[:1].upper() + text[1:] + ".")
     cc = result["product"][next(iter(result["product"]))].get("corridor as calibration flight") or {}

@@ -106,3 +106,7 @@ def test_daakir_gain_needs_the_full_field_and_stays_below_the_paper(tmp_path):
     for block in study.BLOCKS:
         assert not runs[f"Eq. 2 | {block} | corrected"]["effects"], runs[f"Eq. 2 | {block} | corrected"]["diagnosis"]
         assert "thermal_principal_point" in runs[f"Eq. 2 | {block} | original"]["effects"], block
+    # the calibration's overdispersion is measured on its own model, thermal slopes included: the Eq. 2
+    # certificate's model holds the block (none left), the focal-only one lacks the principal-point drift
+    assert certs["Eq. 2"]["overdispersion"] < 2.0, certs["Eq. 2"]["overdispersion"]
+    assert certs["focal-only"]["overdispersion"] > 10.0, certs["focal-only"]["overdispersion"]

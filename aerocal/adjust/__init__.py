@@ -5,7 +5,7 @@ Entry points: :func:`adjust` (tables in, :class:`AdjustmentResult` out) and :fun
 :func:`fit_thermal_model` fits a linear thermal IO model to calibrations at several temperatures.
 """
 
-from aerocal.adjust.bundle import AdjustmentResult, adjust, scale_tie_sigma, screened_rows
+from aerocal.adjust.bundle import AdjustmentResult, adjust, corrected_to_t0, scale_tie_sigma, screened_rows
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError
 from aerocal.adjust.strategy import STRATEGIES, StrategyResult, adjust_fixed_io, run_strategy, select_images
 from aerocal.adjust.thermal import ThermalFit, fit_thermal_model, thermal_certificate
@@ -21,6 +21,7 @@ __all__ = [
     "ThinningConfig",
     "adjust",
     "adjust_fixed_io",
+    "corrected_to_t0",
     "fit_thermal_model",
     "run_strategy",
     "scale_tie_sigma",

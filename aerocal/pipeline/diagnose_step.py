@@ -7,31 +7,14 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import pyarrow as pa
 
-from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
-from aerocal.camera import LinearThermalModel, correct_measurements
+from aerocal.adjust import AdjustConfig, corrected_to_t0, scale_tie_sigma, screened_rows
+from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
-
-
-def corrected_to_t0(images: pa.Table, observations: pa.Table, camera, model: LinearThermalModel | None) -> pa.Table:
-    """``observations`` (tie points or GCP measurements, pixels) corrected to ``model``'s reference temperature
-    with each image's ``temperature_c``, as the block adjustment corrects them
-    (:func:`aerocal.camera.correct_measurements`); unchanged without a model or rows."""
-    if model is None or observations.num_rows == 0:
-        return observations
-    temp = dict(zip(images.column("image_id").to_pylist(), images.column("temperature_c").to_numpy(), strict=True))
-    T = np.array([temp[i] for i in observations.column("image_id").to_pylist()], dtype=float)
-    uv = np.column_stack([observations.column("x").to_numpy(), observations.column("y").to_numpy()])
-    uv = correct_measurements(camera, uv, T, model)
-    for k, name in enumerate(("x", "y")):
-        observations = observations.set_column(observations.schema.get_field_index(name), name,
-                                               pa.array(uv[:, k], observations.schema.field(name).type))
-    return observations
 
 
 def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
