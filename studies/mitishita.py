@@ -502,7 +502,9 @@ def product_markdown(result: dict) -> list[str]:
           "GCP cannot test a GNSS height offset (the product says so: at least 3 control GCPs are needed). The "
           "model's in-situ DZ "
           + " / ".join(f"{_mean(r['in situ'], 'dz', 'mean') * 100:+.0f} cm" for r in prod.values())
-          + " (paper +23 / 0 cm) carries it: model 1 over-corrected, model 2 near zero.",
+          + " (paper +23 / 0 cm; the intersection with its own in-situ calibration "
+          + " / ".join(f"{ext[m]['in situ']['dz']['mean'] * 100:+.0f} cm" for m in prod)
+          + "): model 1 carries block 1's height error, model 2 has none to carry.",
           f"* **Recorded EO.** GNSS time lag removed on {len(removed)} of {len(lags)} model runs. Before the block "
           "step took the fixed IO's uncertainty into the lag test, every nominal run here had a lag of -1.3 to "
           "-1.6 ms (+- 0.25 ms; seeds 1 and 2) removed, about 10 cm along each track: the nominal principal "
