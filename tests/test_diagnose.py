@@ -290,3 +290,33 @@ def test_summary_gives_no_clean_bill_when_the_twin_differs():
     text = unlike.summary()
     assert "no systematic effect found" not in text
     assert "image_plane_field_px" in text and "sigma0" in text and "model lacks something" in text
+
+
+def test_cli_diagnose_with_a_thermal_certificate_diagnoses_what_its_model_leaves(tmp_path):
+    """A flight folder diagnosed with a certificate that holds the camera's thermal drift: its correction is
+    applied, as the block adjustment applies it, so the drift it holds is not named again; the same certificate
+    without its thermal model names it."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from aerocal.camera import LinearThermalModel
+    from aerocal.certificate import CameraIdentity, Certificate, ThermalCalibration
+    from aerocal.cli import app
+    from aerocal.simulate import write_flight
+
+    seed, slope = 52, 0.5
+    sim = simulate_flight(SPEC, seed=seed, effects={"thermal_focal": slope})
+    write_flight(sim, tmp_path / "flight")
+    t0 = SPEC.sensors.reference_temperature_c
+    named = {}
+    for label, thermal in (("with", ThermalCalibration(LinearThermalModel(t0=t0, df_dt=slope), {"df_dt": 0.01})),
+                           ("without", None)):
+        cert = Certificate(CameraIdentity(**SPEC.identity), SPEC.camera_true, thermal=thermal)
+        (tmp_path / f"{label}.json").write_text(cert.to_json())
+        result = CliRunner().invoke(app, ["diagnose", str(tmp_path / "flight"), "--certificate",
+                                          str(tmp_path / f"{label}.json"), "--json"])
+        assert result.exit_code == 0, result.output
+        named[label] = [e["name"] for e in json.loads(result.output)["effects"]]
+    assert "thermal_focal" not in named["with"], f"seed {seed}: {named}"
+    assert named["without"][:1] == ["thermal_focal"], f"seed {seed}: {named}"
