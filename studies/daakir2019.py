@@ -714,7 +714,7 @@ def product_explain(result: dict, summ: dict) -> list[str]:
                        f"{name}: {c['status']}, slopes "
                        + (", ".join(f"{_slope_name(k)} {v[0]:+.3f} +- {v[1]:.3f}" for k, v in c["slopes"].items())
                           or "none (constant IO)")
-                       + "; " + "; ".join(x for x in c["selection"] if "/dT" in x and ("dropped" in x))
+                       + "".join(f"; {x}" for x in c["selection"] if "/dT" in x and "dropped" in x)
                        for name, c in cc.items()) + ".")
     # the gain
     fr, er = rows["focal-only | relative"], rows["Eq. 2 | relative"]
