@@ -320,3 +320,25 @@ def test_cli_diagnose_with_a_thermal_certificate_diagnoses_what_its_model_leaves
         named[label] = [e["name"] for e in json.loads(result.output)["effects"]]
     assert "thermal_focal" not in named["with"], f"seed {seed}: {named}"
     assert named["without"][:1] == ["thermal_focal"], f"seed {seed}: {named}"
+
+
+def test_a_recorded_eo_check_is_not_determined_when_its_calibrated_sigma_is_too_wide():
+    """The real seneca block with the nominal camera (overdispersion 407): a GNSS lag of -0.336 +- 0.064 s formal
+    (1.3 s calibrated) and a boresight of 3.65 deg +- 0.67 formal (13.6 calibrated) are not determined there; the
+    same formal numbers on a block without overdispersion are a signal and a size beyond physical."""
+    from aerocal.camera import Camera
+    from aerocal.diagnose.engine import Evidence, recorded_eo_checks
+
+    def evidence(name, est, sig, units):
+        return Evidence(name, 1, len(est), 30.0, 1e-6, 1e-5, est, sig, 5.0, True, units)
+
+    round1 = [evidence("gnss_time_offset", [-0.336], [0.0644], "s"),
+              evidence("boresight", [2.75, 3.65, 3.04], [0.44, 0.67, 0.73], "deg")]
+    camera = Camera(width=1800, height=1350, f=1254.46, cx=900.0, cy=675.0)
+    noisy = recorded_eo_checks(round1, 407.0, camera, None, [])
+    assert noisy["gnss_time_offset"]["status"] == "not determined", noisy["gnss_time_offset"]
+    assert noisy["boresight"]["status"] == "not determined", noisy["boresight"]
+    assert "overdispersion" in noisy["boresight"]["reason"]
+    clean = recorded_eo_checks(round1, 1.0, camera, None, [])
+    assert clean["gnss_time_offset"]["status"] == "a signal below the naming threshold", clean["gnss_time_offset"]
+    assert clean["boresight"]["status"] == "beyond physical size", clean["boresight"]
