@@ -332,8 +332,7 @@ def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, ru
     obs = scale_tie_sigma(observations.take(pa.array(keep, pa.int64())), result.tie_sigma_scale)
     thermal = result.thermal if isinstance(result.thermal, LinearThermalModel) and result.thermal_slopes else None
     obs = corrected_to_t0(images, obs, result.camera, thermal)
-    if gcp_observations is not None:
-        gcp_observations = corrected_to_t0(images, gcp_observations, result.camera, thermal)
+    gcp_observations = corrected_to_t0(images, gcp_observations, result.camera, thermal)
     cfg = dataclasses.replace(run_cfg, free=result.config.free, thermal=(), adaptive=False, robust_loss="none",
                               tie_thinning=None)
     try:

@@ -452,6 +452,13 @@ class Certificate:
         return dataclasses.replace(self, version=version, supersedes=supersedes)
 
     @property
+    def linear_thermal(self) -> LinearThermalModel | None:
+        """The thermal model when it is linear (the one the block adjustment and the diagnosis correct the
+        measurements with), else ``None``."""
+        model = None if self.thermal is None else self.thermal.model
+        return model if isinstance(model, LinearThermalModel) else None
+
+    @property
     def calibration_date(self) -> dt.date:
         """The date of the data the calibration was computed from (``conditions.date``), else the UTC date it
         was issued: a certificate applies to flights on or after it."""

@@ -160,17 +160,12 @@ def record_certificate(session: Session, run_id: str, certificate: Certificate |
     """Record the certificate the run uses and why it was chosen (``None``: the flight's nominal camera, which is
     no stored certificate; the reason says so)."""
     run = get_run(session, run_id)
-    if certificate is None:
-        run.certificate_id = None
-        run.certificate_reason = reason
-        session.flush()
-        return
     if isinstance(certificate, str):
         found = session.get(Certificate, certificate)
         if found is None:
             raise NotFoundError(f"certificate {certificate!r} not found")
         certificate = found
-    run.certificate_id = certificate.id
+    run.certificate_id = None if certificate is None else certificate.id
     run.certificate_reason = reason
     session.flush()
 

@@ -56,7 +56,16 @@ from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.pipeline import MemoryCertificates, process
 from aerocal.simulate import as_dataset, get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
-from studies.papers import as_checks, gnss_priors, pyplot, reference, save_png, study_parser, write_study
+from studies.papers import (
+    as_checks,
+    certificate_row,
+    gnss_priors,
+    pyplot,
+    reference,
+    save_png,
+    study_parser,
+    write_study,
+)
 
 #: the focal drift hidden in every simulated flight (px/degC; 5 um/degC at 23.5 um pixels is 0.21 px/degC, a
 #: non-athermalised germanium lens; NOTES.md) and the 2016 flight's colder start (degC)
@@ -226,7 +235,7 @@ def product_runs(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
     store = MemoryCertificates()
     out: dict = {}
     run = process(as_dataset(cal, "conte-calibration"), certificates=store, calibrate_only=True)
-    out["CAL"] = _certificate_row(run)
+    out["CAL"] = certificate_row(run)
     certs = {"CAL": run.summary["certificate_id"]}
     for year, sim in years.items():
         ds = as_dataset(sim, f"conte-city-{year}")
@@ -243,21 +252,11 @@ def product_runs(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
                 continue
             if name == "STR2":
                 certs[f"STR2 {year}"] = run.summary["certificate_id"]
-            row = {**_certificate_row(run), **_block_row(sim, run)}
+            row = {**certificate_row(run), **_block_row(sim, run)}
             out[f"{name} {year}"] = row
             log(f"  seed {seed} {model.name} aerocal process {name} {year}: DoD {row['dod']:+.2f} m, CP "
                 f"{row['cp_mean']:.2f} m, f {row['f']:.1f} px ({row['status']}); {row['diagnosis']}")
     return out
-
-
-def _certificate_row(run) -> dict:
-    """The certificate a product run used or issued: its focal length, verdict and the review's words."""
-    cert = run.json("certificate")
-    review = cert.get("review") or {}
-    return {"certificate": run.summary["certificate_id"], "reason": run.summary["certificate_reason"],
-            "f": float(cert["model"]["params"]["f"]), "estimated": list(cert.get("estimated") or []),
-            "status": review.get("status", "nominal"), "notes": list(review.get("notes") or []),
-            "problems": list(review.get("problems") or [])}
 
 
 def _block_row(sim, run) -> dict:

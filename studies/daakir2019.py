@@ -67,7 +67,7 @@ from aerocal.pipeline import MemoryCertificates, ProcessConfig, process
 from aerocal.simulate import as_dataset, get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
 from aerocal.simulate.sensors import TemperatureCurve
-from studies.papers import as_checks, gnss_priors, pyplot, save_png, stats, study_parser, write_study
+from studies.papers import as_checks, certificate_row, gnss_priors, pyplot, save_png, stats, study_parser, write_study
 
 PRESET = "daakir-uav"
 #: focal drift (px/degC, Sec. 4.2.3: 0.07-0.08) and the uncertainty of its separate calibration (px/degC)
@@ -142,10 +142,15 @@ def similarity_residuals(sim, camera, config: AdjustConfig, thermal: LinearTherm
     names = g.column("gcp_id").to_pylist()
     surveyed = np.column_stack([g.column(c).to_numpy() for c in ("X", "Y", "Z")])
     dst = surveyed[[names.index(n) for n in res.check_ids]]
-    src = dst + res.check_errors
-    ok = np.isfinite(src).all(axis=1)
-    s7 = estimate_similarity(src[ok], dst[ok])
-    return np.linalg.norm(s7.apply(src[ok]) - dst[ok], axis=1)
+    return after_similarity(dst + res.check_errors, dst)
+
+
+def after_similarity(computed: np.ndarray, surveyed: np.ndarray) -> np.ndarray:
+    """Distances (m) of ``computed`` points (K, 3) from ``surveyed`` after the 7-parameter similarity of the first
+    onto the second (points with a non-finite coordinate left out)."""
+    ok = np.isfinite(computed).all(axis=1)
+    s7 = estimate_similarity(computed[ok], surveyed[ok])
+    return np.linalg.norm(s7.apply(computed[ok]) - surveyed[ok], axis=1)
 
 
 def _relative_config() -> AdjustConfig:
@@ -276,18 +281,14 @@ def calibration_flight(seed: int, field: dict | None = None, spec: FlightSpec | 
 def _certificate_row(run) -> dict:
     """The certificate a calibration flight issued: IO, thermal slopes +- their sigmas (px/degC), review."""
     cert = run.json("certificate")
-    review = cert.get("review") or {}
     params = cert["model"]["params"]
     thermal = cert.get("thermal") or {}
     sig = thermal.get("sigmas") or {}
     slopes = {k: [float(thermal[k]), float(sig.get(k, float("nan")))] for k in ("df_dt", "dcx_dt", "dcy_dt")
               if thermal.get(k) not in (None, 0.0)}
     cal = run.json("calibration")
-    return {"certificate": run.summary["certificate_id"], "f": float(params["f"]), "cx": float(params["cx"]),
-            "cy": float(params["cy"]), "t0": thermal.get("t0"), "valid_range": thermal.get("valid_range"),
-            "slopes": slopes, "estimated": list(cert.get("estimated") or []),
-            "status": review.get("status", "nominal"), "notes": list(review.get("notes") or []),
-            "problems": list(review.get("problems") or []),
+    return {**certificate_row(run), "cx": float(params["cx"]), "cy": float(params["cy"]), "t0": thermal.get("t0"),
+            "valid_range": thermal.get("valid_range"), "slopes": slopes,
             "overdispersion": float(cal.get("overdispersion") or 1.0),
             "selection": list((cal.get("adjustment") or {}).get("selection") or [])}
 
@@ -303,10 +304,7 @@ def product_residuals(sim, run) -> np.ndarray:
     err = np.asarray(adj["check_errors_m"], dtype=float).reshape(-1, 3)
     rows = [(k, names.index(str(n))) for k, n in enumerate(adj["check_ids"]) if roles[names.index(str(n))] == "control"]
     dst = surveyed[[j for _, j in rows]]
-    src = dst + err[[k for k, _ in rows]]
-    ok = np.isfinite(src).all(axis=1)
-    s7 = estimate_similarity(src[ok], dst[ok])
-    return np.linalg.norm(s7.apply(src[ok]) - dst[ok], axis=1)
+    return after_similarity(dst + err[[k for k, _ in rows]], dst)
 
 
 def _corridor_row(sim, run) -> dict:

@@ -43,6 +43,17 @@ def as_checks(gcps: pa.Table) -> pa.Table:
     return gcps.set_column(i, "role", pa.array(["check"] * gcps.num_rows))
 
 
+def certificate_row(run) -> dict:
+    """The certificate a product run (:func:`aerocal.pipeline.process`) used or issued: its id and why, its focal
+    length (px), what it estimated, its review's verdict and words."""
+    cert = run.json("certificate")
+    review = cert.get("review") or {}
+    return {"certificate": run.summary["certificate_id"], "reason": run.summary["certificate_reason"],
+            "f": float(cert["model"]["params"]["f"]), "estimated": list(cert.get("estimated") or []),
+            "status": review.get("status", "nominal"), "notes": list(review.get("notes") or []),
+            "problems": list(review.get("problems") or [])}
+
+
 def gnss_priors(sim, **kw) -> AdjustConfig:
     """A simulated flight's GNSS sigmas (E, N, Up metres) as an adjustment configuration, ``kw`` added."""
     s = sim.spec.sensors

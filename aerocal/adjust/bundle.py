@@ -419,12 +419,12 @@ def scale_tie_sigma(observations: pa.Table, factor: float) -> pa.Table:
     return observations.set_column(i, observations.schema.field(i), pa.array(sigma.astype(np.float32)))
 
 
-def corrected_to_t0(images: pa.Table, observations: pa.Table, camera: Camera,
-                    model: LinearThermalModel | None) -> pa.Table:
+def corrected_to_t0(images: pa.Table, observations: pa.Table | None, camera: Camera,
+                    model: LinearThermalModel | None) -> pa.Table | None:
     """``observations`` (tie points or GCP measurements, pixels) corrected to ``model``'s reference temperature
     with each image's ``temperature_c``, as the block adjustment corrects them
-    (:func:`aerocal.camera.correct_measurements`); unchanged without a model or rows."""
-    if model is None or observations.num_rows == 0:
+    (:func:`aerocal.camera.correct_measurements`); unchanged without a model, a table or rows."""
+    if model is None or observations is None or observations.num_rows == 0:
         return observations
     temp = dict(zip(images.column("image_id").to_pylist(), images.column("temperature_c").to_numpy(), strict=True))
     T = np.array([temp[i] for i in observations.column("image_id").to_pylist()], dtype=float)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from aerocal import tables
 from aerocal.adjust import AdjustConfig, corrected_to_t0
-from aerocal.camera import Camera, LinearThermalModel
+from aerocal.camera import Camera
 from aerocal.diagnose.engine import DiagnoseConfig, Diagnosis, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.formats import import_certificate
@@ -56,12 +56,10 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
         io = IOUncertainty.from_certificate(cert)
         if cert.thermal is not None:
             t0 = getattr(cert.thermal.model, "t0", None)
-        if cert.thermal is not None and isinstance(cert.thermal.model, LinearThermalModel):
-            # the certificate's model is what is diagnosed: its thermal correction applied as a block adjustment
-            # with it applies it (aerocal process's default), so a thermal effect named is what it leaves
-            observations = corrected_to_t0(images, observations, camera, cert.thermal.model)
-            if gcp_obs is not None:
-                gcp_obs = corrected_to_t0(images, gcp_obs, camera, cert.thermal.model)
+        # the certificate's model is diagnosed: its linear thermal correction applied, as aerocal process's block
+        # adjustment applies it, so a thermal effect named is what that model leaves
+        observations = corrected_to_t0(images, observations, camera, cert.linear_thermal)
+        gcp_obs = corrected_to_t0(images, gcp_obs, camera, cert.linear_thermal)
     else:
         cam_path = folder / "camera.json"
         if not cam_path.exists():

@@ -10,19 +10,12 @@ import numpy as np
 
 from aerocal.adjust import AdjustConfig, adjust_fixed_io
 from aerocal.adjust.partition import PartitionedSolver
-from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.eo_checks import correct_gnss_offset
 from aerocal.matching.cluster import dask_client, n_workers
 from aerocal.pipeline.config import BlockStepConfig
 from aerocal.pipeline.runner import ArrayOutput, JsonOutput, Runner, StepInputs, StepResult, TableOutput
-
-
-def linear_thermal(cert: Certificate) -> LinearThermalModel | None:
-    """The certificate's linear thermal model, or ``None``."""
-    model = None if cert.thermal is None else cert.thermal.model
-    return model if isinstance(model, LinearThermalModel) else None
 
 
 def adjust_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
@@ -46,7 +39,7 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
 
     def compute(inp: StepInputs) -> dict:
         cert = Certificate.from_dict(inp.json("certificate"))
-        thermal = linear_thermal(cert) if config.thermal_correction else None
+        thermal = cert.linear_thermal if config.thermal_correction else None
         images, obs = inp.table("images"), inp.table("observations")
         gcps, gobs = inp.table("gcps"), inp.table("gcp_observations")
         corrections = None

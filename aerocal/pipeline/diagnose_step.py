@@ -10,7 +10,6 @@ import dataclasses
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, corrected_to_t0, scale_tie_sigma, screened_rows
-from aerocal.camera import LinearThermalModel
 from aerocal.certificate import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
@@ -42,8 +41,7 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
         cert = Certificate.from_dict(inp.json("certificate"))
         t0 = getattr(None if cert.thermal is None else cert.thermal.model, "t0", None)
         dcfg = config or DiagnoseConfig(reference_temperature=t0)
-        thermal = cert.thermal.model if thermal_correction and cert.thermal is not None else None
-        thermal = thermal if isinstance(thermal, LinearThermalModel) else None
+        thermal = cert.linear_thermal if thermal_correction else None
         images = inp.table("images")
         obs = corrected_to_t0(images, inp.table("observations"), cert.camera, thermal)
         gobs = corrected_to_t0(images, inp.table("gcp_observations"), cert.camera, thermal)
