@@ -60,7 +60,7 @@ def physical_verdict(e: Evidence, camera: Camera, ctx: hyp.Context, sigma_scale:
     sigma, times ``sigma_scale``, is large against its plausible size) or "beyond physical size" (its estimate
     exceeds any real instrument's, e.g. a lever arm of tens of metres: a symptom of another cause).
     ``sigma_scale``: the square root of the block's measured overdispersion where the sigmas are reported
-    calibrated (the real seneca block with the nominal camera: phi 407, a boresight of 3.65 +- 14.7 deg had been
+    calibrated (the real seneca block with the nominal camera: phi 407, a boresight of 3.65 +- 13.6 deg had been
     called beyond physical size and a GNSS lag of -0.34 +- 1.3 s consistent with zero: neither is determined)."""
     if not e.estimate or CATALOGUE.get(e.name, None) is not None and CATALOGUE[e.name].switch:
         return None
