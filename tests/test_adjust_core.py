@@ -65,6 +65,31 @@ def test_projection_jacobians_match_central_differences():
         assert np.allclose(pr.d_io[:, :, k], d, atol=1e-4 * max(1.0, np.abs(d).max()), rtol=1e-5), name
 
 
+def test_compiled_projection_of_a_blocks_observations_equals_the_batched_one():
+    """The fixed-IO adjustment's compiled loop (poses and points read in place by index) gives the pixels,
+    depths and pose/point Jacobians of :func:`project`, distortion and thermal drift included."""
+    from aerocal.adjust.projection import project_observations
+
+    seed = 12
+    rng = np.random.default_rng(seed)
+    N, P, M = 7, 30, 90
+    io = Camera(640, 480, 1670.0, 322.0, 238.0, -0.08, 0.12, 0.3, 2e-4, -1.5e-4, 0.7, 0.3).params()
+    slopes = np.array([0.05, 0.02, -0.03])
+    dT = rng.uniform(-3, 3, N)
+    R = rotation_update(np.repeat(np.diag([1.0, -1.0, -1.0])[None], N, 0), rng.normal(0, 0.05, (N, 3)))
+    C = rng.normal(0, 20, (N, 3)) + [0, 0, 850]
+    X = rng.normal(0, 60, (P, 3))
+    image, point = rng.integers(0, N, M).astype(np.int32), rng.integers(0, P, M)
+    ref = project(io, slopes, dT[image], R[image], C[image], X[point])
+    got = project_observations(io, slopes, dT, R, C, X, image, point)
+    for name in ("uv", "d_point", "d_rot", "depth"):
+        a, b = getattr(got, name), getattr(ref, name)
+        assert np.allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max()), f"seed {seed}: {name}"
+    assert got.d_io.shape == (M, 2, 0)
+    plain = project_observations(io, slopes, dT, R, C, X, image, point, jacobians=False)
+    assert np.array_equal(plain.uv, got.uv) and plain.d_point.shape == (M, 2, 0)
+
+
 @pytest.fixture(scope="module")
 def conte_runs():
     """Self-calibration of conte-calibration (no effects) over N_SEEDS seeds."""
@@ -159,10 +184,12 @@ def test_structured_schur_complement_equals_the_sparse_products(free):
     point) equals the one of general sparse products: matrix, right-hand side and point step."""
     import scipy.sparse as sp
 
+    from aerocal.adjust import schur_kernels
     from aerocal.adjust.bundle import initial_state
     from aerocal.adjust.problem import build_block
     from aerocal.adjust.solver import Problem, schur_complement
 
+    default_threads = schur_kernels.REDUCE_THREADS
     seed = 31
     sim = simulate_flight("conte-calibration", seed=seed, max_images=20)
     cfg = AdjustConfig(free=free, gnss_sigma_m=(0.1, 0.1, 0.15), robust_loss="huber")
@@ -171,9 +198,14 @@ def test_structured_schur_complement_equals_the_sparse_products(free):
     prob = Problem(blk, cfg, 0.0)
     _, _, _, r, Jc, Jp, Hpp = prob.residuals(st, jac=True)
     assert prob.blocks is not None and prob.blocks.n_global == len(free)
-    for lam in (0.0, 1e-3):
+    for lam, threads in ((0.0, 1), (1e-3, 1), (0.0, 3), (1e-3, 2)):
         S0, rhs0, Hi0, Hcp0, gp0 = schur_complement(Jc, Jp, Hpp, r, lam)
-        S1, rhs1, Hi1, Hcp1, gp1 = schur_complement(Jc, Jp, Hpp, r, lam, prob.blocks)
+        schur_kernels.REDUCE_THREADS = threads  # the compiled pass shared by threads sums to the same system
+        try:
+            S1, rhs1, Hi1, Hcp1, gp1 = schur_complement(Jc, Jp, Hpp, r, lam, prob.blocks)
+        finally:
+            schur_kernels.REDUCE_THREADS = default_threads
+        assert np.allclose(Hi1, Hi0, rtol=1e-9, atol=0), f"seed {seed}: point inverses"
         assert sp.issparse(S0) and sp.issparse(S1)
         S0, S1 = S0.toarray(), S1.toarray()
         scale = np.abs(S0).max()

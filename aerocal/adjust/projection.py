@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -150,3 +151,74 @@ def rotation_update(R: np.ndarray, w: np.ndarray) -> np.ndarray:
 def rotation_log(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (N, 3), radians, of a stack of rotation matrices."""
     return Rotation.from_matrix(R).as_rotvec()
+
+
+@numba.njit(cache=True, nogil=True)
+def _project_observations(io, slopes, dtemp, R, C, X, image, point, jac, uv, d_point, d_rot, depth):  # pragma: no cover
+    """:func:`project` of observation ``m`` through image ``image[m]`` and point ``point[m]``, one loop."""
+    f0, cx0, cy0, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
+    A = np.empty((2, 3))
+    for m in range(len(image)):
+        i, j = image[m], point[m]
+        dt = dtemp[i]
+        f = f0 + slopes[0] * dt
+        cx = cx0 + slopes[1] * dt
+        cy = cy0 + slopes[2] * dt
+        d0, d1, d2 = X[j, 0] - C[i, 0], X[j, 1] - C[i, 1], X[j, 2] - C[i, 2]
+        q0 = R[i, 0, 0] * d0 + R[i, 0, 1] * d1 + R[i, 0, 2] * d2
+        q1 = R[i, 1, 0] * d0 + R[i, 1, 1] * d1 + R[i, 1, 2] * d2
+        z = R[i, 2, 0] * d0 + R[i, 2, 1] * d1 + R[i, 2, 2] * d2
+        x, y = q0 / z, q1 / z
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
+        yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
+        fx = f + b1
+        uv[m, 0] = cx + xd * fx + yd * b2
+        uv[m, 1] = cy + yd * f
+        depth[m] = z
+        if not jac:
+            continue
+        dr = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+        a = radial + 2 * x * x * dr + 6 * p1 * x + 2 * p2 * y
+        b = 2 * x * y * dr + 2 * p1 * y + 2 * p2 * x
+        c = 2 * x * y * dr + 2 * p2 * x + 2 * p1 * y
+        e = radial + 2 * y * y * dr + 6 * p2 * y + 2 * p1 * x
+        m00, m01 = fx * a + b2 * c, fx * b + b2 * e
+        m10, m11 = f * c, f * e
+        iz = 1.0 / z
+        A[0, 0], A[0, 1], A[0, 2] = m00 * iz, m01 * iz, -(m00 * x + m01 * y) * iz
+        A[1, 0], A[1, 1], A[1, 2] = m10 * iz, m11 * iz, -(m10 * x + m11 * y) * iz
+        for u in range(2):
+            for k in range(3):
+                d_point[m, u, k] = A[u, 0] * R[i, 0, k] + A[u, 1] * R[i, 1, k] + A[u, 2] * R[i, 2, k]
+            # dp/dw = -[p]_x with p = (q0, q1, z)
+            d_rot[m, u, 0] = -A[u, 1] * z + A[u, 2] * q1
+            d_rot[m, u, 1] = A[u, 0] * z - A[u, 2] * q0
+            d_rot[m, u, 2] = -A[u, 0] * q1 + A[u, 1] * q0
+
+
+def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarray, R: np.ndarray, C: np.ndarray,
+                         X: np.ndarray, image: np.ndarray, point: np.ndarray, jacobians: bool = True) -> Projection:
+    """:func:`project` of the observations (``image``, ``point``) of a block, IO held fixed: the same model and
+    Jacobians (``d_io``, ``d_slope`` empty), computed in one compiled loop that reads each observation's pose
+    and point in place instead of gathering (M, 3, 3) rotations first.
+
+    ``dtemp_img`` (N,): each image's temperature minus the reference; ``R`` (N, 3, 3), ``C`` (N, 3), ``X``
+    (P, 3). Measured on the 800-image conte-city block (382k observations): 0.19 s a call with Jacobians
+    through :func:`project`'s batched numpy products (~40 % of an adjustment iteration); the agreement with
+    :func:`project` is checked in ``tests/test_adjust_core.py``."""
+    M = len(image)
+    uv, depth = np.empty((M, 2)), np.empty(M)
+    shape = (M, 2, 3) if jacobians else (0, 2, 3)
+    d_point, d_rot = np.empty(shape), np.empty(shape)
+    f8 = np.float64
+    _project_observations(np.ascontiguousarray(io, dtype=f8), np.ascontiguousarray(slopes, dtype=f8),
+                          np.ascontiguousarray(dtemp_img, dtype=f8), np.ascontiguousarray(R, dtype=f8),
+                          np.ascontiguousarray(C, dtype=f8), np.ascontiguousarray(X, dtype=f8),
+                          np.ascontiguousarray(image, dtype=np.int64), np.ascontiguousarray(point, dtype=np.int64),
+                          jacobians, uv, d_point, d_rot, depth)
+    empty = np.zeros((M, 2, 0))
+    if not jacobians:
+        d_point = d_rot = empty
+    return Projection(uv, d_point, d_rot, empty, empty, depth)

@@ -27,7 +27,15 @@ import scipy.sparse.linalg as spla
 from scipy.linalg import lapack
 
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block
-from aerocal.adjust.projection import IDX, THERMAL_PARAMS, project, rotation_log, rotation_update
+from aerocal.adjust.projection import (
+    IDX,
+    THERMAL_PARAMS,
+    project,
+    project_observations,
+    rotation_log,
+    rotation_update,
+)
+from aerocal.adjust.schur_kernels import PairLayout, image_pair_layout, point_normals, reduce_points
 
 #: A tie point intersected closer to a camera that sees it than this fraction of the block's median depth
 #: is dropped before the adjustment (:func:`aerocal.adjust.bundle.initial_state`), and a step that would
@@ -114,6 +122,7 @@ class ObsBlocks:
     prior_info: np.ndarray  # (N, 6) diagonal information of the GNSS / attitude priors
     prior_grad: np.ndarray  # (N, 6) their J^T r
     point_grad: np.ndarray  # (P, 3) J^T r of the control-point rows (zero for tie points)
+    layout: PairLayout  # the image-image blocks of the reduced system and the observations by point
 
 
 def _robust(s: np.ndarray, loss: str, c: float) -> tuple[np.ndarray, np.ndarray]:
@@ -150,6 +159,7 @@ class Problem:
         #: adjustment counts them (each prior enters the whole block's normal equations once)
         self.prior_weight = np.ones(block.n_images)
         self.blocks: ObsBlocks | None = None  # of the last Jacobian (see :class:`ObsBlocks`)
+        self._pair_layout: PairLayout | None = None  # formed on the first Jacobian (see :meth:`pair_layout`)
         self.depth_floor: float | None = None  # metres, set from the first state a step starts from
         self.gnss_sigma = None if config.gnss_sigma_m is None else np.asarray(config.gnss_sigma_m, float)
         self.att_sigma = (
@@ -164,6 +174,14 @@ class Problem:
                 f"{len(block.control_ids)} control GCPs; give GNSS sigmas or at least 3 control points"
             )
 
+    def pair_layout(self) -> PairLayout:
+        """The block layout of the reduced camera system (:func:`image_pair_layout`): it depends only on which
+        image observes which point, so it is formed once for the block."""
+        if self._pair_layout is None:
+            b = self.b
+            self._pair_layout = image_pair_layout(b.obs_image, b.obs_point, b.n_images, b.n_points)
+        return self._pair_layout
+
     # ------------------------------------------------------------------ residuals
     def residuals(self, st: State, jac: bool, sparse: bool = True) -> tuple:
         """``(cost, res_px, w)``, with ``jac`` also ``(r, Jc, Jp, Hpp)``: the scaled residual vector, the
@@ -172,11 +190,12 @@ class Problem:
         :func:`schur_complement` needs, without the sparse matrices' indices (~0.5 kB per observation)."""
         b, lay = self.b, self.layout
         i, j = b.obs_image, b.obs_point
-        dtemp = self.dtemp_img[i]
         if jac:
             self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
-        pr = project(st.io, st.slopes, dtemp, st.R[i], st.C[i], st.X[j], jacobians=jac,
-                     io_jacobians=lay.n_global > 0)
+        if lay.n_global:
+            pr = project(st.io, st.slopes, self.dtemp_img[i], st.R[i], st.C[i], st.X[j], jacobians=jac)
+        else:  # IO and slopes held: the compiled loop over the observations, no (M, 3, 3) gathers
+            pr = project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=jac)
         res_px = pr.uv - b.obs_uv
         r_obs = res_px / b.obs_sigma[:, None]
         s = np.sum(r_obs * r_obs, axis=1)
@@ -213,7 +232,9 @@ class Problem:
         sw = np.sqrt(w)[:, None, None] / b.obs_sigma[:, None, None]
         rows_obs = np.arange(2 * M).reshape(M, 2)
         Jg = np.concatenate([pr.d_io[:, :, lay.io_free], pr.d_slope[:, :, lay.slope_free]], axis=2) * sw
-        Ji = np.concatenate([pr.d_rot, -pr.d_point], axis=2) * sw
+        Ji = np.empty((M, 2, 6))
+        np.multiply(pr.d_rot, sw, out=Ji[:, :, :3])
+        np.multiply(pr.d_point, -sw, out=Ji[:, :, 3:])
         Jx = pr.d_point * sw
         ng = lay.n_global
         rw = r_obs * np.sqrt(w)[:, None]
@@ -229,10 +250,9 @@ class Problem:
         if G:
             pgrad[b.n_tie :] = parts[-1].reshape(G, 3) / b.control_sigma
         self.blocks = ObsBlocks(image=i, point=j, Ji=Ji, Jx=Jx, n_global=ng, Jg=Jg, r=rw, prior_info=info,
-                                prior_grad=grad, point_grad=pgrad)
-        # point blocks of J^T J, accumulated directly (each row touches one point)
-        Hpp = np.zeros((lay.n_points, 3, 3))
-        np.add.at(Hpp, j, np.einsum("mki,mkj->mij", Jx, Jx))
+                                prior_grad=grad, point_grad=pgrad, layout=self.pair_layout())
+        # point blocks of J^T J, summed per point (each row touches one point)
+        Hpp = point_normals(j, Jx, lay.n_points)
         if G:
             Hpp[b.n_tie :] += np.einsum("gi,ij->gij", 1.0 / b.control_sigma**2, np.eye(3))
         r_all = [rw.ravel()] + parts[1:]
@@ -355,61 +375,37 @@ def schur_complement(Jc, Jp, Hpp, r, lam: float, blocks: ObsBlocks | None = None
     return S, rhs, Hpp_inv, Hcp, gp
 
 
-#: Observation pairs (two observations of one point) formed per chunk: 4e5 pairs are 4e5 6 x 6 float64
-#: blocks, 115 MB.
-SCHUR_PAIR_CHUNK = 400_000
-
-
 def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     """:func:`schur_complement` from the observations' blocks.
 
     ``J^T J`` and ``J^T r`` of the camera side are sums over observations of ``Ji^T Ji``, ``Jg^T Ji``,
     ``Ji^T r`` ... per image, plus the priors' diagonals. The image-image part of ``Hcp Hpp^-1 Hcp^T`` is
     ``sum_p sum_(m, m' of p) W_m Hpp_p^-1 W_m'^T`` with ``W_m = Ji_m^T Jx_m`` (6 x 3): the 6 x 6 blocks of
-    every ordered pair of observations of a point (points with the same number of observations together),
-    summed per image pair into a block-sparse (BSR, 6 x 6) matrix. Written for this project and measured
-    against the general sparse products it replaces (scipy ``csr_matmat``): see ``benchmarks/RESULTS.md``;
-    ``tests/test_adjust_core.py`` checks the agreement (1e-9 relative).
+    every pair of observations of a point, summed per image pair into a block-sparse (BSR, 6 x 6) matrix
+    by one compiled pass over the points (:func:`aerocal.adjust.schur_kernels.reduce_points`). Measured
+    against the numpy pair sums it replaced and against pycolmap's Ceres on the same problem:
+    ``benchmarks/colmap_ba_bench.py``, ``benchmarks/RESULTS.md``; ``tests/test_adjust_core.py`` checks the
+    agreement with the general sparse products (1e-9 relative).
     """
     ng, N, P = b.n_global, len(b.prior_info), len(Hpp)
     n_camera = ng + 6 * N
     damp = 1.0 + lam
-    Hpp_inv = _damped_point_inverse(Hpp, lam)
-    W = np.matmul(np.swapaxes(b.Ji, 1, 2), b.Jx)  # (M, 6, 3)
-    T = np.matmul(W, Hpp_inv[b.point])  # (M, 6, 3): W_m Hpp^-1
-    # gradients J^T r: camera side per image (+ priors) and global; point side per point (+ control rows)
-    gc = np.zeros(n_camera)
-    gc[ng:] = (_sum_by(b.image, np.matmul(b.r[:, None, :], b.Ji)[:, 0], N) + b.prior_grad).ravel()
-    gpp = _sum_by(b.point, np.matmul(b.r[:, None, :], b.Jx)[:, 0], P) + b.point_grad
+    red = reduce_points(b.layout, b.image, b.Ji, b.Jx, b.r, Hpp, lam, b.point_grad, N)
+    W, Hpp_inv, gpp = red.W, red.Hpp_inv, red.gpp
     gp = gpp.ravel()
+    # gradients J^T r: camera side per image (+ priors) and global
+    gc = np.zeros(n_camera)
+    gc[ng:] = (red.grad + b.prior_grad).ravel()
     rhs = -gc
-    # rhs, image part: sum over observations of W_m Hpp^-1 gp
-    rhs[ng:] += _sum_by(b.image, np.einsum("mij,mj->mi", T, gpp[b.point]), N).ravel()
+    rhs[ng:] += red.back.ravel()
     # the image's own 6 x 6 block of J^T J (its observations and priors), damped
-    Hii = _sum_by(b.image, np.matmul(np.swapaxes(b.Ji, 1, 2), b.Ji).reshape(-1, 36), N).reshape(N, 6, 6)
+    Hii = red.Hii
     Hii[:, np.arange(6), np.arange(6)] += b.prior_info
     Hii[:, np.arange(6), np.arange(6)] *= damp
-    # the points grouped by their number of observations L: each group's L x L pairs at once, summed per
-    # image pair (key i * N + j); the keys and 6 x 6 sums of every chunk are merged once at the end
-    keys, sums = [np.arange(N, dtype=np.int64) * (N + 1)], [Hii.reshape(N, 36)]
-    order = np.argsort(b.point, kind="stable")
-    count = np.bincount(b.point, minlength=P)
-    start = np.concatenate([[0], np.cumsum(count)[:-1]])
-    for L in np.unique(count[count > 0]):
-        pts = np.flatnonzero(count == L)
-        step = max(1, SCHUR_PAIR_CHUNK // int(L * L))
-        for c0 in range(0, len(pts), step):
-            obs = order[start[pts[c0 : c0 + step]][:, None] + np.arange(L)]  # (n, L) observations
-            blk = np.einsum("plir,pmjr->plmij", T[obs], W[obs], optimize=True)  # (n, L, L, 6, 6)
-            img = b.image[obs].astype(np.int64)
-            uk, inv = np.unique((img[:, :, None] * N + img[:, None, :]).ravel(), return_inverse=True)
-            keys.append(uk)
-            sums.append(-_sum_by(inv, blk.reshape(-1, 36), len(uk)))
-    uk, inv = np.unique(np.concatenate(keys), return_inverse=True)
-    acc = _sum_by(inv, np.concatenate(sums), len(uk)).reshape(-1, 6, 6)
-    del keys, sums, inv
-    rows, cols = uk // N, uk % N  # sorted by row, then column: the BSR layout
-    S_ii = sp.bsr_matrix((acc, cols, np.searchsorted(rows, np.arange(N + 1))), shape=(6 * N, 6 * N)).tocsr()
+    data = red.data
+    data[b.layout.diagonal] += Hii
+    S_ii = sp.bsr_matrix((data, b.layout.indices, b.layout.indptr), shape=(6 * N, 6 * N)).tocsr()
+    del data, red
     if ng:
         # global columns (IO, thermal slopes): few, so their blocks are dense
         Hgg = b.Jg.reshape(-1, ng).T @ b.Jg.reshape(-1, ng)
@@ -655,11 +651,14 @@ def redundancy(problem: Problem) -> int:
 
 def solve(problem: Problem, start: State) -> Solution:
     """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
+    # the linearisation at the current state: (cost, res_px, w, r, Jc, Jp, Hpp); problem.blocks holds its blocks
     st, cand = start, None
-    cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
+    lin = problem.residuals(st, jac=True, sparse=False)
+    cand_lin = None
 
     def step(lam: float) -> tuple[float, float]:
-        nonlocal cand
+        nonlocal cand, cand_lin
+        _, _, _, r, Jc, Jp, Hpp = lin
         S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
         dc = solve_reduced(S, rhs)
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
@@ -669,22 +668,25 @@ def solve(problem: Problem, start: State) -> Solution:
         del S, Hpp_inv, Hcp, gp
         cand = problem.apply(st, dc, dp)
         problem.hold_close_points(st, cand)
-        return problem.residuals(cand, jac=False)[0], step_metric
+        # linearised at the candidate at once: most steps are accepted, and an accepted step then needs no
+        # second projection of every observation (a rejected one re-linearises at the current state)
+        cand_lin = problem.residuals(cand, jac=True, sparse=False)
+        return cand_lin[0], step_metric
 
     def accept() -> float:
-        nonlocal st, cand, r, Jc, Jp, Hpp
-        st, cand = cand, None
-        new_cost, _, _, r, Jc, Jp, Hpp = problem.residuals(st, jac=True, sparse=False)
-        return new_cost
+        nonlocal st, cand, lin, cand_lin
+        st, lin, cand, cand_lin = cand, cand_lin, None, None
+        return lin[0]
 
     def reject() -> None:
-        nonlocal cand
-        cand = None
+        nonlocal cand, cand_lin, lin
+        cand, cand_lin, lin = None, None, None
+        lin = problem.residuals(st, jac=True, sparse=False)
 
-    _, it, converged, history = levenberg_marquardt(problem.cfg, cost, step, accept, reject)
+    _, it, converged, history = levenberg_marquardt(problem.cfg, lin[0], step, accept, reject)
+    cost, res_px, w, r, Jc, Jp, Hpp = lin
     S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0, problem.blocks)
     cov = SparseInverse(S)
-    cost, res_px, w = problem.residuals(st, jac=False)
     dof = redundancy(problem)
     sigma0 = float(np.sqrt(2.0 * cost / dof))
     return Solution(
