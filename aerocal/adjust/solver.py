@@ -35,7 +35,13 @@ from aerocal.adjust.projection import (
     rotation_log,
     rotation_update,
 )
-from aerocal.adjust.schur_kernels import PairLayout, image_pair_layout, point_normals, reduce_points
+from aerocal.adjust.schur_kernels import (
+    PairLayout,
+    image_pair_layout,
+    jacobian_blocks,
+    points_from_images,
+    reduce_points,
+)
 
 #: A tie point intersected closer to a camera that sees it than this fraction of the block's median depth
 #: is dropped before the adjustment (:func:`aerocal.adjust.bundle.initial_state`), and a step that would
@@ -139,6 +145,28 @@ def _robust(s: np.ndarray, loss: str, c: float) -> tuple[np.ndarray, np.ndarray]
     return s, np.ones_like(s)
 
 
+@dataclass(frozen=True)
+class ObsView:
+    """A block's image observations in point order (each point's observations together, the block's order
+    within a point): the order of the rows of :class:`ObsBlocks`. The compiled passes over them
+    (:mod:`aerocal.adjust.schur_kernels`, :func:`project_observations`) then read each point's observations
+    and the point itself in sequence instead of at random (800-image conte-city: a fixed-IO iteration 0.37 s
+    -> see ``benchmarks/RESULTS.md``)."""
+
+    order: np.ndarray  # (M,) the block's rows in this order
+    image: np.ndarray  # (M,) int64
+    point: np.ndarray  # (M,) int64
+    uv: np.ndarray  # (M, 2) measured pixels
+    sigma: np.ndarray  # (M,) a-priori sigma, pixels
+    is_tie: np.ndarray  # (M,) bool
+
+    @classmethod
+    def by_point(cls, b: Block) -> ObsView:
+        order = np.argsort(b.obs_point, kind="stable")
+        return cls(order, b.obs_image[order].astype(np.int64), b.obs_point[order].astype(np.int64),
+                   np.ascontiguousarray(b.obs_uv[order]), b.obs_sigma[order], b.obs_is_tie[order])
+
+
 class Problem:
     """Residuals and Jacobians of a :class:`Block` under an :class:`AdjustConfig`."""
 
@@ -159,7 +187,8 @@ class Problem:
         #: adjustment counts them (each prior enters the whole block's normal equations once)
         self.prior_weight = np.ones(block.n_images)
         self.blocks: ObsBlocks | None = None  # of the last Jacobian (see :class:`ObsBlocks`)
-        self._pair_layout: PairLayout | None = None  # formed on the first Jacobian (see :meth:`pair_layout`)
+        self._by_point: tuple[ObsView, PairLayout] | None = None  # formed on first use (:meth:`by_point`)
+        self._block_layout: PairLayout | None = None  # formed on first use (:meth:`block_order_layout`)
         self.depth_floor: float | None = None  # metres, set from the first state a step starts from
         self.gnss_sigma = None if config.gnss_sigma_m is None else np.asarray(config.gnss_sigma_m, float)
         self.att_sigma = (
@@ -174,39 +203,59 @@ class Problem:
                 f"{len(block.control_ids)} control GCPs; give GNSS sigmas or at least 3 control points"
             )
 
-    def pair_layout(self) -> PairLayout:
-        """The block layout of the reduced camera system (:func:`image_pair_layout`): it depends only on which
-        image observes which point, so it is formed once for the block."""
-        if self._pair_layout is None:
+    def by_point(self) -> tuple[ObsView, PairLayout]:
+        """The observations in point order and the block layout of the reduced camera system
+        (:func:`image_pair_layout`): both depend only on which image observes which point, so they are formed
+        once for the block."""
+        if self._by_point is None:
             b = self.b
-            self._pair_layout = image_pair_layout(b.obs_image, b.obs_point, b.n_images, b.n_points)
-        return self._pair_layout
+            view = ObsView.by_point(b)
+            self._by_point = view, image_pair_layout(view.image, view.point, b.n_images, b.n_points)
+        return self._by_point
+
+    def block_order_layout(self) -> PairLayout:
+        """:func:`image_pair_layout` of the observations in the block's own order (the rows of the sparse
+        Jacobians of :meth:`residuals`)."""
+        if self._block_layout is None:
+            b = self.b
+            self._block_layout = image_pair_layout(b.obs_image, b.obs_point, b.n_images, b.n_points)
+        return self._block_layout
 
     # ------------------------------------------------------------------ residuals
     def residuals(self, st: State, jac: bool, sparse: bool = True) -> tuple:
         """``(cost, res_px, w)``, with ``jac`` also ``(r, Jc, Jp, Hpp)``: the scaled residual vector, the
         camera-side and point-side Jacobians (``scipy.sparse`` CSR) and the 3 x 3 point blocks of J^T J.
         With ``sparse=False`` ``Jc`` and ``Jp`` are ``None``: :attr:`blocks` holds everything
-        :func:`schur_complement` needs, without the sparse matrices' indices (~0.5 kB per observation)."""
+        :func:`schur_complement` needs, without the sparse matrices' indices (~0.5 kB per observation), and
+        the image rows of ``r`` are in point order (:class:`ObsView`). ``res_px`` and ``w`` are in the block's
+        order."""
         b, lay = self.b, self.layout
-        i, j = b.obs_image, b.obs_point
+        view, pair_layout = (None, None) if jac and sparse else self.by_point()
+        if view is None:
+            i, j, uv_obs, sigma, is_tie = b.obs_image, b.obs_point, b.obs_uv, b.obs_sigma, b.obs_is_tie
+        else:
+            i, j, uv_obs, sigma, is_tie = view.image, view.point, view.uv, view.sigma, view.is_tie
         if jac:
             self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
         if lay.n_global:
             pr = project(st.io, st.slopes, self.dtemp_img[i], st.R[i], st.C[i], st.X[j], jacobians=jac)
         else:  # IO and slopes held: the compiled loop over the observations, no (M, 3, 3) gathers
             pr = project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=jac)
-        res_px = pr.uv - b.obs_uv
-        r_obs = res_px / b.obs_sigma[:, None]
+        res_px = pr.uv - uv_obs
+        r_obs = res_px / sigma[:, None]
         s = np.sum(r_obs * r_obs, axis=1)
         if self.cfg.robust_loss != "none":
-            rho_t, w_t = _robust(s[b.obs_is_tie], self.cfg.robust_loss, self.cfg.robust_scale)
+            rho_t, w_t = _robust(s[is_tie], self.cfg.robust_loss, self.cfg.robust_scale)
             rho = s.copy()
-            rho[b.obs_is_tie] = rho_t
+            rho[is_tie] = rho_t
             w = np.ones_like(s)
-            w[b.obs_is_tie] = w_t
+            w[is_tie] = w_t
         else:
             rho, w = s, np.ones_like(s)
+        res_out, w_out = res_px, w
+        if view is not None:  # back to the block's order
+            res_out, w_out = np.empty_like(res_px), np.empty_like(w)
+            res_out[view.order], w_out[view.order] = res_px, w
         parts = [r_obs.ravel()]
         cost_parts = [float(np.sum(rho))]
         pw = self.prior_weight[:, None]
@@ -226,16 +275,14 @@ class Problem:
             cost_parts.append(float(r @ r))
         cost = 0.5 * sum(cost_parts)
         if not jac:
-            return cost, res_px, w
+            return cost, res_out, w_out
         # ---- Jacobian (rows scaled by sqrt of the robust weight for IRLS)
         M = len(i)
-        sw = np.sqrt(w)[:, None, None] / b.obs_sigma[:, None, None]
+        sw = np.sqrt(w) / sigma
         rows_obs = np.arange(2 * M).reshape(M, 2)
-        Jg = np.concatenate([pr.d_io[:, :, lay.io_free], pr.d_slope[:, :, lay.slope_free]], axis=2) * sw
-        Ji = np.empty((M, 2, 6))
-        np.multiply(pr.d_rot, sw, out=Ji[:, :, :3])
-        np.multiply(pr.d_point, -sw, out=Ji[:, :, 3:])
-        Jx = pr.d_point * sw
+        Jg = np.concatenate([pr.d_io[:, :, lay.io_free], pr.d_slope[:, :, lay.slope_free]], axis=2) * sw[:, None, None]
+        # the pose and point blocks and the points' blocks of J^T J (each row touches one point), one pass
+        Ji, Jx, Hpp = jacobian_blocks(j, pr.d_rot, pr.d_point, sw, lay.n_points)
         ng = lay.n_global
         rw = r_obs * np.sqrt(w)[:, None]
         Nimg = b.n_images
@@ -250,14 +297,13 @@ class Problem:
         if G:
             pgrad[b.n_tie :] = parts[-1].reshape(G, 3) / b.control_sigma
         self.blocks = ObsBlocks(image=i, point=j, Ji=Ji, Jx=Jx, n_global=ng, Jg=Jg, r=rw, prior_info=info,
-                                prior_grad=grad, point_grad=pgrad, layout=self.pair_layout())
-        # point blocks of J^T J, summed per point (each row touches one point)
-        Hpp = point_normals(j, Jx, lay.n_points)
+                                prior_grad=grad, point_grad=pgrad,
+                                layout=self.block_order_layout() if view is None else pair_layout)
         if G:
             Hpp[b.n_tie :] += np.einsum("gi,ij->gij", 1.0 / b.control_sigma**2, np.eye(3))
         r_all = [rw.ravel()] + parts[1:]
         if not sparse:
-            return cost, res_px, w, np.concatenate(r_all), None, None, Hpp
+            return cost, res_out, w_out, np.concatenate(r_all), None, None, Hpp
         rr, cc, vv = [], [], []
         if ng:
             rr.append(np.repeat(rows_obs[:, :, None], ng, axis=2).ravel())
@@ -295,7 +341,7 @@ class Problem:
             (np.concatenate(pr_vals), (np.concatenate(pr_rows), np.concatenate(pr_cols))),
             shape=(row, 3 * lay.n_points),
         )
-        return cost, res_px, w, np.concatenate(r_all), Jc, Jp, Hpp
+        return cost, res_out, w_out, np.concatenate(r_all), Jc, Jp, Hpp
 
     # ------------------------------------------------------------------ updates
     def hold_close_points(self, old: State, new: State) -> int:
@@ -303,13 +349,16 @@ class Problem:
         :data:`MIN_DEPTH_FRACTION` of the median depth of ``old``'s first call; returns how many.
 
         Their Jacobian grows as 1 / depth^2: one such point makes the reduced normal matrix overflow."""
-        b = self.b
-        tie = b.obs_is_tie
-        i, j = b.obs_image[tie], b.obs_point[tie]
+        view = self.by_point()[0]
+        i, j = view.image[view.is_tie], view.point[view.is_tie]
+
+        def depths(st: State) -> np.ndarray:
+            return project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, False).depth
+
         if self.depth_floor is None:
-            z = np.einsum("mk,mk->m", old.R[i][:, 2], old.X[j] - old.C[i])
+            z = depths(old)
             self.depth_floor = MIN_DEPTH_FRACTION * float(np.median(z[z > 0])) if (z > 0).any() else 0.0
-        z = np.einsum("mk,mk->m", new.R[i][:, 2], new.X[j] - new.C[i])
+        z = depths(new)
         close = np.unique(j[~(z > self.depth_floor)])
         new.X[close] = old.X[close]
         return len(close)
@@ -430,8 +479,7 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     def hcp_t(dc: np.ndarray) -> np.ndarray:
         """``Hcp^T dc`` (3P,): per point, the sum over its observations of ``W_m^T dc_image``."""
         dc = np.asarray(dc, dtype=float).ravel()
-        v = np.einsum("mij,mi->mj", W, dc[ng:].reshape(N, 6)[b.image])
-        out = _sum_by(b.point, v, P)
+        out = points_from_images(b.layout, b.image, W, dc[ng:].reshape(N, 6))
         if ng:
             out += np.einsum("gpj,g->pj", Hcp_g, dc[:ng])
         return out.ravel()
