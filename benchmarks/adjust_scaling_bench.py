@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import in_fresh_process, peak_rss_mb, record
+from benchmarks.common import in_fresh_process, load_adjustment_kernels, peak_rss_mb, record
 
 FULL = 818  # frames of conte-city
 TABLES = ("images", "observations", "gcps", "gcp_observations")
@@ -66,6 +66,7 @@ def _adjust(folder: str, mode: str, queue) -> None:
     spec = PRESETS["conte-city"]
     s = spec.sensors
     cfg = AdjustConfig(gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m))
+    load_adjustment_kernels()
     before = peak_rss_mb()
     t0 = time.perf_counter()
     if mode == "fixed":

@@ -149,6 +149,8 @@ class SubBlock:
         self.state = start
         self.candidate: State | None = None
         self.Hpp: np.ndarray | None = None
+        self.candidate_Hpp: np.ndarray | None = None  # the candidate's linearisation (see :meth:`try_step`)
+        self.candidate_cost = float("nan")
         self.step_parts: tuple | None = None
 
     def tie_depths(self) -> np.ndarray:
@@ -184,15 +186,20 @@ class SubBlock:
         cand = self.problem.apply(self.state, dc, dp)
         self.problem.hold_close_points(self.state, cand)
         self.candidate = cand
-        return self.problem.residuals(cand, jac=False)[0], metric
+        # linearised at the candidate at once, as :func:`aerocal.adjust.solver.solve` does: an accepted step
+        # then needs no second projection; a rejected one re-linearises at the current state
+        self.candidate_cost, _, _, _, _, _, self.candidate_Hpp = self.problem.residuals(cand, jac=True, sparse=False)
+        return self.candidate_cost, metric
 
     def accept(self) -> float:
-        """Move to the candidate and linearise there; returns the cost share."""
-        self.state, self.candidate = self.candidate, None
-        return self.linearise()
+        """Move to the candidate (linearised there already); returns the cost share."""
+        self.state, self.Hpp = self.candidate, self.candidate_Hpp
+        self.candidate, self.candidate_Hpp = None, None
+        return self.candidate_cost
 
     def reject(self) -> None:
-        self.candidate = None
+        self.candidate, self.candidate_Hpp = None, None
+        self.linearise()
 
     def finish(self) -> tuple[sp.coo_matrix, np.ndarray]:
         """The undamped reduced system at the solution (for the covariances); frees the linearisation."""
