@@ -27,15 +27,23 @@ def _config(sim, **kw) -> AdjustConfig:
     )
 
 
+def _scene(rng: np.random.Generator, n_poses: int, n_points: int) -> tuple:
+    """``(io, slopes, dT, R, C, X)``: a distorted thermal camera, its slopes, ``n_poses`` nadir poses at 850 m
+    with their temperature offsets, and ``n_points`` ground points."""
+    io = Camera(640, 480, 1670.0, 322.0, 238.0, -0.08, 0.12, 0.3, 2e-4, -1.5e-4, 0.7, 0.3).params()
+    slopes = np.array([0.05, 0.02, -0.03])
+    dT = rng.uniform(-3, 3, n_poses)
+    R = rotation_update(np.repeat(np.diag([1.0, -1.0, -1.0])[None], n_poses, 0),
+                        rng.normal(0, 0.05, (n_poses, 3)))
+    C = rng.normal(0, 20, (n_poses, 3)) + [0, 0, 850]
+    X = rng.normal(0, 60, (n_points, 3))
+    return io, slopes, dT, R, C, X
+
+
 def test_projection_jacobians_match_central_differences():
     rng = np.random.default_rng(11)
     M = 40
-    io = Camera(640, 480, 1670.0, 322.0, 238.0, -0.08, 0.12, 0.3, 2e-4, -1.5e-4, 0.7, 0.3).params()
-    slopes = np.array([0.05, 0.02, -0.03])
-    dT = rng.uniform(-3, 3, M)
-    R = rotation_update(np.repeat(np.diag([1.0, -1.0, -1.0])[None], M, 0), rng.normal(0, 0.05, (M, 3)))
-    C = rng.normal(0, 20, (M, 3)) + [0, 0, 850]
-    X = rng.normal(0, 60, (M, 3))
+    io, slopes, dT, R, C, X = _scene(rng, M, M)
     pr = project(io, slopes, dT, R, C, X)
     h = 1e-6
 
@@ -73,12 +81,7 @@ def test_compiled_projection_of_a_blocks_observations_equals_the_batched_one():
     seed = 12
     rng = np.random.default_rng(seed)
     N, P, M = 7, 30, 90
-    io = Camera(640, 480, 1670.0, 322.0, 238.0, -0.08, 0.12, 0.3, 2e-4, -1.5e-4, 0.7, 0.3).params()
-    slopes = np.array([0.05, 0.02, -0.03])
-    dT = rng.uniform(-3, 3, N)
-    R = rotation_update(np.repeat(np.diag([1.0, -1.0, -1.0])[None], N, 0), rng.normal(0, 0.05, (N, 3)))
-    C = rng.normal(0, 20, (N, 3)) + [0, 0, 850]
-    X = rng.normal(0, 60, (P, 3))
+    io, slopes, dT, R, C, X = _scene(rng, N, P)
     image, point = rng.integers(0, N, M).astype(np.int32), rng.integers(0, P, M)
     ref = project(io, slopes, dT[image], R[image], C[image], X[point])
     got = project_observations(io, slopes, dT, R, C, X, image, point)
