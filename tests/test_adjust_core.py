@@ -91,6 +91,11 @@ def test_compiled_projection_of_a_blocks_observations_equals_the_batched_one():
     assert got.d_io.shape == (M, 2, 0)
     plain = project_observations(io, slopes, dT, R, C, X, image, point, jacobians=False)
     assert np.array_equal(plain.uv, got.uv) and plain.d_point.shape == (M, 2, 0)
+    # a point in the camera's own plane (depth 0) projects to a non-finite pixel, as numpy's division gives,
+    # so that a Levenberg-Marquardt step that puts one there is rejected, not raised
+    X[point[0]] = C[image[0]]
+    edge = project_observations(io, slopes, dT, R, C, X, image, point)
+    assert edge.depth[0] == 0.0 and not np.isfinite(edge.uv[0]).all(), f"seed {seed}"
 
 
 @pytest.fixture(scope="module")

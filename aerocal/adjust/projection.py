@@ -153,7 +153,7 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_rotvec()
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _project_observations(io, slopes, dtemp, R, C, X, image, point, jac, uv, d_point, d_rot, depth):  # pragma: no cover
     """:func:`project` of observation ``m`` through image ``image[m]`` and point ``point[m]``, one loop."""
     f0, cx0, cy0, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]

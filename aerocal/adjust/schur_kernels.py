@@ -65,7 +65,7 @@ def image_pair_layout(image: np.ndarray, point: np.ndarray, n_images: int, n_poi
     return PairLayout(indptr, indices, diagonal, order, pstart)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _find(indptr, indices, row, col):  # pragma: no cover - compiled
     """Position of block (row, col) in a sorted CSR layout (binary search of the row)."""
     lo, hi = indptr[row], indptr[row + 1] - 1
@@ -78,7 +78,7 @@ def _find(indptr, indices, row, col):  # pragma: no cover - compiled
     return lo
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _inverse3(A, out):  # pragma: no cover - compiled
     """``out = A^-1`` for a symmetric 3 x 3 block by cofactors; a (nearly) singular block (a point seen along
     one ray) gets its diagonal loaded by 1e-9 of its mean, so that the point simply does not move."""
@@ -103,7 +103,7 @@ def _inverse3(A, out):  # pragma: no cover - compiled
     out[2, 2] = (a00 * a11 - a01 * a01) * inv
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _reduce(p0, p1, order, pstart, image, Ji, Jx, r, Hpp, damp, point_grad, indptr, indices,
             data, Hii, gi, back, W, Hpp_inv, gpp):  # pragma: no cover - compiled
     """One pass over points ``p0:p1`` and their observations (see :func:`reduce_points`)."""
@@ -168,7 +168,7 @@ def _reduce(p0, p1, order, pstart, image, Ji, Jx, r, Hpp, damp, point_grad, indp
                             data[k2, u, v] -= B[v, u]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _jacobian_blocks(point, d_rot, d_point, scale, Ji, Jx, Hpp):  # pragma: no cover - compiled
     for m in range(len(point)):
         p, k = point[m], scale[m]
@@ -197,7 +197,7 @@ def jacobian_blocks(point: np.ndarray, d_rot: np.ndarray, d_point: np.ndarray, s
     return Ji, Jx, Hpp
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _points_from_images(order, pstart, image, W, dc, out):  # pragma: no cover - compiled
     for p in range(len(pstart) - 1):
         for a in range(pstart[p], pstart[p + 1]):
