@@ -294,3 +294,38 @@ def test_a_warm_start_intersects_the_tie_points_the_earlier_points_table_lacks()
     assert lost.sum() > 10 and np.median(miss) < 0.05 and np.max(miss) < 1.0, f"seed {seed}: {np.sort(miss)[-5:]}"
     problem = Problem(block, cfg, 0.0)
     assert problem.residuals(warm, jac=False)[0] < 1.05 * problem.residuals(full, jac=False)[0], f"seed {seed}"
+
+
+def test_reduced_solver_reuses_its_factor_and_factorises_again_when_the_system_moved_away():
+    """Steps of one adjustment: the second system (a step's change of the linearisation) is solved by
+    conjugate gradients on the first one's factor, to the solver's tolerance; a system far from the kept factor
+    is factorised again; a non-finite right-hand side is refused with the unknowns named."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
+    from aerocal.adjust.solver import REUSE_TOLERANCE, ReducedSolver
+
+    seed = 11
+    rng = np.random.default_rng(seed)
+    n = 600
+    A = sp.random(n, n, density=0.01, random_state=seed) + sp.identity(n)
+    S1 = (A @ A.T + 0.1 * sp.identity(n)).tocsc()
+    S2 = (S1 + 1e-3 * sp.diags(rng.uniform(0, 1, n)) @ S1 @ sp.diags(rng.uniform(0, 1, n))).tocsc()
+    S2 = (0.5 * (S2 + S2.T)).tocsc()
+    S3 = (S1 + sp.diags(rng.uniform(0, 50, n))).tocsc()
+    b = rng.normal(size=n)
+    solver = ReducedSolver(reuse=True)
+    x1 = solver.solve(S1, b)
+    assert solver.factorisations == 1 and np.allclose(x1, spla.spsolve(S1, b), rtol=1e-9, atol=1e-12), f"seed {seed}"
+    x2 = solver.solve(S2, b)
+    want = spla.spsolve(S2, b)
+    energy = np.sqrt((x2 - want) @ (S2 @ (x2 - want)) / (want @ b))
+    assert solver.factorisations == 1 and solver.cg_iterations, f"seed {seed}: the kept factor was not reused"
+    assert energy < 10 * REUSE_TOLERANCE, f"seed {seed}: relative energy error {energy:g}"
+    x3 = solver.solve(S3, b)
+    assert solver.factorisations == 2, f"seed {seed}: a system far from the factor was not factorised again"
+    assert np.allclose(x3, spla.spsolve(S3, b), rtol=1e-9, atol=1e-12), f"seed {seed}"
+    bad = b.copy()
+    bad[7] = np.nan
+    with pytest.raises(AdjustmentError, match=r"unknowns \[7\]"):
+        solver.solve(S1, bad)

@@ -13,6 +13,7 @@ from aerocal.adjust.bundle import initial_state
 from aerocal.adjust.covariance import triangulate_check_points
 from aerocal.adjust.partition import plan_partition, solve_partitioned
 from aerocal.adjust.problem import build_block
+from aerocal.adjust.projection import project
 from aerocal.adjust.solver import Problem, solve
 from aerocal.simulate import simulate_flight
 
@@ -103,3 +104,36 @@ def test_the_pipeline_adjusts_a_block_past_its_threshold_in_sub_blocks_with_the_
         va, vb = (np.array(adj[key], dtype=float) for adj in (adj_a, adj_b))  # null: a check point not seen
         assert np.isfinite(va).sum() >= 10, key
         np.testing.assert_allclose(vb, va, **tol, err_msg=key)
+
+
+def test_check_point_covariance_equals_the_propagation_through_the_whole_camera_covariance():
+    """The check points' camera term from three solves each equals ``G B Cov(cams) B^T G^T`` formed from
+    the dense inverse of the reduced camera system, IO free (global columns) and fixed."""
+    for preset, n, free in (("conte-calibration", 44, ("f", "cx", "cy", "k1", "k2", "p1", "p2")),
+                            ("conte-city", 60, ())):
+        blk, st, cfg = _block(preset, n, free)
+        sol = solve(Problem(blk, cfg, 0.0), st.copy())
+        cp = triangulate_check_points(blk, sol)
+        ok = np.flatnonzero(np.isfinite(cp.xyz).all(axis=1))
+        assert len(ok) >= 3, f"{preset}: seed {SEED}"
+        dense = sol.cov_camera.dense()
+        lay, s = sol.layout, sol.state
+        for kk in ok:
+            sel = np.flatnonzero(blk.check_point == kk)
+            i = blk.check_image[sel]
+            pr = project(s.io, s.slopes, np.zeros(len(sel)), s.R[i], s.C[i], np.repeat(cp.xyz[kk][None], len(sel), 0))
+            sig = blk.check_sigma_px[sel][:, None, None]
+            A = (pr.d_point / sig).reshape(-1, 3)
+            ng = lay.n_global
+            cols = np.concatenate([np.arange(ng), lay.image_cols(i).ravel()])
+            B = np.zeros((2 * len(sel), len(cols)))
+            if ng:
+                B[:, :ng] = (np.concatenate([pr.d_io[:, :, lay.io_free], pr.d_slope[:, :, lay.slope_free]], 2)
+                             / sig).reshape(-1, ng)
+            for m in range(len(sel)):
+                Bm = np.concatenate([pr.d_rot[m], -pr.d_point[m]], 1) / sig[m]
+                B[2 * m:2 * m + 2, ng + 6 * m:ng + 6 * m + 6] = Bm
+            Ninv = np.linalg.inv(A.T @ A)
+            GB = Ninv @ A.T @ B
+            want = sol.sigma0**2 * (Ninv + GB @ dense[np.ix_(cols, cols)] @ GB.T)
+            assert np.allclose(cp.cov[kk], want, rtol=1e-8, atol=1e-14), f"{preset}: check point {kk}, seed {SEED}"

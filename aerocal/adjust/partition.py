@@ -39,6 +39,7 @@ from aerocal.adjust.problem import AdjustConfig, Block
 from aerocal.adjust.solver import (
     MIN_DEPTH_FRACTION,
     Problem,
+    ReducedSolver,
     Solution,
     SparseInverse,
     State,
@@ -46,7 +47,6 @@ from aerocal.adjust.solver import (
     redundancy,
     schur_complement,
     solve,
-    solve_reduced,
 )
 
 
@@ -266,9 +266,11 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
         S = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols_))), shape=(n, n))
         return S, r
 
+    reduced = ReducedSolver()
+
     def step(lam: float) -> tuple[float, float]:
         S, rhs = reduced_system(lam)
-        dc = solve_reduced(S, rhs)
+        dc = reduced.solve(S, rhs)
         del S
         out = _gather([p.try_step(dc[c]) for p, c in zip(parts, cols, strict=True)])
         return sum(c for c, _ in out), sum(m for _, m in out)

@@ -9,14 +9,20 @@ sort of the pair keys every iteration: 1.4 s a call. This is the loop of Ceres' 
 compiled by numba: one pass over the points, each unordered pair once (the mirrored block is its
 transpose), written in place into a block layout found once per block (:func:`image_pair_layout`) by a
 binary search of the pair's row; the per-observation sums (each image's own ``J^T J`` and ``J^T r``, the
-points' gradients and inverse blocks) in the same pass. Measured on that block: 0.22 s in one thread, 0.13 s
-in two; the whole fixed-IO adjustment 21.5 s -> 4.7 s with the compiled projection beside it, against
-pycolmap's 6.2 s on the same problem (``benchmarks/colmap_ba_bench.py``, ``benchmarks/RESULTS.md``). The
-agreement with the general sparse products is checked in ``tests/test_adjust_core.py``.
+points' gradients and inverse blocks) in the same pass. Measured on that block: 0.22 s in one thread, 0.08 s
+in two (outputs touched first); the whole fixed-IO adjustment 2.4 s with the compiled projection beside it
+(21.5 s with the numpy pair sums), against pycolmap's 6.3 s on the same problem
+(``benchmarks/colmap_ba_bench.py``, ``benchmarks/RESULTS.md``). The agreement with the general sparse
+products is checked in ``tests/test_adjust_core.py``.
 
-Conventions: observations are rows of the block's observation tables; ``order`` lists them grouped by point
-(``pstart[p]:pstart[p + 1]`` are point ``p``'s); image blocks are 6 x 6 in the (w, C) order of
-:class:`aerocal.adjust.solver.Layout`.
+The points are visited in an order that keeps the blocks being written few (:func:`point_visit_rank`):
+visited by their index, the points of a simulated or matched block jump across it, and every pair writes
+to rows far from the last (3200-image conte-city block: 1.17 s a pass; 0.33 s visited along a reverse
+Cuthill-McKee order of the images).
+
+Conventions: observations are rows of the block's observation tables; ``order`` lists them grouped by point,
+the points in the visiting order ``visit`` (``pstart[q]:pstart[q + 1]`` are point ``visit[q]``'s); image blocks
+are 6 x 6 in the (w, C) order of :class:`aerocal.adjust.solver.Layout`.
 """
 
 from __future__ import annotations
@@ -28,6 +34,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import reverse_cuthill_mckee
 
 
 @dataclass(frozen=True)
@@ -38,31 +45,57 @@ class PairLayout:
     indptr: np.ndarray  # (N + 1,) int64: image i's blocks are indices[indptr[i]:indptr[i + 1]]
     indices: np.ndarray  # (B,) int64 column image of each block, sorted within a row
     diagonal: np.ndarray  # (N,) int64 position of block (i, i)
-    order: np.ndarray  # (M,) int64 observations sorted by point (stable)
-    pstart: np.ndarray  # (P + 1,) int64 first entry of each point in ``order``
+    order: np.ndarray  # (M,) int64 observations grouped by point, points in ``visit`` order (stable)
+    pstart: np.ndarray  # (P + 1,) int64 first entry in ``order`` of the point visited q-th
+    visit: np.ndarray  # (P,) int64 the point visited q-th
 
     @property
     def n_blocks(self) -> int:
         return len(self.indices)
 
 
-def image_pair_layout(image: np.ndarray, point: np.ndarray, n_images: int, n_points: int) -> PairLayout:
-    """The layout of every pair of images that share a point, and every image's own block.
-
-    The pattern is that of ``A A^T`` for the image-by-point incidence matrix ``A`` (scipy's sparse product:
-    one pass over the ``sum_p L_p^2`` pairs in C++, no per-pair array kept)."""
-    M = len(image)
-    A = sp.csr_matrix((np.ones(M, dtype=np.float32), (image, point)), shape=(n_images, n_points))
+def image_graph(image: np.ndarray, point: np.ndarray, n_images: int, n_points: int) -> sp.csr_matrix:
+    """Which images share a point, each image with itself included: the pattern of ``A A^T`` for the
+    image-by-point incidence matrix ``A`` (scipy's sparse product: one pass over the ``sum_p L_p^2`` pairs in
+    C++, no per-pair array kept), CSR with sorted indices."""
+    A = sp.csr_matrix((np.ones(len(image), dtype=np.float32), (image, point)), shape=(n_images, n_points))
     G = (A @ A.T + sp.identity(n_images, dtype=np.float32, format="csr")).tocsr()
     G.sort_indices()
+    return G
+
+
+def point_visit_rank(graph: sp.csr_matrix, image: np.ndarray, point: np.ndarray, n_points: int) -> np.ndarray:
+    """(P,) int64: when each point is visited by the compiled passes. The images are put in a reverse
+    Cuthill-McKee order of ``graph`` (neighbours near each other, whatever order the images came in), and the
+    points follow their first image in it; a point seen by no image comes last."""
+    n_images = graph.shape[0]
+    pos = np.empty(n_images, dtype=np.int64)
+    pos[np.asarray(reverse_cuthill_mckee(graph, symmetric_mode=True))] = np.arange(n_images)
+    key = np.full(n_points, n_images, dtype=np.int64)
+    np.minimum.at(key, point, pos[image])
+    rank = np.empty(n_points, dtype=np.int64)
+    rank[np.argsort(key, kind="stable")] = np.arange(n_points)
+    return rank
+
+
+def image_pair_layout(image: np.ndarray, point: np.ndarray, n_images: int, n_points: int,
+                      graph: sp.csr_matrix | None = None, rank: np.ndarray | None = None) -> PairLayout:
+    """The layout of every pair of images that share a point, and every image's own block; the points visited
+    in ``rank`` order (default :func:`point_visit_rank`). ``graph``: :func:`image_graph` of the observations,
+    when already formed."""
+    G = image_graph(image, point, n_images, n_points) if graph is None else graph
+    if rank is None:
+        rank = point_visit_rank(G, image, point, n_points)
     indptr = G.indptr.astype(np.int64)
     indices = G.indices.astype(np.int64)
     rows = np.repeat(np.arange(n_images), np.diff(indptr))
     diagonal = np.flatnonzero(rows == indices)
-    order = np.argsort(point, kind="stable").astype(np.int64)
+    order = np.argsort(rank[point], kind="stable").astype(np.int64)
+    visit = np.empty(n_points, dtype=np.int64)
+    visit[rank] = np.arange(n_points)
     pstart = np.zeros(n_points + 1, dtype=np.int64)
-    np.cumsum(np.bincount(point, minlength=n_points), out=pstart[1:])
-    return PairLayout(indptr, indices, diagonal, order, pstart)
+    np.cumsum(np.bincount(point, minlength=n_points)[visit], out=pstart[1:])
+    return PairLayout(indptr, indices, diagonal, order, pstart, visit)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -104,18 +137,19 @@ def _inverse3(A, out):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _reduce(p0, p1, order, pstart, image, Ji, Jx, r, Hpp, damp, point_grad, indptr, indices,
+def _reduce(p0, p1, order, pstart, visit, image, Ji, Jx, r, Hpp, damp, point_grad, indptr, indices,
             data, Hii, gi, back, W, Hpp_inv, gpp):  # pragma: no cover - compiled
-    """One pass over points ``p0:p1`` and their observations (see :func:`reduce_points`)."""
+    """One pass over the points visited ``p0:p1``-th and their observations (see :func:`reduce_points`)."""
     T = np.empty((6, 3))
     B = np.empty((6, 6))
     Hd = np.empty((3, 3))
     longest = 0
-    for p in range(p0, p1):
-        longest = max(longest, pstart[p + 1] - pstart[p])
+    for q in range(p0, p1):
+        longest = max(longest, pstart[q + 1] - pstart[q])
     Wp = np.empty((longest, 6, 3))  # the point's W blocks, contiguous
-    for p in range(p0, p1):
-        s, e = pstart[p], pstart[p + 1]
+    for q in range(p0, p1):
+        p = visit[q]
+        s, e = pstart[q], pstart[q + 1]
         # the point's damped block, its inverse and its gradient J^T r (+ a control point's own rows)
         for u in range(3):
             for v in range(3):
@@ -198,9 +232,10 @@ def jacobian_blocks(point: np.ndarray, d_rot: np.ndarray, d_point: np.ndarray, s
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _points_from_images(order, pstart, image, W, dc, out):  # pragma: no cover - compiled
-    for p in range(len(pstart) - 1):
-        for a in range(pstart[p], pstart[p + 1]):
+def _points_from_images(order, pstart, visit, image, W, dc, out):  # pragma: no cover - compiled
+    for q in range(len(pstart) - 1):
+        p = visit[q]
+        for a in range(pstart[q], pstart[q + 1]):
             m = order[a]
             i = image[m]
             for v in range(3):
@@ -213,7 +248,7 @@ def points_from_images(layout: PairLayout, image: np.ndarray, W: np.ndarray, dc_
     (``dc_images`` (N, 6)): the back-substitution's product, in the points' order (numpy's gathered
     products and per-point bincounts: 25 ms on 382k observations, this loop ~3 ms)."""
     out = np.zeros((len(layout.pstart) - 1, 3))
-    _points_from_images(layout.order, layout.pstart, np.ascontiguousarray(image, dtype=np.int64),
+    _points_from_images(layout.order, layout.pstart, layout.visit, np.ascontiguousarray(image, dtype=np.int64),
                         np.ascontiguousarray(W, dtype=np.float64), np.ascontiguousarray(dc_images, dtype=np.float64),
                         out)
     return out
@@ -233,7 +268,7 @@ class Reduction:
 
 
 #: Threads that share :func:`reduce_points` (the compiled pass releases the GIL): each sums its own points'
-#: pairs into a copy of the blocks, added up after (800-image conte-city block: 0.22 s in one, 0.13 s in two).
+#: pairs into a copy of the blocks, added up after (800-image conte-city block: 0.22 s in one, 0.08 s in two).
 REDUCE_THREADS = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
@@ -248,7 +283,7 @@ def reduce_points(layout: PairLayout, image: np.ndarray, Ji: np.ndarray, Jx: np.
     the pass (default :data:`REDUCE_THREADS`), the points cut where the pairs' work is halved."""
     M, P = len(image), len(Hpp)
     f8 = np.float64
-    args = (layout.order, layout.pstart, np.ascontiguousarray(image, dtype=np.int64),
+    args = (layout.order, layout.pstart, layout.visit, np.ascontiguousarray(image, dtype=np.int64),
             np.ascontiguousarray(Ji, dtype=f8), np.ascontiguousarray(Jx, dtype=f8), np.ascontiguousarray(r, dtype=f8),
             np.ascontiguousarray(Hpp, dtype=f8), 1.0 + lam, np.ascontiguousarray(point_grad, dtype=f8),
             layout.indptr, layout.indices)

@@ -37,8 +37,10 @@ from aerocal.adjust.projection import (
 )
 from aerocal.adjust.schur_kernels import (
     PairLayout,
+    image_graph,
     image_pair_layout,
     jacobian_blocks,
+    point_visit_rank,
     points_from_images,
     reduce_points,
 )
@@ -148,10 +150,10 @@ def _robust(s: np.ndarray, loss: str, c: float) -> tuple[np.ndarray, np.ndarray]
 @dataclass(frozen=True)
 class ObsView:
     """A block's image observations in point order (each point's observations together, the block's order
-    within a point): the order of the rows of :class:`ObsBlocks`. The compiled passes over them
-    (:mod:`aerocal.adjust.schur_kernels`, :func:`project_observations`) then read each point's observations
-    and the point itself in sequence instead of at random (the fixed-IO solve of the 800-image conte-city
-    block: 3.8 s -> 3.4 s, warm)."""
+    within a point, the points in their visiting order, :func:`point_visit_rank`): the order of the rows of
+    :class:`ObsBlocks`. The compiled passes over them (:mod:`aerocal.adjust.schur_kernels`,
+    :func:`project_observations`) then read each point's observations and the point itself in sequence
+    instead of at random (the fixed-IO solve of the 800-image conte-city block: 3.8 s -> 3.4 s, warm)."""
 
     order: np.ndarray  # (M,) the block's rows in this order
     image: np.ndarray  # (M,) int64
@@ -161,8 +163,9 @@ class ObsView:
     is_tie: np.ndarray  # (M,) bool
 
     @classmethod
-    def by_point(cls, b: Block) -> ObsView:
-        order = np.argsort(b.obs_point, kind="stable")
+    def by_point(cls, b: Block, rank: np.ndarray) -> ObsView:
+        """``rank``: (P,) when each point is visited."""
+        order = np.argsort(rank[b.obs_point], kind="stable")
         return cls(order, b.obs_image[order].astype(np.int64), b.obs_point[order].astype(np.int64),
                    np.ascontiguousarray(b.obs_uv[order]), b.obs_sigma[order], b.obs_is_tie[order])
 
@@ -187,7 +190,9 @@ class Problem:
         #: adjustment counts them (each prior enters the whole block's normal equations once)
         self.prior_weight = np.ones(block.n_images)
         self.blocks: ObsBlocks | None = None  # of the last Jacobian (see :class:`ObsBlocks`)
-        self._by_point: tuple[ObsView, PairLayout] | None = None  # formed on first use (:meth:`by_point`)
+        self._view: ObsView | None = None  # formed on first use (:meth:`point_view`)
+        self._graph: tuple[sp.csr_matrix, np.ndarray] | None = None  # image graph and points' visiting rank
+        self._pair_layout: PairLayout | None = None  # formed on the first Jacobian (:meth:`by_point`)
         self._block_layout: PairLayout | None = None  # formed on first use (:meth:`block_order_layout`)
         self.depth_floor: float | None = None  # metres, set from the first state a step starts from
         self.gnss_sigma = None if config.gnss_sigma_m is None else np.asarray(config.gnss_sigma_m, float)
@@ -203,15 +208,25 @@ class Problem:
                 f"{len(block.control_ids)} control GCPs; give GNSS sigmas or at least 3 control points"
             )
 
+    def point_view(self) -> ObsView:
+        """The observations in point order (:class:`ObsView`), formed once for the block."""
+        if self._view is None:
+            b = self.b
+            G = image_graph(b.obs_image, b.obs_point, b.n_images, b.n_points)
+            self._graph = G, point_visit_rank(G, b.obs_image, b.obs_point, b.n_points)
+            self._view = ObsView.by_point(b, self._graph[1])
+        return self._view
+
     def by_point(self) -> tuple[ObsView, PairLayout]:
         """The observations in point order and the block layout of the reduced camera system
         (:func:`image_pair_layout`): both depend only on which image observes which point, so they are formed
-        once for the block."""
-        if self._by_point is None:
+        once for the block; the layout on the first Jacobian only (a residuals-only Problem never needs it)."""
+        view = self.point_view()
+        if self._pair_layout is None:
             b = self.b
-            view = ObsView.by_point(b)
-            self._by_point = view, image_pair_layout(view.image, view.point, b.n_images, b.n_points)
-        return self._by_point
+            G, rank = self._graph
+            self._pair_layout = image_pair_layout(view.image, view.point, b.n_images, b.n_points, G, rank)
+        return view, self._pair_layout
 
     def block_order_layout(self) -> PairLayout:
         """:func:`image_pair_layout` of the observations in the block's own order (the rows of the sparse
@@ -230,7 +245,12 @@ class Problem:
         the image rows of ``r`` are in point order (:class:`ObsView`). ``res_px`` and ``w`` are in the block's
         order."""
         b, lay = self.b, self.layout
-        view, pair_layout = (None, None) if jac and sparse else self.by_point()
+        if jac and sparse:
+            view, pair_layout = None, None
+        elif jac:
+            view, pair_layout = self.by_point()
+        else:
+            view, pair_layout = self.point_view(), None
         if view is None:
             i, j, uv_obs, sigma, is_tie = b.obs_image, b.obs_point, b.obs_uv, b.obs_sigma, b.obs_is_tie
         else:
@@ -349,7 +369,7 @@ class Problem:
         :data:`MIN_DEPTH_FRACTION` of the median depth of ``old``'s first call; returns how many.
 
         Their Jacobian grows as 1 / depth^2: one such point makes the reduced normal matrix overflow."""
-        view = self.by_point()[0]
+        view = self.point_view()
         i, j = view.image[view.is_tie], view.point[view.is_tie]
 
         def depths(st: State) -> np.ndarray:
@@ -547,17 +567,99 @@ def factorise(S) -> tuple:
 
 def solve_reduced(S, rhs: np.ndarray) -> np.ndarray:
     """``S x = rhs`` for the sparse reduced camera system (see :func:`factorise`); least squares if singular."""
-    if not np.isfinite(rhs).all():
-        bad = np.flatnonzero(~np.isfinite(rhs))
-        raise AdjustmentError(
-            f"the reduced normal equations have non-finite entries (camera-side unknowns {bad[:6].tolist()}...): "
-            "a projection overflowed; the start poses or a tie point are far from any consistent geometry"
-        )
-    lu, d = factorise(S)
-    if lu is None:
-        Ss = sp.csc_matrix(S).toarray() / d[:, None] / d[None, :]
-        return np.linalg.lstsq(Ss, rhs / d, rcond=None)[0] / d
-    return lu.solve(rhs / d) / d
+    return ReducedSolver().solve(S, rhs)
+
+
+#: Reduced camera systems with fewer unknowns are factorised at every step (800 images, 4800 unknowns: a
+#: SuperLU factorisation takes 0.08 s); from this size on :class:`ReducedSolver` reuses the first factor.
+REUSE_MIN_UNKNOWNS = 6000
+#: Relative error, in the system's energy norm, at which the preconditioned conjugate gradients stop
+REUSE_TOLERANCE = 1e-6
+#: Conjugate-gradient iterations after which the system is factorised again (each costs one solve with the
+#: old factor: 3200 images 0.025 s, against 1.0 s for a factorisation)
+REUSE_MAX_ITERATIONS = 20
+
+
+class ReducedSolver:
+    """Solves the reduced camera systems of one adjustment, step after step.
+
+    Every Levenberg-Marquardt step factorises a new system (:func:`factorise`), though it differs from the
+    last one only by the step's change of the linearisation and of the damping. From
+    :data:`REUSE_MIN_UNKNOWNS` on, the last factor is kept and preconditions conjugate gradients on the next
+    system (started from the old factor's solution), which then converge in a few iterations; the system is
+    factorised again when they need more than :data:`REUSE_MAX_ITERATIONS`. The solution equals the direct
+    one to :data:`REUSE_TOLERANCE` in the energy norm. Measured on the conte-city plans: see
+    ``benchmarks/RESULTS.md`` (adjustment scaling). Singular systems get the least-squares solution."""
+
+    def __init__(self, reuse: bool | None = None) -> None:
+        """``reuse``: keep the factor between calls (None: by the system's size)."""
+        self.reuse = reuse
+        self._lu = None
+        self._d: np.ndarray | None = None
+        self.factorisations = 0
+        self.cg_iterations: list[int] = []
+
+    def _factor(self, S) -> None:
+        self._lu, self._d = factorise(S)
+        self.factorisations += 1
+
+    def _direct(self, S, rhs: np.ndarray) -> np.ndarray:
+        d = self._d
+        rhs_d = rhs / (d[:, None] if rhs.ndim == 2 else d)
+        if self._lu is None:
+            Ss = sp.csc_matrix(S).toarray() / d[:, None] / d[None, :]
+            x = np.linalg.lstsq(Ss, rhs_d, rcond=None)[0]
+        else:
+            x = self._lu.solve(rhs_d)
+        return x / (d[:, None] if rhs.ndim == 2 else d)
+
+    def _conjugate_gradients(self, S, rhs: np.ndarray) -> np.ndarray | None:
+        """Conjugate gradients on ``S`` preconditioned by the kept factor, every column of ``rhs`` (n, k) at
+        once; ``None`` when they do not converge in :data:`REUSE_MAX_ITERATIONS`."""
+        S = sp.csr_matrix(S)
+        X = self._direct(S, rhs)
+        R = rhs - S @ X
+        Z = self._direct(S, R)
+        rz = np.einsum("ik,ik->k", R, Z)
+        goal = REUSE_TOLERANCE**2 * np.maximum(np.abs(np.einsum("ik,ik->k", rhs, X)), 1e-300)
+        P = Z
+        for it in range(REUSE_MAX_ITERATIONS + 1):
+            if np.all(rz <= goal):
+                self.cg_iterations.append(it)
+                return X
+            if it == REUSE_MAX_ITERATIONS or not np.all(np.isfinite(rz)):
+                return None
+            Q = S @ P
+            pq = np.einsum("ik,ik->k", P, Q)
+            alpha = np.where(pq > 0, rz / np.where(pq > 0, pq, 1.0), 0.0)
+            X = X + alpha * P
+            R = R - alpha * Q
+            Z = self._direct(S, R)
+            rz_new = np.einsum("ik,ik->k", R, Z)
+            P = Z + (rz_new / np.maximum(rz, 1e-300)) * P
+            rz = rz_new
+        return None
+
+    def solve(self, S, rhs: np.ndarray) -> np.ndarray:
+        """``S x = rhs`` (``rhs`` (n,) or (n, k))."""
+        rhs = np.asarray(rhs, dtype=float)
+        if not np.isfinite(rhs).all():
+            bad = np.flatnonzero(~np.isfinite(rhs.reshape(len(rhs), -1)).all(axis=1))
+            raise AdjustmentError(
+                f"the reduced normal equations have non-finite entries (camera-side unknowns {bad[:6].tolist()}...): "
+                "a projection overflowed; the start poses or a tie point are far from any consistent geometry"
+            )
+        if self.will_reuse(S):
+            x = self._conjugate_gradients(S, rhs.reshape(len(rhs), -1))
+            if x is not None:
+                return x.reshape(rhs.shape)
+        self._factor(S)
+        return self._direct(S, rhs)
+
+    def will_reuse(self, S) -> bool:
+        """Whether :meth:`solve` starts from the kept factor on ``S``."""
+        reuse = self.reuse if self.reuse is not None else S.shape[0] >= REUSE_MIN_UNKNOWNS
+        return bool(reuse and self._lu is not None and np.isfinite(S.data).all())
 
 
 def inverse_spd(S: np.ndarray) -> np.ndarray:
@@ -604,6 +706,9 @@ class SparseInverse:
     """
 
     def __init__(self, S) -> None:
+        # factorised, not solved by conjugate gradients on a step's factor (:class:`ReducedSolver`): each of
+        # their iterations would solve for every column asked (3200 images, 51 check points: 12 iterations of
+        # 153 columns, 45 s, against 1.0 s for the factorisation and 1.2 s for one solve)
         self.n = S.shape[0]
         self._lu, self.d = factorise(S)
         self._dense = None
@@ -626,11 +731,18 @@ class SparseInverse:
             self._cols = {c: v for c, v in self._cols.items() if c in asked}
         if missing:
             E = np.zeros((self.n, len(missing)))
-            E[missing, np.arange(len(missing))] = 1.0 / self.d[missing]
-            X = self._lu.solve(E) / self.d[:, None]
+            E[missing, np.arange(len(missing))] = 1.0
+            X = self.solve(E)
             for k, c in enumerate(missing):
                 self._cols[c] = X[:, k]
         return np.column_stack([self._cols[int(c)] for c in cols]) if len(cols) else np.zeros((self.n, 0))
+
+    def solve(self, E: np.ndarray) -> np.ndarray:
+        """``S^-1 E`` for (n, k) ``E``, without keeping the columns."""
+        E = np.asarray(E, dtype=float).reshape(self.n, -1)
+        if self._dense is not None:
+            return self._dense @ E
+        return self._lu.solve(E / self.d[:, None]) / self.d[:, None]
 
     def __getitem__(self, key) -> np.ndarray:
         rows, cols = key
@@ -703,12 +815,13 @@ def solve(problem: Problem, start: State) -> Solution:
     st, cand = start, None
     lin = problem.residuals(st, jac=True, sparse=False)
     cand_lin = None
+    reduced = ReducedSolver()
 
     def step(lam: float) -> tuple[float, float]:
         nonlocal cand, cand_lin
         _, _, _, r, Jc, Jp, Hpp = lin
         S, rhs, Hpp_inv, Hcp, gp = schur_complement(Jc, Jp, Hpp, r, lam, problem.blocks)
-        dc = solve_reduced(S, rhs)
+        dc = reduced.solve(S, rhs)
         dp = -np.einsum("pij,pj->pi", Hpp_inv, (gp + Hcp.T @ dc).reshape(-1, 3)).ravel()
         step_metric = float(dc @ rhs)
         # the reduced system and the operator's per-observation blocks (~0.3 kB per observation) are not
