@@ -145,22 +145,29 @@ class Camera:
         eps 1e-12 in tests/test_camera.py).
         """
         target = np.asarray(xy_distorted, dtype=float)
-        x = target[..., 0].copy()
-        y = target[..., 1].copy()
+        shape = target.shape
+        target = target.reshape(-1, 2)
+        x = target[:, 0].copy()
+        y = target[:, 1].copy()
+        # each iteration on the points still moving only (6 M observations of a 12,800-image block: 2.4 s a
+        # call iterating on all of them until the slowest converged)
+        act = np.arange(len(x))
         for _ in range(iterations):
-            d = self.distort(np.stack([x, y], axis=-1))
-            ex = d[..., 0] - target[..., 0]
-            ey = d[..., 1] - target[..., 1]
-            a, b, c, e = self._distort_jacobian(x, y)
+            xa, ya = x[act], y[act]
+            d = self.distort(np.stack([xa, ya], axis=-1))
+            ex = d[:, 0] - target[act, 0]
+            ey = d[:, 1] - target[act, 1]
+            a, b, c, e = self._distort_jacobian(xa, ya)
             det = a * e - b * c
             det = np.where(np.abs(det) < 1e-12, 1e-12, det)
             dx = (e * ex - b * ey) / det
             dy = (-c * ex + a * ey) / det
-            x -= dx
-            y -= dy
-            if np.all(np.abs(dx) + np.abs(dy) < tol):
+            x[act] = xa - dx
+            y[act] = ya - dy
+            act = act[~(np.abs(dx) + np.abs(dy) < tol)]
+            if not len(act):
                 break
-        return np.stack([x, y], axis=-1)
+        return np.stack([x, y], axis=-1).reshape(shape)
 
     # ----------------------------------------------------------------- pixels <-> normalised
     def normalised_to_pixels(self, xy_distorted: np.ndarray) -> np.ndarray:

@@ -190,15 +190,16 @@ def _points_table(block: Block, sol: Solution) -> pa.Table:
     n = np.bincount(j, minlength=block.n_tie)
     mean_err = np.bincount(j, weights=err, minlength=block.n_tie) / np.maximum(n, 1)
     X = sol.state.X[: block.n_tie] + block.origin
+    order = np.argsort(block.track_ids, kind="stable")  # by track id, whatever the block's numbering
     return tables.from_columns(
         "points",
         {
-            "track_id": block.track_ids,
-            "X": X[:, 0],
-            "Y": X[:, 1],
-            "Z": X[:, 2],
-            "n_obs": n.astype(np.int32),
-            "error": mean_err,
+            "track_id": block.track_ids[order],
+            "X": X[order, 0],
+            "Y": X[order, 1],
+            "Z": X[order, 2],
+            "n_obs": n[order].astype(np.int32),
+            "error": mean_err[order],
         },
         crs=block.crs,
     )

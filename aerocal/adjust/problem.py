@@ -13,6 +13,7 @@ import pyarrow as pa
 
 from aerocal import tables
 from aerocal.adjust.projection import THERMAL_PARAMS
+from aerocal.adjust.schur_kernels import image_graph, point_visit_rank
 from aerocal.adjust.thinning import ThinningConfig
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel, correct_measurements
 from aerocal.geometry import attitude_to_R_cw
@@ -294,6 +295,17 @@ def build_block(
     sel_c = np.array([g in ctrl_pos for g in go_gid], dtype=bool)
     sel_k = np.array([g in chk_pos for g in go_gid], dtype=bool)
     n_tie = len(track_ids)
+    # tie points numbered, and their observations stored, along a reverse Cuthill-McKee order of the images
+    # (:func:`point_visit_rank`): the adjustment's per-observation passes then read and write each point's
+    # and each image's rows in sequence. In the order of their track ids, the points of a simulated block lie
+    # at random across it (12,800-image conte-city block: the Jacobian blocks' pass 1.7 s a call, ...)
+    o_row = np.arange(len(o_pt))
+    if n_tie:
+        rank = point_visit_rank(image_graph(o_img, o_pt, N, n_tie), o_img, o_pt, n_tie)
+        track_ids = track_ids[np.argsort(rank)]
+        o_pt = rank[o_pt]
+        o_row = np.argsort(o_pt, kind="stable")
+        o_img, o_pt, o_uv, o_sig = o_img[o_row], o_pt[o_row], o_uv[o_row], o_sig[o_row]
     c_pt = n_tie + np.array([ctrl_pos[g] for g, s in zip(go_gid, sel_c, strict=True) if s], dtype=np.int64)
     k_pt = np.array([chk_pos[g] for g, s in zip(go_gid, sel_k, strict=True) if s], dtype=np.int64)
 
@@ -309,7 +321,7 @@ def build_block(
         obs_uv=np.vstack([o_uv, go_uv[sel_c]]),
         obs_sigma=np.concatenate([o_sig, go_sig[sel_c]]),
         obs_is_tie=np.concatenate([np.ones(len(o_pt), bool), np.zeros(int(sel_c.sum()), bool)]),
-        obs_row=np.concatenate([np.arange(len(o_pt)), np.full(int(sel_c.sum()), -1)]),
+        obs_row=np.concatenate([o_row, np.full(int(sel_c.sum()), -1)]),
         n_tie=n_tie,
         track_ids=track_ids,
         control_ids=[g_id[i] for i in ctrl],

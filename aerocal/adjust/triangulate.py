@@ -38,12 +38,18 @@ def triangulate_linear(
     Returns the points (P, 3) and a boolean mask of points with a well-conditioned intersection
     (at least two rays and a normal matrix with condition number below 1e8).
     """
-    proj = np.eye(3)[None] - rays[:, :, None] * rays[:, None, :]
+    # sums over each point's rays of (I - d d^T) and (I - d d^T) c, by one bincount per component (np.add.at
+    # on (M, 3, 3) blocks took 2.5 s a call on 6 M rays)
+    count = np.bincount(point_idx, minlength=n_points).astype(float)
     A = np.zeros((n_points, 3, 3))
-    b = np.zeros((n_points, 3))
-    np.add.at(A, point_idx, proj)
-    np.add.at(b, point_idx, np.einsum("mij,mj->mi", proj, centres))
-    count = np.bincount(point_idx, minlength=n_points)
+    for u in range(3):
+        for v in range(u, 3):
+            A[:, u, v] = A[:, v, u] = -np.bincount(point_idx, weights=rays[:, u] * rays[:, v], minlength=n_points)
+        A[:, u, u] += count
+    dc = np.einsum("mj,mj->m", rays, centres)
+    b = np.stack([np.bincount(point_idx, weights=centres[:, u] - rays[:, u] * dc, minlength=n_points)
+                  for u in range(3)], axis=1)
+    count = count.astype(int)
     ok = count >= 2
     eig = np.linalg.eigvalsh(np.where(ok[:, None, None], A, np.eye(3)[None]))
     ok &= eig[:, 0] > 1e-8 * eig[:, 2]
