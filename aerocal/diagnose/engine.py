@@ -72,7 +72,8 @@ def physical_verdict(e: Evidence, camera: Camera, ctx: hyp.Context, sigma_scale:
                 "(e.g. a GNSS bias is the datum itself without GCPs)")
     if np.any(sigma > DETERMINED_FRACTION * size):
         k = int(np.argmax(sigma / size))
-        what = "formal sigma" if sigma_scale == 1.0 else f"sigma (formal x {sigma_scale:.3g}, the overdispersion)"
+        what = ("formal sigma" if sigma_scale == 1.0 else
+                f"sigma (formal x {sigma_scale:.3g}, the square root of this block's measured overdispersion)")
         return (f"not determined on this block: {what} {sigma[k]:.3g} {e.units} against a plausible size of "
                 f"{size[k]:.3g} {e.units}")
     if np.any(theta > size):
