@@ -74,8 +74,9 @@ def test_projection_jacobians_match_central_differences():
 
 
 def test_compiled_projection_of_a_blocks_observations_equals_the_batched_one():
-    """The fixed-IO adjustment's compiled loop (poses and points read in place by index) gives the pixels,
-    depths and pose/point Jacobians of :func:`project`, distortion and thermal drift included."""
+    """The adjustment's compiled loop (poses and points read in place by index) gives the pixels, depths and
+    pose/point Jacobians of :func:`project`, and with ``io_jacobians`` its IO and thermal-slope Jacobians too,
+    distortion and thermal drift included."""
     from aerocal.adjust.projection import project_observations
 
     seed = 12
@@ -89,6 +90,10 @@ def test_compiled_projection_of_a_blocks_observations_equals_the_batched_one():
         a, b = getattr(got, name), getattr(ref, name)
         assert np.allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max()), f"seed {seed}: {name}"
     assert got.d_io.shape == (M, 2, 0)
+    full = project_observations(io, slopes, dT, R, C, X, image, point, io_jacobians=True)
+    for name in ("uv", "d_point", "d_rot", "d_io", "d_slope"):
+        a, b = getattr(full, name), getattr(ref, name)
+        assert np.allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max()), f"seed {seed}: {name} (IO free)"
     plain = project_observations(io, slopes, dT, R, C, X, image, point, jacobians=False)
     assert np.array_equal(plain.uv, got.uv) and plain.d_point.shape == (M, 2, 0)
     # a point in the camera's own plane (depth 0) projects to a non-finite pixel, as numpy's division gives,

@@ -30,13 +30,14 @@ from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block
 from aerocal.adjust.projection import (
     IDX,
     THERMAL_PARAMS,
-    project,
     project_observations,
     rotation_log,
     rotation_update,
 )
 from aerocal.adjust.schur_kernels import (
     PairLayout,
+    global_blocks,
+    global_image_coupling,
     image_graph,
     image_pair_layout,
     jacobian_blocks,
@@ -257,10 +258,9 @@ class Problem:
             i, j, uv_obs, sigma, is_tie = view.image, view.point, view.uv, view.sigma, view.is_tie
         if jac:
             self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
-        if lay.n_global:
-            pr = project(st.io, st.slopes, self.dtemp_img[i], st.R[i], st.C[i], st.X[j], jacobians=jac)
-        else:  # IO and slopes held: the compiled loop over the observations, no (M, 3, 3) gathers
-            pr = project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=jac)
+        # the compiled loop over the observations, no (M, 3, 3) gathers; IO and slope Jacobians when they are free
+        pr = project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=jac,
+                                  io_jacobians=lay.n_global > 0)
         res_px = pr.uv - uv_obs
         r_obs = res_px / sigma[:, None]
         s = np.sum(r_obs * r_obs, axis=1)
@@ -481,17 +481,16 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
         Hgg[np.diag_indices(ng)] *= damp
         gc[:ng] = b.Jg.reshape(-1, ng).T @ b.r.ravel()
         rhs[:ng] = -gc[:ng]
-        Hgi = _sum_by(b.image, np.matmul(np.swapaxes(b.Jg, 1, 2), b.Ji).reshape(len(b.image), -1), N)
-        Hcp_g = _sum_by(b.point, np.matmul(np.swapaxes(b.Jg, 1, 2), b.Jx).reshape(len(b.point), -1), P)
-        Hcp_g = Hcp_g.reshape(P, ng, 3).transpose(1, 0, 2)  # (ng, P, 3)
-        Tg = np.einsum("gpi,pij->gpj", Hcp_g, Hpp_inv)  # (ng, P, 3): Hcp_g Hpp^-1
-        S_gg = Hgg - np.einsum("gpj,hpj->gh", Tg, Hcp_g)
-        # global-image: Hgi minus the sum over observations of Tg[:, p] W_m^T
-        gi = np.einsum("gmj,mkj->mgk", Tg[:, b.point], W)  # (M, ng, 6)
-        S_gi = Hgi - _sum_by(b.image, gi.reshape(len(gi), -1), N)
-        S_gi = S_gi.reshape(N, ng, 6).transpose(1, 0, 2).reshape(ng, 6 * N)
+        # the global-image and global-point blocks, then the points eliminated from them (compiled passes)
+        Hgi, Hcp_p = global_blocks(b.image, b.point, b.Jg, b.Ji, b.Jx, N, P)  # (N, ng, 6), (P, ng, 3)
+        Tg_p = np.matmul(Hcp_p, Hpp_inv)  # (P, ng, 3): Hcp_g Hpp^-1 per point
+        S_gg = Hgg - Tg_p.transpose(1, 0, 2).reshape(ng, -1) @ Hcp_p.transpose(1, 0, 2).reshape(ng, -1).T
+        # global-image: Hgi minus the sum over observations of Tg[p] W_m^T
+        S_gi = Hgi - global_image_coupling(b.image, b.point, Tg_p, W, N)
+        S_gi = S_gi.transpose(1, 0, 2).reshape(ng, 6 * N)
         S = sp.bmat([[sp.csr_matrix(S_gg), sp.csr_matrix(S_gi)], [sp.csr_matrix(S_gi.T), S_ii]], format="csc")
-        rhs[:ng] += np.einsum("gpj,pj->g", Tg, gpp)
+        rhs[:ng] += np.einsum("pgj,pj->g", Tg_p, gpp)
+        Hcp_g = Hcp_p.transpose(1, 0, 2)  # (ng, P, 3) for the operator below
     else:
         Hcp_g = np.zeros((0, P, 3))
         S = S_ii.tocsc()
