@@ -330,6 +330,14 @@ def test_reduced_solver_reuses_its_factor_and_factorises_again_when_the_system_m
     x3 = solver.solve(S3, b)
     assert solver.factorisations == 2, f"seed {seed}: a system far from the factor was not factorised again"
     assert np.allclose(x3, spla.spsolve(S3, b), rtol=1e-9, atol=1e-12), f"seed {seed}"
+    # a reduced camera system's layout (2 global columns, then 6 per image): nested dissection of the images
+    from aerocal.adjust.solver import factorise
+
+    n_images = (n - 2) // 6
+    lu, d = factorise(S1[: 2 + 6 * n_images, : 2 + 6 * n_images], n_global=2)
+    sub = b[: 2 + 6 * n_images]
+    want = spla.spsolve(S1[: 2 + 6 * n_images, : 2 + 6 * n_images].tocsc(), sub)
+    assert np.allclose(lu.solve(sub / d) / d, want, rtol=1e-9, atol=1e-12), f"seed {seed}: nested dissection"
     bad = b.copy()
     bad[7] = np.nan
     with pytest.raises(AdjustmentError, match=r"unknowns \[7\]"):

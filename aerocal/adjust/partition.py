@@ -266,7 +266,7 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
         S = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols_))), shape=(n, n))
         return S, r
 
-    reduced = ReducedSolver()
+    reduced = ReducedSolver(n_global=ng)
 
     def step(lam: float) -> tuple[float, float]:
         S, rhs = reduced_system(lam)
@@ -279,7 +279,7 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
         cfg, sum(_gather([p.linearise() for p in parts])), step,
         accept=lambda: sum(_gather([p.accept() for p in parts])), reject=lambda: _gather([p.reject() for p in parts]))
     S, _ = reduced_system(None)
-    cov = SparseInverse(S)
+    cov = SparseInverse(S, ng)
     del S
     results = _gather([p.result() for p in parts])
     parts.clear()  # the actors are released with their last reference
