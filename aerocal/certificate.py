@@ -68,10 +68,10 @@ from aerocal.camera import (
     thermal_model_from_dict,
 )
 from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate_schema import MAX_DISTORTION_COEFFICIENT as MAX_DISTORTION_COEFFICIENT  # re-exported
 from aerocal.certificate_schema import MAX_FOCAL_IN_SIDES as MAX_FOCAL_IN_SIDES  # re-exported
 from aerocal.certificate_schema import MAX_IMAGE_SIDE_PX as MAX_IMAGE_SIDE_PX  # re-exported
 from aerocal.certificate_schema import MAX_PIXEL_SIZE_MM as MAX_PIXEL_SIZE_MM  # re-exported
+from aerocal.certificate_schema import MAX_TERM_DISPLACEMENT as MAX_TERM_DISPLACEMENT  # re-exported
 from aerocal.certificate_schema import (
     SCHEMA,
     THERMAL_SLOPE_NAMES,

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import re
 from dataclasses import dataclass
 from types import UnionType
@@ -55,11 +56,16 @@ SCHEMA = "aerocal.certificate/1"
 THERMAL_SLOPE_NAMES: tuple[str, ...] = ("df_dt", "dcx_dt", "dcy_dt")
 
 #: Bounds no real frame camera leaves (a document outside them is corrupt or hostile, not a camera): image
-#: side in pixels, focal length in image sides, distortion coefficients, pixel pitch in millimetres. The
-#: principal point lies within one image side of the image, affinity and skew are smaller than f.
+#: side in pixels, focal length in image sides, pixel pitch in millimetres, and what one distortion term
+#: alone does at the farthest image corner, over that corner's radius. The principal point lies within one
+#: image side of the image, affinity and skew are smaller than f.
+#: The distortion bound is on the displacement, not the coefficient: Brown coefficients act on normalised
+#: coordinates, so a narrow field takes large ones for a small effect (a 640 x 480 frame at f 1674 px has a
+#: corner radius of 0.24: k3 = 200 moves its corners by 4 % of their radius; a bound of 100 on the
+#: coefficient refused that camera and stopped a city flow at its calibration).
 MAX_IMAGE_SIDE_PX = 200_000
 MAX_FOCAL_IN_SIDES = 1000.0
-MAX_DISTORTION_COEFFICIENT = 100.0
+MAX_TERM_DISPLACEMENT = 1.0
 MAX_PIXEL_SIZE_MM = 1.0
 
 #: How far (absolute) a correlation may leave [-1, 1], its diagonal 1 and its symmetry (rounding).
@@ -219,9 +225,15 @@ def camera_problem(width: int, height: int, pixel_size_mm: float | None,
         if not -size <= params[name] <= 2 * size:
             return (f"params.{name}", f"within one image side of the image ({-size} to {2 * size} px)", params[name],
                     "write the principal point in pixels from the top-left corner")
-    for name in ("k1", "k2", "k3", "p1", "p2"):
-        if abs(params[name]) > MAX_DISTORTION_COEFFICIENT:
-            return (f"params.{name}", f"a coefficient of magnitude at most {MAX_DISTORTION_COEFFICIENT:g}",
+    corner = math.hypot(max(params["cx"], width - params["cx"]), max(params["cy"], height - params["cy"]))
+    r = min(corner / params["f"], 1e50)  # the farthest corner's radius in normalised coordinates (no overflow)
+    # each term alone at that corner, over its radius: k_i r^(2i); p1, p2 at most 3 |p| r
+    powers = {"k1": r**2, "k2": r**4, "k3": r**6, "p1": 3.0 * r, "p2": 3.0 * r}
+    for name, power in powers.items():
+        if abs(params[name]) * power > MAX_TERM_DISPLACEMENT:
+            limit = MAX_TERM_DISPLACEMENT / power
+            return (f"params.{name}", f"a coefficient that alone moves the farthest image corner by at most "
+                    f"{MAX_TERM_DISPLACEMENT:g} x its radius (|{name}| <= {limit:.3g} for this camera)",
                     params[name], "write the Brown coefficient for normalised coordinates")
     for name in ("b1", "b2"):
         if abs(params[name]) > params["f"]:
@@ -658,7 +670,7 @@ def _message(error: Any, doc: Any) -> str:
 
 __all__ = [
     "CORRELATION_TOLERANCE",
-    "MAX_DISTORTION_COEFFICIENT",
+    "MAX_TERM_DISPLACEMENT",
     "MAX_FOCAL_IN_SIDES",
     "MAX_IMAGE_SIDE_PX",
     "MAX_PIXEL_SIZE_MM",

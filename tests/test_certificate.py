@@ -242,6 +242,10 @@ MALFORMED = [
     ("camera.serial", 12345, "camera.serial: expected a non-empty string, got 12345"),
     ("issued", "2024-05-17T09:30:00", "issued: expected a UTC time (Z suffix)"),
     ("version", 0, "version: expected an integer >= 1 or null, got 0"),
+    ("model.params.k3", 1e6, "model.params.k3: expected a coefficient that alone moves the farthest image corner "
+     "by at most 1 x its radius (|k3| <= 5.11e+03 for this camera), got 1000000.0"),
+    ("model.params.p1", 2.0, "model.params.p1: expected a coefficient that alone moves the farthest image corner "
+     "by at most 1 x its radius (|p1| <= 1.38 for this camera)"),
     ("sigmas.q1", 0.1, "sigmas.q1: unknown name"),
     ("sigmas.k3", 0.1, "sigmas.k3: k3 has a sigma but is not in estimated"),
     ("sigmas.f", -0.1, "sigmas.f: expected a non-negative number, got -0.1"),
@@ -280,6 +284,16 @@ def test_error_message_for_a_bad_focal_length_reads_as_documented():
         Certificate.from_dict(_mutate("model.params.f", "abc"))
     assert str(info.value) == ('model.params.f: expected a positive number, got "abc"; '
                                "write f as a JSON number (pixels)")
+
+
+def test_distortion_is_bounded_by_what_it_does_at_the_corners_not_by_its_coefficient():
+    """Brown coefficients act on normalised coordinates: a narrow field (640 x 512 at f 1712 px, corner radius
+    0.24) takes a k3 of -202 for 4 % of the corner's radius, and such a certificate is a camera; the same k3
+    on a wide field (f 500 px, corner radius 0.82) moves the corners by 6 times their radius, and is refused."""
+    narrow = make_certificate(camera=make_certificate().camera.replace(k3=-201.77))
+    assert Certificate.from_json(narrow.to_json()) == narrow
+    with pytest.raises(CertificateError, match=r"^model\.params\.k3: expected a coefficient that alone moves"):
+        make_certificate(camera=narrow.camera.replace(f=500.0))
 
 
 def test_invalid_json_text_names_line_and_column_and_nan_is_refused():
