@@ -105,6 +105,7 @@ def correct_gnss_offset(
     gcp_observations: pa.Table | None,
     max_images: int | None = None,
     io: IOUncertainty | None = None,
+    block: str | None = None,
 ) -> GnssCorrection:
     """Test the recorded positions for a constant offset against the control GCPs and for a GNSS time lag, and
     remove what passes (see the module docstring). ``config`` is the adjustment the positions are for (a
@@ -112,7 +113,17 @@ def correct_gnss_offset(
     other way round). ``max_images``: estimate on that many images nearest the block centre (None: all); the
     correction applies to every image. ``io``: the uncertainty of the IO held fixed (a certificate's, or a
     nominal camera's tolerances), taken into every statistic: a principal-point error moves each image's
-    footprint along its own track as a lag does, in opposite senses on strips flown the other way."""
+    footprint along its own track as a lag does, in opposite senses on strips flown the other way.
+    ``block``: which block this is, in words ("the 33-image calibration block"), added to every note: a flight
+    tests its positions on its calibration block and again on the whole block, and the two results differ."""
+    out = _correct_gnss_offset(images, observations, camera, config, gcps, gcp_observations, max_images, io)
+    if block:
+        out.notes = [f"{n} (tested on {block})" for n in out.notes]
+    return out
+
+
+def _correct_gnss_offset(images, observations, camera, config, gcps, gcp_observations, max_images,
+                         io) -> GnssCorrection:
     if config.gnss_sigma_m is None:
         return GnssCorrection(images, notes=["GNSS offset not tested: the adjustment does not use GNSS"])
     n_control = 0

@@ -44,8 +44,11 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
         gcps, gobs = inp.table("gcps"), inp.table("gcp_observations")
         corrections = None
         if config.recorded_eo_images and acfg.gnss_sigma_m is not None:
+            n, m = images.num_rows, config.recorded_eo_images
+            block = (f"the {m} images nearest the centre of the {n}-image block" if m and m < n
+                     else f"the whole {n}-image block") + ", IO held fixed"
             eo = correct_gnss_offset(images, obs, cert.camera, dataclasses.replace(acfg, free=()), gcps, gobs,
-                                     config.recorded_eo_images, IOUncertainty.from_certificate(cert))
+                                     config.recorded_eo_images, IOUncertainty.from_certificate(cert), block=block)
             images = eo.images
             corrections = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
                            "time_sigma_s": eo.time_sigma_s, "notes": eo.notes}
