@@ -355,9 +355,9 @@ def global_blocks(image: np.ndarray, point: np.ndarray, Jg: np.ndarray, Ji: np.n
 def global_image_coupling(image: np.ndarray, point: np.ndarray, Tg: np.ndarray, W: np.ndarray,
                           n_images: int) -> np.ndarray:
     """(N, ng, 6): per image, the sum over its observations of ``Tg[point] W_m^T`` (``Tg`` (P, ng, 3), the
-    points' ``Hcp_g Hpp^-1``; ``W`` (M, 6, 3)), the global-image part of ``Hcp Hpp^-1 Hcp^T``. Measured on the
-    800-image conte-city block, 8 IO parameters free: numpy's einsum over (M, ng, 6) and the per-image sums
-    ~1.5 s an iteration; this loop ~0.03 s."""
+    points' ``Hcp_g Hpp^-1``; ``W`` (M, 6, 3)), the global-image part of ``Hcp Hpp^-1 Hcp^T``. It replaced
+    numpy einsums over (M, ng, 6) and their per-image sums; with :func:`global_blocks` and the compiled IO
+    Jacobians, the 800-image conte-city self-calibration (8 IO parameters free) went from 13.1 s to 5.4 s."""
     out = np.zeros((n_images, Tg.shape[1], 6))
     _global_image_coupling(np.ascontiguousarray(image, dtype=np.int64), np.ascontiguousarray(point, dtype=np.int64),
                            np.ascontiguousarray(Tg, dtype=np.float64), np.ascontiguousarray(W, dtype=np.float64), out)
