@@ -98,12 +98,14 @@ def test_a_killed_run_is_not_listed_as_running(tmp_path):
     url = f"sqlite:///{db}"
     proc = subprocess.Popen([AEROCAL, "process", str(flight), "--database-url", url, "--artifacts",
                              str(tmp_path / "art"), "--out", str(tmp_path / "run")],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp_path,
+                            start_new_session=True)
     deadline = time.monotonic() + 300
     while "running" not in _statuses(db) and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.2)
     assert proc.poll() is None, "the run ended before it could be killed"
-    proc.kill()
+    # the run and its children (Prefect's temporary server, which would otherwise outlive the test)
+    os.killpg(proc.pid, signal.SIGKILL)
     proc.wait(timeout=60)
     assert _statuses(db) == ["running"]  # nothing could record the end
     listed = subprocess.run([AEROCAL, "runs", "list", "--database-url", url], capture_output=True, text=True,
