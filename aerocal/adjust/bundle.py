@@ -357,48 +357,23 @@ def adjust(
         return _result(block, sol, camera, cfg, observations.num_rows)
 
     final = None  # the least-squares result with the final tie sigma, when it is already at hand
-    if first is not None:
-        least_squares = dataclasses.replace(config, adaptive=False)
-        late = 0
-        for _ in range(SNOOP_ROUNDS + 1):
-            final = None
-            if config.estimate_tie_sigma:
-                # the robust pass's residuals estimate the tie sigma only as well as that pass converged
-                # (seneca's calibration, nominal camera 23 px off in f: x3.9 after 15 robust iterations, 0.29
-                # after the least squares): re-estimate from the least-squares residuals until the factor is
-                # within TIE_SIGMA_TOLERANCE
-                for _ in range(TIE_SIGMA_ROUNDS):
-                    trial = run(least_squares)
-                    factor = float(np.sqrt(_tie_variance_factor(trial, observations)))
-                    if abs(factor - 1.0) <= TIE_SIGMA_TOLERANCE:
-                        final = trial
-                        break
-                    tie_scale *= factor
-                    observations = scale_tie_sigma(observations, factor)
-                    block, start = setup(observations, trial)
-            # the blunders screened again on the least-squares residuals: a robust pass with the IO free
-            # lets its distortion terms take blunders near the corners and leaves them in (a rendered city
-            # calibration block, 46,507 tie observations: k3 -559 in the Huber pass, 1823 rejected against
-            # 2857 with the true camera, and the least squares then put k3 at -25 +- 4.5 on a lens without
-            # one); here they stand out against the least-squares fit of the clean majority
-            trial = final if final is not None else run(least_squares)
-            more, _, _ = _snoop(observations, trial, config.reject_chi2)
-            if len(more) == observations.num_rows:
+    if first is not None and config.estimate_tie_sigma:
+        # the robust pass's residuals estimate the tie sigma only as well as that pass converged (seneca's
+        # calibration, nominal camera 23 px off in f: x3.9 after 15 robust iterations, 0.29 after the least
+        # squares): re-estimate from the least-squares residuals until the factor is within TIE_SIGMA_TOLERANCE
+        for _ in range(TIE_SIGMA_ROUNDS):
+            trial = run(dataclasses.replace(config, adaptive=False))
+            factor = float(np.sqrt(_tie_variance_factor(trial, observations)))
+            if abs(factor - 1.0) <= TIE_SIGMA_TOLERANCE:
                 final = trial
                 break
-            late += observations.num_rows - len(more)
-            kept = kept[more]
-            observations = observations.take(pa.array(more, pa.int64()))
+            tie_scale *= factor
+            observations = scale_tie_sigma(observations, factor)
             block, start = setup(observations, trial)
-            final = None
-        if late:
-            rejection.append(f"{late} more rejected on the least-squares residuals (above {config.reject_chi2:g} x "
-                             "their robust variance factor), the block adjusted again")
-        if config.estimate_tie_sigma:
-            rejection.append(
-                f"tie-point sigma estimated from the block: {a_priori:.3g} px a priori x {tie_scale:.3f} = "
-                f"{a_priori * tie_scale:.3g} px (GNSS, attitude and GCP sigmas keep their a-priori values)"
-            )
+        rejection.append(
+            f"tie-point sigma estimated from the block: {a_priori:.3g} px a priori x {tie_scale:.3f} = "
+            f"{a_priori * tie_scale:.3g} px (GNSS, attitude and GCP sigmas keep their a-priori values)"
+        )
     if not config.adaptive:
         result = final if final is not None else run(config)
     else:
@@ -415,9 +390,6 @@ def adjust(
     return result
 
 
-#: Rounds of screening the least-squares residuals for blunders the robust pass left (each followed by the
-#: least squares again).
-SNOOP_ROUNDS = 3
 #: Least-squares rounds that re-estimate the tie observations' sigma, and the relative change of it below
 #: which they stop (:data:`AdjustConfig.estimate_tie_sigma`).
 TIE_SIGMA_ROUNDS = 3
