@@ -18,9 +18,7 @@
 4. **Held-out test of the thermal slopes** it kept (:func:`aerocal.heldout.compare_models`, k-fold over
    strips): a slope whose held-out gain is not positive beyond ``DecisionConfig.held_out_sigmas`` standard
    errors is dropped and the block adjusted again without it. The formal t of a slope on matched tie
-   points can be 7 where the held-out gain is nil (the real seneca flight). The same test is asked of a
-   radial term kept beside a nearly collinear lower one when the two cancel each other
-   (:func:`aerocal.decision.fighting_radial_term`): the highest order goes when it has no held-out gain.
+   points can be 7 where the held-out gain is nil (the real seneca flight).
 5. **Review** (:func:`aerocal.decision.review_calibration`): plausibility against the nominal camera,
    convergence, sigma0, check points. A rejected calibration still yields a certificate, marked rejected
    with every reason, so that the store keeps the record; it is never used for a flight.
@@ -38,7 +36,6 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, AdjustmentResult, adjust, corrected_to_t0, scale_tie_sigma, select_images
-from aerocal.adjust.selection import RADIAL_ORDER
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
 from aerocal.certificate import (
     CameraIdentity,
@@ -50,14 +47,7 @@ from aerocal.certificate import (
     Quality,
     ThermalCalibration,
 )
-from aerocal.decision import (
-    DecisionConfig,
-    Review,
-    fighting_radial_term,
-    nominal_sigma,
-    review_calibration,
-    undetermined_io,
-)
+from aerocal.decision import DecisionConfig, Review, nominal_sigma, review_calibration, undetermined_io
 from aerocal.diagnose.engine import overdispersion
 from aerocal.diagnose.model import fit_baseline
 from aerocal.eo_checks import correct_gnss_offset
@@ -255,8 +245,7 @@ def self_calibrate(
         again.dropped, again.selection = result.dropped, result.selection + [notes[-1]]
         return again
 
-    eo = correct_gnss_offset(sub_images, sub_obs, camera, run_cfg, gcps, sub_gobs,
-                             block=f"the {sub_images.num_rows}-image calibration block, IO free")
+    eo = correct_gnss_offset(sub_images, sub_obs, camera, run_cfg, gcps, sub_gobs)
     sub_images = eo.images
     notes.extend(eo.notes)
     info["gnss_offset"] = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
@@ -318,29 +307,6 @@ def self_calibrate(
                 selection = result.selection
                 result = fit(simple)
                 result.dropped, result.selection = dropped, selection + [notes[-1]]
-    k = config.decision.held_out_sigmas
-    for _ in RADIAL_ORDER[1:]:
-        # (3) of the rule for radial terms the selection kept as a near-singular pair that cancels itself
-        name, why = fighting_radial_term(result.names, result.correlation, result.camera, run_cfg.corr_limit,
-                                         config.decision)
-        if name is None:
-            break
-        final = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal,
-                                    adaptive=False)
-        simple = dataclasses.replace(final, free=tuple(n for n in final.free if n != name))
-        cmp = compare_models(sub_images, sub_obs, camera, simple, final, gcps, sub_gobs, config.held_out)
-        held_out[name] = cmp
-        if cmp.beyond(k):
-            notes.append(f"{name} kept: {why}; but it predicts held-out images better beyond {k:g} sigma "
-                         f"({cmp.describe()})")
-            break
-        notes.append(f"{name} dropped: {why}; and it does not predict held-out images better beyond {k:g} sigma "
-                     f"({cmp.describe()})")
-        dropped = dict(result.dropped)
-        dropped[name] = (notes[-1], float(result.t_values[result.names.index(name)]))
-        selection = result.selection + [notes[-1]]
-        result = fit(dataclasses.replace(run_cfg, free=simple.free, thermal=simple.thermal))
-        result.dropped, result.selection = {**dropped, **result.dropped}, selection + list(result.selection)
     review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
     if input_errors:
         review = review.merged(problems=[

@@ -28,7 +28,6 @@ record, but it is never selected for a flight.
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,12 +64,6 @@ class DecisionConfig:
       13 mm / 17 um), the principal point as within 1 % of the image side of the frame centre.
       The certificate records them and the diagnosis carries them, so that the nominal's error is not
       named as an effect (the XT2 survey named a 2.7 px per-strip cx with f held 3 px off).
-    * ``radial_cancellation`` (2.0): radial terms "fight" when the sum of what each alone does at the image
-      corners is more than this many times the largest displacement of their sum inside the image
-      (:func:`radial_cancellation`). A real lens's terms reinforce or correct each other a little (the
-      simulated conte lens, k1 -0.08 and k2 0.12 at 16 degrees: 1.2); a pair the block cannot separate
-      takes values that cancel (a rendered 818-frame city block: k3 -202 against k2, k3 alone moving the
-      corners by 15 px, the true lens by 1.7 px). A fighting pair must predict held-out images better.
     * ``nominal_corner_distortion`` (0.02): a nominal camera has no distortion; the block that uses one as it
       is (no certificate, or its calibration rejected) carries an unknown radial distortion of this size at
       the corners (an assumption). Without it the real H20T flight's diagnosis named ``radial_k3 = -6.1``
@@ -91,7 +84,6 @@ class DecisionConfig:
     nominal_focal_tolerance: float = 0.01
     nominal_principal_point_tolerance: float = 0.01
     nominal_corner_distortion: float = 0.02
-    radial_cancellation: float = 2.0
 
 
 @dataclass(frozen=True)
@@ -199,56 +191,6 @@ def corner_distortion(camera: Camera) -> float:
     moved = np.linalg.norm(camera.distort(xy) - xy, axis=1)
     ok = radius > 0
     return float(np.max(moved[ok] / radius[ok])) if ok.any() else 0.0
-
-
-def radial_term_sizes(camera: Camera) -> dict[str, float]:
-    """What each radial term alone does at the farthest image corner, over that corner's radius
-    (dimensionless, signed: k1 r^2, k2 r^4, k3 r^6 with r the corner's radius in normalised coordinates)."""
-    r2 = (camera.corner_radius / camera.f) ** 2
-    return {"k1": camera.k1 * r2, "k2": camera.k2 * r2**2, "k3": camera.k3 * r2**3}
-
-
-def radial_cancellation(camera: Camera, samples: int = 256) -> float:
-    """How much the radial terms cancel each other inside the image: the sum of their magnitudes at the
-    farthest corner over the largest magnitude of their sum at any radius up to it (>= 1; 1 when they
-    agree in sign or only one is non-zero; 1 for a camera without radial distortion)."""
-    sizes = radial_term_sizes(camera)
-    total = sum(abs(v) for v in sizes.values())
-    if total == 0.0:
-        return 1.0
-    s = np.linspace(0.0, 1.0, samples)[1:] ** 2  # (r / r_corner)^2
-    net = sizes["k1"] * s + sizes["k2"] * s**2 + sizes["k3"] * s**3
-    largest = float(np.max(np.abs(net)))
-    return total / largest if largest > 0.0 else math.inf
-
-
-def fighting_radial_term(names, correlation, camera: Camera, corr_limit: float,
-                         config: DecisionConfig | None = None) -> tuple[str | None, str]:
-    """The highest-order radial term among the estimated ``names`` that is nearly collinear with a lower one
-    (|correlation| above ``corr_limit``) while the radial terms cancel each other (:func:`radial_cancellation`
-    above ``config.radial_cancellation``), with the reason in one sentence; ``(None, "")`` when there is none.
-    Its formal t cannot be trusted: the selection kept the pair because both were significant, and the values
-    they took undo each other."""
-    config = config or DecisionConfig()
-    names = list(names)
-    ratio = radial_cancellation(camera)
-    if not ratio > config.radial_cancellation:
-        return None, ""
-    corr = np.abs(np.asarray(correlation, dtype=float))
-    sizes = radial_term_sizes(camera)
-    order = ("k1", "k2", "k3")
-    for high in ("k3", "k2"):
-        if high not in names:
-            continue
-        i = names.index(high)
-        for low in order[: order.index(high)]:
-            if low in names and corr[i, names.index(low)] > corr_limit:
-                parts = ", ".join(f"{n} {100 * sizes[n]:+.2g} %" for n in order if n in names)
-                return high, (f"{high} {getattr(camera, high):+.4g} is nearly collinear with {low} (|corr| "
-                              f"{corr[i, names.index(low)]:.3f} > {corr_limit:g}), and the radial terms cancel "
-                              f"each other: alone at the farthest corner, of its radius, {parts}; their "
-                              f"magnitudes add up to {ratio:.1f}x the largest displacement they make together")
-    return None, ""
 
 
 def review_camera(camera: Camera, nominal: Camera, sigmas: dict[str, float] | None = None,
