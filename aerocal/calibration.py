@@ -245,7 +245,8 @@ def self_calibrate(
         again.dropped, again.selection = result.dropped, result.selection + [notes[-1]]
         return again
 
-    eo = correct_gnss_offset(sub_images, sub_obs, camera, run_cfg, gcps, sub_gobs)
+    eo = correct_gnss_offset(sub_images, sub_obs, camera, run_cfg, gcps, sub_gobs,
+                             block=f"the {sub_images.num_rows}-image calibration block, IO free")
     sub_images = eo.images
     notes.extend(eo.notes)
     info["gnss_offset"] = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
