@@ -243,8 +243,9 @@ def test_a_large_block_is_diagnosed_on_its_central_sub_block_and_still_names_the
 
 def test_a_switch_effect_far_from_its_physical_size_is_not_named():
     """Refraction is on (1) or off (0); an estimate of 216 +- 36 is a radial signal of another cause (on a
-    rendered effect-free city block: a focal length 2 px off the certificate's), not refraction."""
-    from aerocal.diagnose.engine import Evidence, implausible_switch
+    rendered effect-free city block: a focal length 2 px off the certificate's), not refraction; one of
+    -420 +- 110 cannot tell on from off at all."""
+    from aerocal.diagnose.engine import Evidence, implausible_switch, physical_verdict
 
     def ev(name, theta, sigma):
         return Evidence(name, 1, 1, 40.0, 1e-10, 1e-9, [theta], [sigma], 20.0, True, "on/off")
@@ -253,6 +254,11 @@ def test_a_switch_effect_far_from_its_physical_size_is_not_named():
     assert implausible_switch(ev("refraction", -20.0, 3.0))
     assert not implausible_switch(ev("refraction", 1.3, 0.2))  # hidden refraction, recovered
     assert not implausible_switch(ev("radial_k3", 216.0, 36.0))  # not a switch: any size is possible
+    # a switch whose sigma is large against on (1) is not determined, however far from zero its estimate (the
+    # rendered 818-frame city: -420 +- 110, 3.8 of its sigmas from on)
+    assert not implausible_switch(ev("refraction", -420.0, 110.0))
+    assert physical_verdict(ev("refraction", -420.0, 110.0), None, None).startswith("not determined")
+    assert physical_verdict(ev("refraction", 1.3, 0.2), None, None) is None
 
 
 def test_an_io_error_within_the_certificates_sigma_is_not_named():
