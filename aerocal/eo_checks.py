@@ -122,8 +122,9 @@ def correct_gnss_offset(
     return out
 
 
-def _correct_gnss_offset(images, observations, camera, config, gcps, gcp_observations, max_images,
-                         io) -> GnssCorrection:
+def _correct_gnss_offset(images: pa.Table, observations: pa.Table, camera: Camera, config: AdjustConfig,
+                         gcps: pa.Table | None, gcp_observations: pa.Table | None, max_images: int | None,
+                         io: IOUncertainty | None) -> GnssCorrection:
     if config.gnss_sigma_m is None:
         return GnssCorrection(images, notes=["GNSS offset not tested: the adjustment does not use GNSS"])
     n_control = 0

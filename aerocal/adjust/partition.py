@@ -132,7 +132,6 @@ def sub_block(block: Block, plan: Plan, k: int) -> Block:
         check_ids=[], check_xyz=np.zeros((0, 3)), check_sigma=np.zeros((0, 3)),
         check_image=np.zeros(0, np.int64), check_point=np.zeros(0, np.int64), check_uv=np.zeros((0, 2)),
         check_sigma_px=np.zeros(0), n_tie_obs=int(is_tie.sum()),
-        points_in_visit_order=block.points_in_visit_order,  # a subset of the points, in the same order
     )
 
 

@@ -151,10 +151,6 @@ class Block:
     check_uv: np.ndarray  # (Mk, 2)
     check_sigma_px: np.ndarray  # (Mk,)
     n_tie_obs: int = field(default=0)
-    #: the tie points are numbered in the order the compiled passes should visit them (:func:`build_block`
-    #: numbers them so): the adjustment then takes their numbering as its visiting order instead of forming
-    #: the reverse Cuthill-McKee order of the images again (~1 s at 12,800 images)
-    points_in_visit_order: bool = field(default=False)
 
     @property
     def n_images(self) -> int:
@@ -340,5 +336,4 @@ def build_block(
         check_uv=go_uv[sel_k],
         check_sigma_px=go_sig[sel_k],
         n_tie_obs=len(o_pt),
-        points_in_visit_order=True,
     )

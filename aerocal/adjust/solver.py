@@ -215,9 +215,9 @@ class Problem:
         if self._view is None:
             b = self.b
             G = image_graph(b.obs_image, b.obs_point, b.n_images, b.n_points)
-            rank = (np.arange(b.n_points, dtype=np.int64) if b.points_in_visit_order
-                    else point_visit_rank(G, b.obs_image, b.obs_point, b.n_points))
-            self._graph = G, rank
+            # formed again rather than carried on the Block: 0.04 s for the graph and 0.004 s for the order on
+            # the 3200-image conte-city block (1.5 M observations)
+            self._graph = G, point_visit_rank(G, b.obs_image, b.obs_point, b.n_points)
             self._view = ObsView.by_point(b, self._graph[1])
         return self._view
 
