@@ -15,29 +15,16 @@ adjustment (``benchmarks/partition_bench.py``) spreads the observations over the
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import tempfile
 import time
 from pathlib import Path
 
-from benchmarks.common import in_fresh_process, load_adjustment_kernels, peak_rss_mb, record
+from benchmarks.common import city_spec, in_fresh_process, load_adjustment_kernels, peak_rss_mb, record
 
-FULL = 818  # frames of conte-city
 TABLES = ("images", "observations", "gcps", "gcp_observations")
 TARGET_SECONDS, TARGET_MB, TARGET_EXPONENT = 300.0, 6144.0, 1.15  # 12,800 images, IO fixed; growth
-
-
-def _spec(n: int):
-    from aerocal.simulate.presets import PRESETS
-
-    spec = PRESETS["conte-city"]
-    if n <= FULL:
-        return spec
-    k = 1.2 * (n / FULL) ** 0.5  # strips lose frames at the area's edges: plan more, keep the n most compact
-    w, h = spec.area_m
-    return dataclasses.replace(spec, name=f"conte-city-{n}", area_m=(w * k, h * k))
 
 
 def _simulate(n: int, folder: str, queue) -> None:
@@ -46,7 +33,7 @@ def _simulate(n: int, folder: str, queue) -> None:
     from aerocal.simulate import simulate_flight
 
     t0 = time.perf_counter()
-    sim = simulate_flight(_spec(n), seed=0, max_images=n)
+    sim = simulate_flight(city_spec(n), seed=0, max_images=n)
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     for name in TABLES:

@@ -10,7 +10,8 @@
    pairs also hold).
 4. Orthomosaic of the whole flight, Dask 1 vs 2 workers, from the end-to-end run's poses and DSM.
 
-The rendered flight is cached in ``benchmarks/data/`` (rendering it takes ~20 min on one core).
+The rendered flight is cached in ``benchmarks/data/`` (rendering the 818 frames takes ~13 min on one core;
+``--images 3200``: the same plan over a larger area, ~50 min).
 
 Run: ``python -m benchmarks.city_bench`` (``--frames N``: only the N frames nearest the block centre;
 ``--parts e2e,matching``: only those parts).
@@ -50,7 +51,7 @@ from aerocal.pipeline import process
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.match_step import frame_loader, match_images
 from aerocal.simulate import simulate_flight, write_flight
-from benchmarks.common import peak_rss_mb, record
+from benchmarks.common import CITY_FRAMES, city_spec, peak_rss_mb, record
 
 DATA = Path(__file__).resolve().parent / "data"
 
@@ -60,12 +61,14 @@ def children_peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
 
 
-def rendered_flight(preset: str = "conte-city", seed: int = 0) -> Path:
-    """The rendered flight folder, simulated and rendered on first use."""
-    out = DATA / f"{preset}-images-s{seed}"
+def rendered_flight(images: int = CITY_FRAMES, seed: int = 0) -> Path:
+    """The rendered conte-city flight folder (``images`` > 818: the same plan over a larger area, see
+    :func:`benchmarks.common.city_spec`), simulated and rendered on first use (~1 s per frame on one core)."""
+    spec = city_spec(images)
+    out = DATA / f"{spec.name}-images-s{seed}"
     if (out / "flight.json").exists():
         return out
-    sim = simulate_flight(preset, seed=seed)
+    sim = simulate_flight(spec, seed=seed, max_images=images if images > CITY_FRAMES else None)
     t0 = time.perf_counter()
 
     def progress(done: int, total: int) -> None:
@@ -186,6 +189,9 @@ def mosaic_workers(run_dir: Path, folder: Path, workers: int, work: Path) -> flo
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=None, help="only the N frames nearest the block centre")
+    ap.add_argument("--images", type=int, default=CITY_FRAMES,
+                    help="render conte-city's plan over a larger area and keep this many frames (default 818: "
+                         "the preset itself; 3200 renders in ~50 min on one core, cached)")
     ap.add_argument("--source", type=Path, default=None,
                     help="a rendered flight folder (default: conte-city seed 0, rendered on first use)")
     ap.add_argument("--parts", default="e2e,matching,pairs,mosaic",
@@ -195,10 +201,10 @@ def main(argv: list[str] | None = None) -> None:
     if "mosaic" in parts and "e2e" not in parts:
         ap.error("--parts mosaic needs e2e (it mosaics from the end-to-end run's poses and DSM)")
     with scratch_folder("work-") as work:
-        full = args.source or rendered_flight()
+        full = args.source or rendered_flight(args.images)
         folder = subset_folder(full, args.frames, work) if args.frames else full
         n = len(list((folder / "images").iterdir()))
-        lines = [f"conte-city rendered, {n} frames 640x480 16-bit thermal, seed 0"
+        lines = [f"{full.name}: rendered, {n} frames 640x480 16-bit thermal"
                  + (f" ({n} nearest the centre)" if args.frames else ""), ""]
 
         if "e2e" not in parts:

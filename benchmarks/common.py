@@ -79,6 +79,24 @@ def load_adjustment_kernels() -> float:
     return time.perf_counter() - t0
 
 
+CITY_FRAMES = 818  # frames of conte-city
+
+
+def city_spec(n: int):
+    """The conte-city preset, or for ``n`` above its 818 frames the same flight plan over a larger area
+    (pass ``max_images=n`` to the simulation to keep the ``n`` most compact frames)."""
+    import dataclasses
+
+    from aerocal.simulate.presets import PRESETS
+
+    spec = PRESETS["conte-city"]
+    if n <= CITY_FRAMES:
+        return spec
+    k = 1.2 * (n / CITY_FRAMES) ** 0.5  # strips lose frames at the area's edges: plan more, keep the n most compact
+    w, h = spec.area_m
+    return dataclasses.replace(spec, name=f"conte-city-{n}", area_m=(w * k, h * k))
+
+
 def record(title: str, lines: list[str]) -> None:
     """Print ``lines`` and append them under ``title`` with the machine and exact command to RESULTS.md."""
     command = " ".join(getattr(sys, "orig_argv", sys.argv))

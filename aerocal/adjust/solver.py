@@ -27,6 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.linalg import lapack
 
+from aerocal.adjust import cholesky
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block
 from aerocal.adjust.projection import (
     IDX,
@@ -569,13 +570,16 @@ def camera_ordering(S, n_global: int) -> np.ndarray:
 
 
 def factorise(S, n_global: int | None = None) -> tuple:
-    """Sparse LU of the Jacobi-scaled reduced camera system: ``(lu, d)`` with ``S = D (L U) D``,
-    ``D = diag(d)``; ``lu`` is ``None`` when ``S`` is exactly singular.
+    """Sparse factor of the Jacobi-scaled reduced camera system: ``(f, d)`` with ``S = D (F) D``,
+    ``D = diag(d)`` and ``f.solve`` applying ``F^-1``; ``f`` is ``None`` when ``S`` is exactly singular.
 
-    SuperLU (scipy) with no pivoting off the diagonal (``S`` is symmetric positive definite once GNSS/attitude
-    priors or GCPs fix the datum), so the factor keeps the fill of a sparse Cholesky. Its order: with
-    ``n_global`` (``S`` laid out as :class:`Layout`'s camera side), :func:`camera_ordering`; else SuperLU's
-    symmetric minimum-degree ordering of ``S + S^T``. Measured on conte-city plans, one factorisation of the
+    First choice: the Cholesky factor by MKL PARDISO (:mod:`aerocal.adjust.cholesky`; ``S`` is symmetric
+    positive definite once GNSS/attitude priors or GCPs fix the datum), on both cores: 12,800 images,
+    1.0-1.3 s against 4.4-5.4 s for the SuperLU factor below, one solve 0.025 s against 0.05 s.
+    Where MKL is missing, or PARDISO finds ``S`` not positive definite: SuperLU (scipy) with no pivoting
+    off the diagonal, so the factor keeps the fill of a sparse Cholesky. Its order: with ``n_global``
+    (``S`` laid out as :class:`Layout`'s camera side), :func:`camera_ordering`; else SuperLU's symmetric
+    minimum-degree ordering of ``S + S^T``. Measured on conte-city plans, one SuperLU factorisation of the
     fixed-IO system: 3200 images 0.91 s (9.8 M entries in L + U) by nested dissection against 1.11 s (10.6 M)
     by minimum degree, 12,800 images 6.1 s (51.9 M) against 14.0 s (60.4 M); minimum degree itself against
     scipy's default COLAMD, whole adjustments: 800 images 16.8 s against 14.6 s, 2745 images 57.0 s against
@@ -592,6 +596,11 @@ def factorise(S, n_global: int | None = None) -> tuple:
     d = np.sqrt(np.maximum(diag, 1e-300))
     Dinv = sp.diags(1.0 / d)
     Ss = (Dinv @ S @ Dinv).tocsc()
+    if cholesky.available() and np.all(diag > 0):
+        try:
+            return cholesky.PardisoCholesky(Ss), d
+        except cholesky.NotPositiveDefinite:
+            pass  # SuperLU tells a singular system from an indefinite one
     p = camera_ordering(Ss, n_global) if n_global is not None and Ss.shape[0] > n_global else None
     try:
         if p is None:
