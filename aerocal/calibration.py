@@ -252,7 +252,10 @@ def self_calibrate(
     info["gnss_offset"] = {"offset_m": eo.offset_m, "sigma_m": eo.sigma_m, "time_offset_s": eo.time_offset_s,
                            "time_sigma_s": eo.time_sigma_s}
     result = fit(run_cfg)
-    phi = _overdispersion(sub_images, sub_obs, camera, run_cfg, result, gcps, sub_gobs, config.null_draws)
+    phi, failure = _overdispersion(sub_images, sub_obs, camera, run_cfg, result, gcps, sub_gobs, config.null_draws)
+    if failure:
+        notes.append(f"the block's overdispersion could not be measured ({failure}): the sigmas and t values are "
+                     "the formal ones, which real blocks have shown several times too small")
     if phi > 1.0:
         notes.append(f"the formal statistics are {phi:.1f}x too large on this block (median of {config.null_draws} "
                      "random per-image focal hypotheses): sigmas and t values are calibrated by its square root")
@@ -319,14 +322,16 @@ def self_calibrate(
 
 
 def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, run_cfg: AdjustConfig,
-                    result: AdjustmentResult, gcps, gcp_observations, draws: int) -> float:
+                    result: AdjustmentResult, gcps, gcp_observations, draws: int) -> tuple[float, str | None]:
     """The overdispersion of the calibration block (:func:`aerocal.diagnose.engine.overdispersion`), measured
     on the calibration's own model: its blunders left out, its tie sigma, least squares, its thermal slopes as a
     correction of the measurements to their reference temperature (the null's random per-image focal lengths
     otherwise take part of a drift the model holds: a warming Daakir calibration block measured 24.9 with a
-    focal drift and 53 with Eq. 2's, against 1.0 without a drift, and raised the significance bar 5-7x)."""
+    focal drift and 53 with Eq. 2's, against 1.0 without a drift, and raised the significance bar 5-7x).
+
+    Returns ``(phi, failure)``: 1.0 and a sentence saying why when the null could not be fitted."""
     if draws <= 0:
-        return 1.0
+        return 1.0, None
     w = np.asarray(result.obs_weight, dtype=float)
     keep = np.flatnonzero(np.nan_to_num(w, nan=1.0) != 0) if len(w) == observations.num_rows else \
         np.arange(observations.num_rows)
@@ -338,9 +343,12 @@ def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, ru
                               tie_thinning=None)
     try:
         base = fit_baseline(images, obs, camera, cfg, gcps, gcp_observations)
-        return float(overdispersion(base, draws)[0])
-    except (np.linalg.LinAlgError, ValueError):
-        return 1.0
+        phi = float(overdispersion(base, draws)[0])
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        return 1.0, f"{type(exc).__name__}: {exc}"
+    if not np.isfinite(phi):
+        return 1.0, f"the null's median statistic is {phi}"
+    return phi, None
 
 
 def certificate_from_calibration(

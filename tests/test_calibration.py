@@ -21,6 +21,25 @@ def test_a_calibration_from_input_with_errors_is_rejected():
     assert cal.review.status == "rejected" and error in cal.review.problems[-1], cal.review
 
 
+def test_an_overdispersion_that_could_not_be_measured_is_said(monkeypatch):
+    """When the block's null cannot be fitted, the formal sigmas are used as they are, and the review says so
+    with the reason (they were several times too small on real blocks)."""
+    import aerocal.calibration as calibration
+
+    def failing(*args, **kwargs):
+        raise ValueError("no tie point left after thinning")
+
+    monkeypatch.setattr(calibration, "fit_baseline", failing)
+    seed = 44
+    sim = simulate_flight(SPEC, seed=seed, max_images=20)
+    cfg = dataclasses.replace(CONFIG, thermal=(), adaptive=False)
+    cal = self_calibrate(sim.images, sim.observations, SPEC.camera_nominal, sim.gcps, sim.gcp_observations,
+                         config=CalibrationConfig(null_draws=5), adjust_config=cfg)
+    said = [n for n in cal.review.notes if "overdispersion could not be measured" in n]
+    assert said and "no tie point left after thinning" in said[0], (seed, cal.review.notes)
+    assert cal.overdispersion == 1.0, seed
+
+
 def test_a_thermal_slope_is_certified_only_with_a_held_out_gain():
     """A focal drift of 1.5 px/degC while the camera warms by 12 degC predicts held-out strips better and is
     kept; on the same flight without a drift the slope is not certified."""
