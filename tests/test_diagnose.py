@@ -345,6 +345,14 @@ def test_a_recorded_eo_check_is_not_determined_when_its_calibrated_sigma_is_too_
     assert noisy["gnss_time_offset"]["status"] == "not determined", noisy["gnss_time_offset"]
     assert noisy["boresight"]["status"] == "not determined", noisy["boresight"]
     assert "overdispersion" in noisy["boresight"]["reason"]
-    clean = recorded_eo_checks(round1, 1.0, camera, None, [])
+    clean = recorded_eo_checks(round1, 1.0, camera, None, [], block="the whole 166-image block, IO held fixed")
     assert clean["gnss_time_offset"]["status"] == "a signal below the naming threshold", clean["gnss_time_offset"]
     assert clean["boresight"]["status"] == "beyond physical size", clean["boresight"]
+    # the report's line says which block the checks were tested on, once
+    from aerocal.report.wording import recorded_eo_rows, recorded_eo_text
+
+    text = recorded_eo_text(clean)
+    assert text.startswith("tested on the whole 166-image block, IO held fixed: ") and text.count("tested on") == 1
+    rows = [row for row in recorded_eo_rows(clean) if row[1] != "not estimated"]
+    assert len(rows) == 2 and all(row[2].endswith("(tested on the whole 166-image block, IO held fixed)")
+                                  for row in rows), rows

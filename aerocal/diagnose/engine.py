@@ -480,7 +480,8 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
         notes.insert(0, f"the diagnosis baseline does not fit its weights (sigma0 {s0:.3g}, above {MISFIT_SIGMA0:g}): "
                         "its statistics, the recorded-EO checks and the twin describe that misfit (mismatches or "
                         "wrong sigmas), not the flight; do not rely on them")
-    eo = recorded_eo_checks([e for e in evidence if e.round == 1], phi, baseline.camera, ctx, effects)
+    eo = recorded_eo_checks([e for e in evidence if e.round == 1], phi, baseline.camera, ctx, effects,
+                            block=tested_block(baseline))
     twin = {}
     if config.twins > 1:
         # what the simulation gets wrong: the block as adjusted, made again with the simulation's noise model
@@ -495,8 +496,16 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
 RECORDED_EO = ("gnss_bias", "gnss_time_offset", "lever_arm", "boresight")
 
 
+def tested_block(baseline: Baseline) -> str:
+    """What a diagnosis tested on, in words: the number of images and whether the IO was free or held fixed (the
+    same check on another block, e.g. the calibration's, gives another sigma)."""
+    free = [n for n in baseline.config.free]
+    io = f"IO free ({', '.join(free)})" if free else "IO held fixed"
+    return f"the whole {baseline.block.n_images}-image block, {io}"
+
+
 def recorded_eo_checks(round1: list[Evidence], phi: float, camera: Camera, ctx: hyp.Context,
-                       named: list[NamedEffect]) -> dict:
+                       named: list[NamedEffect], block: str | None = None) -> dict:
     """The recorded-EO checks, each with its estimate and sigma whether or not it was named: height datum
     and GNSS offset (``gnss_bias``), GNSS time lag (``gnss_time_offset``), lever arm, boresight (attitude
     convention or mounting). ``sigma`` is the formal sigma (``sigma_formal``, what the geometry determines)
@@ -529,6 +538,9 @@ def recorded_eo_checks(round1: list[Evidence], phi: float, camera: Camera, ctx: 
             z = np.abs(np.asarray(e.estimate)) / np.maximum(np.asarray(sigma), 1e-300)
             entry["status"] = "consistent with zero" if np.all(z < 2.0) else "a signal below the naming threshold"
         out[name] = entry
+    if block:
+        for entry in out.values():
+            entry["block"] = block
     return out
 
 

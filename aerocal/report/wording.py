@@ -222,7 +222,7 @@ def screening_text(screening: Mapping) -> str:
 
 def recorded_eo_text(checks: Mapping) -> str:
     """The recorded-EO checks of a diagnosis (``Diagnosis.recorded_eo``) in one line, ``"; "`` between them:
-    name, estimate +- sigma (``?`` where none), units, status."""
+    name, estimate +- sigma (``?`` where none), units, status; led by the block they were tested on."""
     parts = []
     for name, c in checks.items():
         if "estimate" in c:
@@ -231,7 +231,9 @@ def recorded_eo_text(checks: Mapping) -> str:
             parts.append(f"{name} {est} +- {sig} {c['units']} ({c['status']})")
         else:
             parts.append(f"{name}: {c['status']}")
-    return "; ".join(parts) or "no GNSS/IMU observations: not checked"
+    blocks = {c["block"] for c in checks.values() if c.get("block")}
+    head = f"tested on {blocks.pop()}: " if len(blocks) == 1 else ""
+    return head + "; ".join(parts) if parts else "no GNSS/IMU observations: not checked"
 
 
 def recorded_eo_rows(checks: Mapping) -> list[tuple[str, str, str]]:
@@ -245,7 +247,8 @@ def recorded_eo_rows(checks: Mapping) -> list[tuple[str, str, str]]:
             parts = [with_unit(plus_minus(v, s, 3), unit) for v, s in zip(c["estimate"], sig, strict=False)]
             if known is not None and len(known.labels) == len(parts):
                 parts = [f"{humanise(n)[0].lower()} {x}" for n, x in zip(known.labels, parts, strict=True)]
-            rows.append((humanise(name)[0], "; ".join(parts), str(c.get("status") or MISSING)))
+            finding = str(c.get("status") or MISSING) + (f" (tested on {c['block']})" if c.get("block") else "")
+            rows.append((humanise(name)[0], "; ".join(parts), finding))
         else:
             rows.append((humanise(name)[0], "not estimated", str(c.get("status") or MISSING)))
     return rows
