@@ -39,6 +39,22 @@ PARAM_UNITS: dict[str, str] = {
 }
 
 
+#: Rows per pass of the element-wise distortion maths on long inputs (:meth:`Camera.distort`,
+#: :meth:`Camera.undistort`): the temporaries of a pass stay in the cache. Measured on 12 M points of the
+#: conte-city camera: distort 1.08 s in one pass against 0.15 s by 2^14 rows (0.41-0.47 s by 2^16-2^20),
+#: undistort 7.2-8.8 s against 2.1 s; 1.5 M points in one pass took 0.025 s, so the long pass is not the
+#: arithmetic but every temporary streamed through memory and faulted in afresh.
+ROW_CHUNK = 1 << 14
+
+
+def _by_rows(fn, xy: np.ndarray) -> np.ndarray:
+    """``fn`` (N, 2) -> (N, 2) applied to ``xy`` by :data:`ROW_CHUNK` rows."""
+    out = np.empty_like(xy)
+    for s in range(0, len(xy), ROW_CHUNK):
+        out[s:s + ROW_CHUNK] = fn(xy[s:s + ROW_CHUNK])
+    return out
+
+
 @dataclass(frozen=True)
 class Camera:
     """A frame camera: image size and Brown-model interior orientation, all in pixels.
@@ -119,6 +135,11 @@ class Camera:
     def distort(self, xy: np.ndarray) -> np.ndarray:
         """Undistorted normalised coordinates (N, 2) -> distorted normalised coordinates (N, 2)."""
         xy = np.asarray(xy, dtype=float)
+        if xy.ndim == 2 and len(xy) > ROW_CHUNK:
+            return _by_rows(self._distort, xy)
+        return self._distort(xy)
+
+    def _distort(self, xy: np.ndarray) -> np.ndarray:
         x, y = xy[..., 0], xy[..., 1]
         r2 = x * x + y * y
         radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
@@ -147,10 +168,12 @@ class Camera:
         target = np.asarray(xy_distorted, dtype=float)
         shape = target.shape
         target = target.reshape(-1, 2)
+        if len(target) > ROW_CHUNK:
+            return _by_rows(lambda t: self.undistort(t, iterations, tol), target).reshape(shape)
         x = target[:, 0].copy()
         y = target[:, 1].copy()
         # each iteration on the points still moving only (6 M observations of a 12,800-image block: 2.4 s a
-        # call iterating on all of them until the slowest converged)
+        # call iterating on all of them until the slowest converged); long inputs go by ROW_CHUNK rows
         # A point beyond where the distortion polynomial can be inverted (far outside the image of a strongly
         # distorted camera) diverges: it stops at NaN, without overflow warnings, and is iterated no more.
         act = np.arange(len(x))

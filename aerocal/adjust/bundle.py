@@ -131,14 +131,14 @@ def _drop_points(block: Block, keep: np.ndarray) -> Block:
 
 
 def _intersect_in_front(
-    point_idx: np.ndarray, n_points: int, R: np.ndarray, C: np.ndarray, rays: np.ndarray
+    point_idx: np.ndarray, n_points: int, axis: np.ndarray, C: np.ndarray, rays: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Rays intersected per point (:func:`triangulate_linear`; per-observation ``R``, ``C``, ``rays``) and
-    the mask of points that lie in front of every camera seeing them, not closer to one than
-    ``MIN_DEPTH_FRACTION`` of the median depth."""
+    """Rays intersected per point (:func:`triangulate_linear`; per-observation optical ``axis`` (the third row
+    of the world-to-camera rotation), centre ``C`` and ``rays``) and the mask of points that lie in front of
+    every camera seeing them, not closer to one than ``MIN_DEPTH_FRACTION`` of the median depth."""
     X, ok = triangulate_linear(point_idx, n_points, C, rays)
     if ok.any():
-        depth = np.einsum("mk,mk->m", R[:, 2], np.nan_to_num(X[point_idx]) - C)
+        depth = np.einsum("mk,mk->m", axis, np.nan_to_num(X[point_idx]) - C)
         typical = np.median(depth[depth > 0]) if (depth > 0).any() else 0.0
         front = np.ones(n_points, bool)
         np.logical_and.at(front, point_idx, depth > MIN_DEPTH_FRACTION * typical)
@@ -152,8 +152,9 @@ def initial_state(block: Block, camera: Camera) -> tuple[Block, State]:
     slopes = np.zeros(3)
     i, j = block.obs_image, block.obs_point
     tie = block.obs_is_tie
-    rays = pixels_to_rays(io, slopes, np.zeros(int(tie.sum())), block.R_rec[i[tie]], block.obs_uv[tie])
-    X, ok = _intersect_in_front(j[tie], block.n_tie, block.R_rec[i[tie]], block.gnss[i[tie]], rays)
+    it = i[tie]
+    rays = pixels_to_rays(io, slopes, 0.0, block.R_rec, block.obs_uv[tie], image=it)
+    X, ok = _intersect_in_front(j[tie], block.n_tie, block.R_rec[it, 2], block.gnss[it], rays)
     keep = np.concatenate([ok, np.ones(len(block.control_ids), bool)])
     if not ok.any():
         raise AdjustmentError("observations: no tie track could be triangulated from the recorded poses")
@@ -518,7 +519,7 @@ def _intersect_left_out(
         np.logical_and.at(ok_track, j, posed)
         i_safe = np.where(posed, img, 0)
         rays = pixels_to_rays(io, slopes, dtemp, R[i_safe], uv)
-        X, ok = _intersect_in_front(j, len(track_ids), R[i_safe], C[i_safe], rays)
+        X, ok = _intersect_in_front(j, len(track_ids), R[i_safe, 2], C[i_safe], rays)
         ok &= ok_track
         X, _ = refine_points(io, slopes, dtemp, R[i_safe], C[i_safe], j, uv, sigma, np.where(ok[:, None], X, 0.0))
         r = project(io, slopes, dtemp, R[i_safe], C[i_safe], X[j], jacobians=False).uv - uv
@@ -597,8 +598,9 @@ def warm_start(block: Block, start: State, poses: pa.Table, points: pa.Table) ->
             i, j = block.obs_image, block.obs_point
             sel = block.obs_is_tie & missing[np.minimum(j, block.n_tie - 1)] & (j < block.n_tie)
             if sel.any():
-                rays = pixels_to_rays(st.io, st.slopes, np.zeros(int(sel.sum())), st.R[i[sel]], block.obs_uv[sel])
-                Xn, ok = _intersect_in_front(j[sel], block.n_tie, st.R[i[sel]], st.C[i[sel]], rays)
+                isel = i[sel]
+                rays = pixels_to_rays(st.io, st.slopes, 0.0, st.R, block.obs_uv[sel], image=isel)
+                Xn, ok = _intersect_in_front(j[sel], block.n_tie, st.R[isel, 2], st.C[isel], rays)
                 redo = missing & ok
                 st.X[: block.n_tie][redo] = Xn[redo]
     return st

@@ -195,7 +195,6 @@ def build_block(
     image_ids = _col(images, "image_id", "images").astype(np.int64)
     if len(np.unique(image_ids)) != len(image_ids):
         raise AdjustmentError("images.image_id has duplicate values; every image needs a unique id")
-    {int(v): i for i, v in enumerate(image_ids)}
     N = len(image_ids)
     if initial_poses is not None:
         # starting poses from an orientation (e.g. incremental SfM georeferenced on GCPs): they are

@@ -138,7 +138,7 @@ def _inverse3(A, out):  # pragma: no cover - compiled
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _reduce(p0, p1, order, pstart, visit, image, Ji, Jx, r, Hpp, damp, point_grad, indptr, indices,
-            data, Hii, gi, back, W, Hpp_inv, gpp):  # pragma: no cover - compiled
+            data, Hii, gi, back, Hpp_inv, gpp):  # pragma: no cover - compiled
     """One pass over the points visited ``p0:p1``-th and their observations (see :func:`reduce_points`)."""
     T = np.empty((6, 3))
     B = np.empty((6, 6))
@@ -170,7 +170,7 @@ def _reduce(p0, p1, order, pstart, visit, image, Ji, Jx, r, Hpp, damp, point_gra
                 ju0, ju1 = Ji[m, 0, u], Ji[m, 1, u]
                 gi[i, u] += ju0 * r0 + ju1 * r1
                 for v in range(3):
-                    Wp[a - s, u, v] = W[m, u, v] = ju0 * Jx[m, 0, v] + ju1 * Jx[m, 1, v]
+                    Wp[a - s, u, v] = ju0 * Jx[m, 0, v] + ju1 * Jx[m, 1, v]
                 for v in range(6):
                     Hii[i, u, v] += ju0 * Ji[m, 0, v] + ju1 * Ji[m, 1, v]
         gpp[p, 0], gpp[p, 1], gpp[p, 2] = g0, g1, g2
@@ -217,40 +217,51 @@ def _jacobian_blocks(point, d_rot, d_point, scale, Ji, Jx, Hpp):  # pragma: no c
 
 
 def jacobian_blocks(point: np.ndarray, d_rot: np.ndarray, d_point: np.ndarray, scale: np.ndarray,
-                    n_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                    n_points: int, overwrite: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(Ji, Jx, Hpp)``: the observations' rows of the Jacobian scaled by ``scale`` (M,) (sqrt of the robust
     weight over the a-priori sigma), ``Ji`` (M, 2, 6) in the image's (w, C) columns (``d(uv)/dC = -d_point``),
     ``Jx`` (M, 2, 3) in the point's, and the points' 3 x 3 blocks of J^T J (P, 3, 3), in one pass. On 382k
     observations in point order numpy's strided products and its batched (3 x 2) by (2 x 3) ones with a sparse
-    sum took ~0.1 s, this loop ~0.01 s."""
+    sum took ~0.1 s, this loop ~0.01 s. With ``overwrite``, ``Jx`` is written over ``d_point`` (when it is a
+    contiguous float64 array) instead of a new (M, 2, 3) array: 0.6 GB less per iteration at 25,600 images."""
     M = len(point)
-    Ji, Jx, Hpp = np.empty((M, 2, 6)), np.empty((M, 2, 3)), np.zeros((n_points, 3, 3))
     f8 = np.float64
+    d_point = np.ascontiguousarray(d_point, dtype=f8)
+    Ji, Hpp = np.empty((M, 2, 6)), np.zeros((n_points, 3, 3))
+    Jx = d_point if overwrite and d_point.flags.writeable else np.empty((M, 2, 3))
     _jacobian_blocks(np.ascontiguousarray(point, dtype=np.int64), np.ascontiguousarray(d_rot, dtype=f8),
-                     np.ascontiguousarray(d_point, dtype=f8), np.ascontiguousarray(scale, dtype=f8), Ji, Jx, Hpp)
+                     d_point, np.ascontiguousarray(scale, dtype=f8), Ji, Jx, Hpp)
     return Ji, Jx, Hpp
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _points_from_images(order, pstart, visit, image, W, dc, out):  # pragma: no cover - compiled
+def _points_from_images(order, pstart, visit, image, Ji, Jx, dc, out):  # pragma: no cover - compiled
     for q in range(len(pstart) - 1):
         p = visit[q]
         for a in range(pstart[q], pstart[q + 1]):
             m = order[a]
             i = image[m]
+            # W_m^T dc_i = Jx_m^T (Ji_m dc_i)
+            e0 = (Ji[m, 0, 0] * dc[i, 0] + Ji[m, 0, 1] * dc[i, 1] + Ji[m, 0, 2] * dc[i, 2]
+                  + Ji[m, 0, 3] * dc[i, 3] + Ji[m, 0, 4] * dc[i, 4] + Ji[m, 0, 5] * dc[i, 5])
+            e1 = (Ji[m, 1, 0] * dc[i, 0] + Ji[m, 1, 1] * dc[i, 1] + Ji[m, 1, 2] * dc[i, 2]
+                  + Ji[m, 1, 3] * dc[i, 3] + Ji[m, 1, 4] * dc[i, 4] + Ji[m, 1, 5] * dc[i, 5])
             for v in range(3):
-                out[p, v] += (W[m, 0, v] * dc[i, 0] + W[m, 1, v] * dc[i, 1] + W[m, 2, v] * dc[i, 2]
-                              + W[m, 3, v] * dc[i, 3] + W[m, 4, v] * dc[i, 4] + W[m, 5, v] * dc[i, 5])
+                out[p, v] += Jx[m, 0, v] * e0 + Jx[m, 1, v] * e1
 
 
-def points_from_images(layout: PairLayout, image: np.ndarray, W: np.ndarray, dc_images: np.ndarray) -> np.ndarray:
+def points_from_images(layout: PairLayout, image: np.ndarray, Ji: np.ndarray, Jx: np.ndarray,
+                       dc_images: np.ndarray) -> np.ndarray:
     """``Hcp^T dc`` of the image columns (P, 3): per point, the sum over its observations of ``W_m^T dc_i``
-    (``dc_images`` (N, 6)): the back-substitution's product, in the points' order (numpy's gathered
-    products and per-point bincounts: 25 ms on 382k observations, this loop ~3 ms)."""
+    with ``W_m = Ji_m^T Jx_m`` (``dc_images`` (N, 6)): the back-substitution's product, in the points' order
+    (numpy's gathered products and per-point bincounts: 25 ms on 382k observations, this loop ~3 ms). ``W`` is
+    formed here from the Jacobian blocks, not kept from the elimination: (M, 6, 3) was 1.8 GB at 25,600 images,
+    allocated afresh every step."""
     out = np.zeros((len(layout.pstart) - 1, 3))
+    f8 = np.float64
     _points_from_images(layout.order, layout.pstart, layout.visit, np.ascontiguousarray(image, dtype=np.int64),
-                        np.ascontiguousarray(W, dtype=np.float64), np.ascontiguousarray(dc_images, dtype=np.float64),
-                        out)
+                        np.ascontiguousarray(Ji, dtype=f8), np.ascontiguousarray(Jx, dtype=f8),
+                        np.ascontiguousarray(dc_images, dtype=f8), out)
     return out
 
 
@@ -262,7 +273,6 @@ class Reduction:
     Hii: np.ndarray  # (N, 6, 6) each image's own J^T J from its observations
     grad: np.ndarray  # (N, 6) images' J^T r from their observations (priors not added)
     back: np.ndarray  # (N, 6) images' part of Hcp Hpp^-1 gp
-    W: np.ndarray  # (M, 6, 3) Ji^T Jx of each observation (the blocks of Hcp)
     Hpp_inv: np.ndarray  # (P, 3, 3) inverses of the damped point blocks
     gpp: np.ndarray  # (P, 3) the points' J^T r, the control rows' included
 
@@ -281,7 +291,7 @@ def reduce_points(layout: PairLayout, image: np.ndarray, Ji: np.ndarray, Jx: np.
     scaled); ``Hpp`` (P, 3, 3) the points' blocks of J^T J (control rows included), damped here by
     ``1 + lam`` on the diagonal; ``point_grad`` (P, 3) the control rows' J^T r. ``threads``: how many share
     the pass (default :data:`REDUCE_THREADS`), the points cut where the pairs' work is halved."""
-    M, P = len(image), len(Hpp)
+    P = len(Hpp)
     f8 = np.float64
     args = (layout.order, layout.pstart, layout.visit, np.ascontiguousarray(image, dtype=np.int64),
             np.ascontiguousarray(Ji, dtype=f8), np.ascontiguousarray(Jx, dtype=f8), np.ascontiguousarray(r, dtype=f8),
@@ -291,14 +301,14 @@ def reduce_points(layout: PairLayout, image: np.ndarray, Ji: np.ndarray, Jx: np.
     # shared by the threads, so touched here first: page faults of fresh memory in two threads at once wait on
     # each other (two threads took 0.16 s on 382k observations with untouched outputs, 0.08 s touched; one 0.11 s)
     new = np.empty if n == 1 else lambda shape: np.full(shape, 0.0)
-    W, Hpp_inv, gpp = new((M, 6, 3)), new((P, 3, 3)), new((P, 3))
+    Hpp_inv, gpp = new((P, 3, 3)), new((P, 3))
     work = np.cumsum(np.diff(layout.pstart) ** 2)
     cuts = np.concatenate([[0], np.searchsorted(work, work[-1] * np.arange(1, n) / n) if P else [], [P]]).astype(int)
 
     def part(k: int) -> tuple:
         out = (np.zeros((layout.n_blocks, 6, 6)), np.zeros((n_images, 6, 6)), np.zeros((n_images, 6)),
                np.zeros((n_images, 6)))
-        _reduce(cuts[k], cuts[k + 1], *args, *out, W, Hpp_inv, gpp)
+        _reduce(cuts[k], cuts[k + 1], *args, *out, Hpp_inv, gpp)
         return out
 
     if n == 1:
@@ -310,7 +320,7 @@ def reduce_points(layout: PairLayout, image: np.ndarray, Ji: np.ndarray, Jx: np.
     for other in parts[1:]:
         for acc, x in zip(sums, other, strict=True):
             acc += x
-    return Reduction(*sums, W, Hpp_inv, gpp)
+    return Reduction(*sums, Hpp_inv, gpp)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -327,14 +337,17 @@ def _global_blocks(image, point, Jg, Ji, Jx, Hgi, Hcp_g):  # pragma: no cover - 
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _global_image_coupling(image, point, Tg, W, out):  # pragma: no cover - compiled
+def _global_image_coupling(image, point, Tg, Ji, Jx, out):  # pragma: no cover - compiled
     ng = Tg.shape[1]
     for m in range(len(image)):
         i, p = image[m], point[m]
         for g in range(ng):
+            # Tg[p, g] W_m^T = (Jx_m Tg[p, g]) . Ji_m
             t0, t1, t2 = Tg[p, g, 0], Tg[p, g, 1], Tg[p, g, 2]
+            e0 = Jx[m, 0, 0] * t0 + Jx[m, 0, 1] * t1 + Jx[m, 0, 2] * t2
+            e1 = Jx[m, 1, 0] * t0 + Jx[m, 1, 1] * t1 + Jx[m, 1, 2] * t2
             for k in range(6):
-                out[i, g, k] += t0 * W[m, k, 0] + t1 * W[m, k, 1] + t2 * W[m, k, 2]
+                out[i, g, k] += e0 * Ji[m, 0, k] + e1 * Ji[m, 1, k]
 
 
 def global_blocks(image: np.ndarray, point: np.ndarray, Jg: np.ndarray, Ji: np.ndarray, Jx: np.ndarray,
@@ -352,13 +365,15 @@ def global_blocks(image: np.ndarray, point: np.ndarray, Jg: np.ndarray, Ji: np.n
     return Hgi, Hcp_g
 
 
-def global_image_coupling(image: np.ndarray, point: np.ndarray, Tg: np.ndarray, W: np.ndarray,
+def global_image_coupling(image: np.ndarray, point: np.ndarray, Tg: np.ndarray, Ji: np.ndarray, Jx: np.ndarray,
                           n_images: int) -> np.ndarray:
     """(N, ng, 6): per image, the sum over its observations of ``Tg[point] W_m^T`` (``Tg`` (P, ng, 3), the
-    points' ``Hcp_g Hpp^-1``; ``W`` (M, 6, 3)), the global-image part of ``Hcp Hpp^-1 Hcp^T``. It replaced
+    points' ``Hcp_g Hpp^-1``; ``W_m = Ji_m^T Jx_m`` formed from the Jacobian blocks), the global-image part of
+    ``Hcp Hpp^-1 Hcp^T``. It replaced
     numpy einsums over (M, ng, 6) and their per-image sums; with :func:`global_blocks` and the compiled IO
     Jacobians, the 800-image conte-city self-calibration (8 IO parameters free) went from 13.1 s to 5.4 s."""
     out = np.zeros((n_images, Tg.shape[1], 6))
     _global_image_coupling(np.ascontiguousarray(image, dtype=np.int64), np.ascontiguousarray(point, dtype=np.int64),
-                           np.ascontiguousarray(Tg, dtype=np.float64), np.ascontiguousarray(W, dtype=np.float64), out)
+                           np.ascontiguousarray(Tg, dtype=np.float64), np.ascontiguousarray(Ji, dtype=np.float64),
+                           np.ascontiguousarray(Jx, dtype=np.float64), out)
     return out

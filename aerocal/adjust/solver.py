@@ -306,7 +306,7 @@ class Problem:
         rows_obs = np.arange(2 * M).reshape(M, 2)
         Jg = np.concatenate([pr.d_io[:, :, lay.io_free], pr.d_slope[:, :, lay.slope_free]], axis=2) * sw[:, None, None]
         # the pose and point blocks and the points' blocks of J^T J (each row touches one point), one pass
-        Ji, Jx, Hpp = jacobian_blocks(j, pr.d_rot, pr.d_point, sw, lay.n_points)
+        Ji, Jx, Hpp = jacobian_blocks(j, pr.d_rot, pr.d_point, sw, lay.n_points, overwrite=True)  # pr is ours
         ng = lay.n_global
         rw = r_obs * np.sqrt(w)[:, None]
         Nimg = b.n_images
@@ -464,7 +464,7 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     n_camera = ng + 6 * N
     damp = 1.0 + lam
     red = reduce_points(b.layout, b.image, b.Ji, b.Jx, b.r, Hpp, lam, b.point_grad, N)
-    W, Hpp_inv, gpp = red.W, red.Hpp_inv, red.gpp
+    Hpp_inv, gpp = red.Hpp_inv, red.gpp
     gp = gpp.ravel()
     # gradients J^T r: camera side per image (+ priors) and global
     gc = np.zeros(n_camera)
@@ -490,7 +490,7 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
         Tg_p = np.matmul(Hcp_p, Hpp_inv)  # (P, ng, 3): Hcp_g Hpp^-1 per point
         S_gg = Hgg - Tg_p.transpose(1, 0, 2).reshape(ng, -1) @ Hcp_p.transpose(1, 0, 2).reshape(ng, -1).T
         # global-image: Hgi minus the sum over observations of Tg[p] W_m^T
-        S_gi = Hgi - global_image_coupling(b.image, b.point, Tg_p, W, N)
+        S_gi = Hgi - global_image_coupling(b.image, b.point, Tg_p, b.Ji, b.Jx, N)
         S_gi = S_gi.transpose(1, 0, 2).reshape(ng, 6 * N)
         S = sp.bmat([[sp.csr_matrix(S_gg), sp.csr_matrix(S_gi)], [sp.csr_matrix(S_gi.T), S_ii]], format="csc")
         rhs[:ng] += np.einsum("pgj,pj->g", Tg_p, gpp)
@@ -502,7 +502,7 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     def hcp_t(dc: np.ndarray) -> np.ndarray:
         """``Hcp^T dc`` (3P,): per point, the sum over its observations of ``W_m^T dc_image``."""
         dc = np.asarray(dc, dtype=float).ravel()
-        out = points_from_images(b.layout, b.image, W, dc[ng:].reshape(N, 6))
+        out = points_from_images(b.layout, b.image, b.Ji, b.Jx, dc[ng:].reshape(N, 6))
         if ng:
             out += np.einsum("gpj,g->pj", Hcp_g, dc[:ng])
         return out.ravel()
@@ -511,7 +511,9 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
         """``Hcp dp`` (n_camera,): per image, the sum over its observations of ``W_m dp_point``."""
         dp = np.asarray(dp, dtype=float).reshape(P, 3)
         out = np.zeros(n_camera)
-        out[ng:] = _sum_by(b.image, np.einsum("mij,mj->mi", W, dp[b.point]), N).ravel()
+        # W_m dp = Ji_m^T (Jx_m dp)
+        out[ng:] = _sum_by(b.image, np.einsum("mui,mu->mi", b.Ji, np.einsum("muj,mj->mu", b.Jx, dp[b.point])),
+                           N).ravel()
         if ng:
             out[:ng] = np.einsum("gpj,pj->g", Hcp_g, dp)
         return out

@@ -10,24 +10,35 @@ from __future__ import annotations
 import numpy as np
 
 from aerocal.adjust.projection import project
-from aerocal.camera import Camera
+from aerocal.camera import ROW_CHUNK, Camera
 
 
 def pixels_to_rays(
-    io: np.ndarray, slopes: np.ndarray, dtemp: np.ndarray, R: np.ndarray, uv: np.ndarray
+    io: np.ndarray, slopes: np.ndarray, dtemp: np.ndarray, R: np.ndarray, uv: np.ndarray,
+    image: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Unit viewing rays in the world frame (M, 3) of pixels ``uv`` (M, 2) seen by frames ``R`` (M, 3, 3)."""
-    f = io[0] + slopes[0] * dtemp
-    cx = io[1] + slopes[1] * dtemp
-    cy = io[2] + slopes[2] * dtemp
-    b1, b2 = io[8], io[9]
-    yd = (uv[:, 1] - cy) / f
-    xd = (uv[:, 0] - cx - yd * b2) / (f + b1)
+    """Unit viewing rays in the world frame (M, 3) of pixels ``uv`` (M, 2) seen by frames ``R`` (M, 3, 3),
+    or with ``image`` (M,) by frames ``R[image]`` (``R`` per image: no (M, 3, 3) gather, 0.9 GB at 12.4 M
+    rows); ``dtemp``: each row's temperature difference from the thermal model's reference (scalar or (M,)).
+
+    By :data:`aerocal.camera.ROW_CHUNK` rows, as the camera's distortion maths (25,600-image block, 12.4 M
+    rays: 11.4 s for two calls in one pass)."""
+    dtemp = np.broadcast_to(np.asarray(dtemp, dtype=float), (len(uv),))
+    out = np.empty((len(uv), 3))
     cam = Camera(width=1, height=1, f=1.0, cx=0.0, cy=0.0, k1=io[3], k2=io[4], k3=io[5], p1=io[6], p2=io[7])
-    xy = cam.undistort(np.stack([xd, yd], axis=-1))
-    d_cam = np.column_stack([xy, np.ones(len(xy))])
-    d = np.einsum("mji,mj->mi", R, d_cam)  # R^T d_cam
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
+    for s in range(0, len(uv), ROW_CHUNK):
+        rows = slice(s, s + ROW_CHUNK)
+        f = io[0] + slopes[0] * dtemp[rows]
+        cx = io[1] + slopes[1] * dtemp[rows]
+        cy = io[2] + slopes[2] * dtemp[rows]
+        b1, b2 = io[8], io[9]
+        yd = (uv[rows, 1] - cy) / f
+        xd = (uv[rows, 0] - cx - yd * b2) / (f + b1)
+        xy = cam.undistort(np.stack([xd, yd], axis=-1))
+        d_cam = np.column_stack([xy, np.ones(len(xy))])
+        d = np.einsum("mji,mj->mi", R[rows] if image is None else R[image[rows]], d_cam)  # R^T d_cam
+        out[rows] = d / np.linalg.norm(d, axis=1, keepdims=True)
+    return out
 
 
 def triangulate_linear(
