@@ -405,3 +405,19 @@ def test_residuals_and_points_line_up_with_the_input_tables_whatever_the_interna
     assert ok.mean() > 0.95, f"seed {seed}"
     gap = np.abs(pr.uv[ok] - measured[ok] - res.residuals[ok]).max()
     assert gap < 1e-6, f"seed {seed}: residuals differ from the tables' own projection by {gap:g} px"
+
+
+def test_counting_order_and_unique_ids_equal_numpys():
+    """The block's stable orders by counting and its track numbering by a presence mask give exactly what
+    numpy's stable argsort and np.unique give, for compact and for scattered ids."""
+    from aerocal.adjust.problem import unique_ids
+    from aerocal.adjust.schur_kernels import stable_order
+
+    seed = 21
+    rng = np.random.default_rng(seed)
+    for n_keys in (1, 7, 5000):
+        keys = rng.integers(0, n_keys, 20_000)
+        assert np.array_equal(stable_order(keys, n_keys), np.argsort(keys, kind="stable")), f"seed {seed}"
+    for ids in (rng.integers(-50, 9000, 20_000), rng.integers(0, 2**40, 20_000), np.zeros(0, np.int64)):
+        got, want = unique_ids(ids), np.unique(ids, return_inverse=True)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1].ravel()), f"seed {seed}"

@@ -13,7 +13,7 @@ import pyarrow as pa
 
 from aerocal import tables
 from aerocal.adjust.projection import THERMAL_PARAMS
-from aerocal.adjust.schur_kernels import image_graph, point_visit_rank
+from aerocal.adjust.schur_kernels import image_graph, point_visit_rank, stable_order
 from aerocal.adjust.thinning import ThinningConfig
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel, correct_measurements
 from aerocal.geometry import attitude_to_R_cw
@@ -167,6 +167,22 @@ def _col(table: pa.Table, name: str, what: str) -> np.ndarray:
     return table.column(name).to_numpy(zero_copy_only=False)
 
 
+def unique_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(ids, return_inverse=True)`` for int64 ids; ids within a range of a few times their number
+    (the track ids of matching and simulation) by a presence mask instead of a sort (12.4 M observations of
+    25,600 images: ~1 s less)."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if not len(ids):
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    lo, hi = int(ids.min()), int(ids.max())
+    if hi - lo > 4 * len(ids) + 1024:
+        return np.unique(ids, return_inverse=True)
+    present = np.zeros(hi - lo + 1, dtype=bool)
+    present[ids - lo] = True
+    number = np.cumsum(present) - 1
+    return np.flatnonzero(present) + lo, number[ids - lo]
+
+
 def build_block(
     images: pa.Table,
     observations: pa.Table,
@@ -257,7 +273,7 @@ def build_block(
 
     o_img = image_index(_col(observations, "image_id", "observations"), "observations")
     track = _col(observations, "track_id", "observations").astype(np.int64)
-    track_ids, o_pt = np.unique(track, return_inverse=True)
+    track_ids, o_pt = unique_ids(track)
     o_uv = np.column_stack([_col(observations, "x", "observations"), _col(observations, "y", "observations")])
     o_sig = _col(observations, "sigma", "observations").astype(float)
     if not (o_sig > 0).all():
@@ -304,7 +320,7 @@ def build_block(
         rank = point_visit_rank(image_graph(o_img, o_pt, N, n_tie), o_img, o_pt, n_tie)
         track_ids = track_ids[np.argsort(rank)]
         o_pt = rank[o_pt]
-        o_row = np.argsort(o_pt, kind="stable")
+        o_row = stable_order(o_pt, n_tie)
         o_img, o_pt, o_uv, o_sig = o_img[o_row], o_pt[o_row], o_uv[o_row], o_sig[o_row]
     c_pt = n_tie + np.array([ctrl_pos[g] for g, s in zip(go_gid, sel_c, strict=True) if s], dtype=np.int64)
     k_pt = np.array([chk_pos[g] for g, s in zip(go_gid, sel_k, strict=True) if s], dtype=np.int64)

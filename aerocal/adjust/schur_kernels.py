@@ -54,6 +54,26 @@ class PairLayout:
         return len(self.indices)
 
 
+@numba.njit(cache=True, nogil=True)
+def _counting_order(keys, starts, out):  # pragma: no cover - compiled
+    pos = starts.copy()
+    for m in range(len(keys)):
+        k = keys[m]
+        out[pos[k]] = m
+        pos[k] += 1
+
+
+def stable_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` for integer ``keys`` in ``[0, n_keys)``, by counting (one pass, no
+    comparison sort): 12.4 M observations of 25,600 images, the block's four stable argsorts took 4.1 s."""
+    keys = np.ascontiguousarray(keys, dtype=np.int64)
+    starts = np.zeros(n_keys + 1, dtype=np.int64)
+    np.cumsum(np.bincount(keys, minlength=n_keys), out=starts[1:])
+    out = np.empty(len(keys), dtype=np.int64)
+    _counting_order(keys, starts, out)
+    return out
+
+
 def image_graph(image: np.ndarray, point: np.ndarray, n_images: int, n_points: int) -> sp.csr_matrix:
     """Which images share a point, each image with itself included: the pattern of ``A A^T`` for the
     image-by-point incidence matrix ``A`` (scipy's sparse product: one pass over the ``sum_p L_p^2`` pairs in
@@ -74,7 +94,7 @@ def point_visit_rank(graph: sp.csr_matrix, image: np.ndarray, point: np.ndarray,
     key = np.full(n_points, n_images, dtype=np.int64)
     np.minimum.at(key, point, pos[image])
     rank = np.empty(n_points, dtype=np.int64)
-    rank[np.argsort(key, kind="stable")] = np.arange(n_points)
+    rank[stable_order(key, n_images + 1)] = np.arange(n_points)
     return rank
 
 
@@ -90,7 +110,7 @@ def image_pair_layout(image: np.ndarray, point: np.ndarray, n_images: int, n_poi
     indices = G.indices.astype(np.int64)
     rows = np.repeat(np.arange(n_images), np.diff(indptr))
     diagonal = np.flatnonzero(rows == indices)
-    order = np.argsort(rank[point], kind="stable").astype(np.int64)
+    order = stable_order(rank[point], n_points)
     visit = np.empty(n_points, dtype=np.int64)
     visit[rank] = np.arange(n_points)
     pstart = np.zeros(n_points + 1, dtype=np.int64)
