@@ -9,9 +9,10 @@ scaled, the machine shared with one other job): 3200 images (19,200 unknowns) 0.
 SuperLU in aerocal's METIS order (:func:`aerocal.adjust.solver.camera_ordering`), 12,800 images 1.04 s against
 4.4-5.4 s; the solutions equal to 3e-14 relative.
 
-The library comes from the ``mkl`` wheel (x86-64). Where it is missing, :func:`available` is False and the
-adjustment keeps SuperLU; a system PARDISO finds not positive definite (:class:`NotPositiveDefinite`) goes
-to SuperLU too, which tells an exactly singular system apart.
+The library comes from the ``mkl`` wheel (x86-64; ``AEROCAL_MKL_RT`` names another ``libmkl_rt`` to load
+first). Where it is missing, :func:`available` is False and the adjustment keeps SuperLU; a system PARDISO
+finds not positive definite (:class:`NotPositiveDefinite`) goes to SuperLU too, which tells an exactly
+singular system apart.
 """
 
 from __future__ import annotations

@@ -627,7 +627,9 @@ REUSE_MIN_UNKNOWNS = 6000
 #: Relative error, in the system's energy norm, at which the preconditioned conjugate gradients stop
 REUSE_TOLERANCE = 1e-6
 #: Conjugate-gradient iterations after which the system is factorised again (each costs one solve with the
-#: old factor: 3200 images 0.025 s, against 1.0 s for a factorisation)
+#: old factor: 3200 images 0.025 s, against 1.0 s for a SuperLU factorisation; with PARDISO's Cholesky the
+#: factorisation takes 0.16-0.27 s and a solve 0.004 s there, 1.0-1.3 s and 0.025 s at 12,800 images, so the
+#: reuse now saves less: the bound was not measured again)
 REUSE_MAX_ITERATIONS = 20
 
 
@@ -750,7 +752,7 @@ class SparseInverse:
     """Blocks of the inverse of a sparse symmetric positive definite matrix, computed on demand.
 
     The reduced camera system of a block is sparse (an image couples only with the images it shares
-    points with), so one sparse LU factorisation (SuperLU, Jacobi-scaled) and a solve for the columns
+    points with), so one sparse factorisation (:func:`factorise`, Jacobi-scaled) and a solve for the columns
     a caller needs beats forming the dense inverse: conte-city, 818 images (4908 unknowns), the dense
     Cholesky inverse alone took 33 s on the loaded 2-core machine; with this class the whole adjustment
     took 33 s instead of 59 s there (11-14 s on the idle machine, benchmarks/RESULTS.md).
