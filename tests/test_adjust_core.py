@@ -324,6 +324,7 @@ def test_factorise_solves_by_cholesky_and_falls_back_to_superlu(monkeypatch):
     assert isinstance(f, cholesky.PardisoCholesky) and f.factor_entries > n, f"seed {seed}"
     assert np.allclose(f.solve(B / d[:, None]) / d[:, None], want, rtol=1e-9, atol=1e-12), f"seed {seed}"
     assert np.allclose(f.solve(B[:, 0] / d) / d, want[:, 0], rtol=1e-9, atol=1e-12), f"seed {seed}: one column"
+    assert f.solve(np.zeros((n, 0))).shape == (n, 0)  # no check points: no columns
     with monkeypatch.context() as m:
         m.setattr(cholesky, "available", lambda: False)
         lu, d = factorise(S, n_global=2)

@@ -124,6 +124,8 @@ class PardisoCholesky:
         b = np.asarray(b, dtype=np.float64)
         if b.shape[0] != self.n:
             raise ValueError(f"right-hand side has {b.shape[0]} rows, the factor {self.n}")
+        if b.size == 0:  # no columns (a block without check points): PARDISO calls nrhs = 0 inconsistent
+            return np.zeros(b.shape)
         x = self._call(_SOLVE, np.asfortranarray(b.reshape(self.n, -1)))
         return np.ascontiguousarray(x).reshape(b.shape)
 
