@@ -11,7 +11,7 @@
 4. Orthomosaic of the whole flight, Dask 1 vs 2 workers, from the end-to-end run's poses and DSM.
 
 The rendered flight is cached in ``benchmarks/data/`` (rendering the 818 frames takes ~13 min on one core;
-``--images 3200``: the same plan over a larger area, ~50 min).
+``--images 3200``: the same plan over a larger area, rendered in ~2 h on one core shared with other jobs).
 
 Run: ``python -m benchmarks.city_bench`` (``--frames N``: only the N frames nearest the block centre;
 ``--parts e2e,matching``: only those parts).
@@ -191,7 +191,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=None, help="only the N frames nearest the block centre")
     ap.add_argument("--images", type=int, default=CITY_FRAMES,
                     help="render conte-city's plan over a larger area and keep this many frames (default 818: "
-                         "the preset itself; 3200 renders in ~50 min on one core, cached)")
+                         "the preset itself; 3200 took ~2 h on one core shared with other jobs; cached)")
     ap.add_argument("--source", type=Path, default=None,
                     help="a rendered flight folder (default: conte-city seed 0, rendered on first use)")
     ap.add_argument("--parts", default="e2e,matching,pairs,mosaic",

@@ -169,8 +169,8 @@ def _col(table: pa.Table, name: str, what: str) -> np.ndarray:
 
 def unique_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(ids, return_inverse=True)`` for int64 ids; ids within a range of a few times their number
-    (the track ids of matching and simulation) by a presence mask instead of a sort (12.4 M observations of
-    25,600 images: ~1 s less)."""
+    (the track ids of matching and simulation) by a presence mask instead of a sort (not timed alone: the
+    np.unique calls of a 25,600-image adjustment took 3.2 s in all before)."""
     ids = np.asarray(ids, dtype=np.int64)
     if not len(ids):
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)

@@ -65,7 +65,8 @@ def _counting_order(keys, starts, out):  # pragma: no cover - compiled
 
 def stable_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
     """``np.argsort(keys, kind="stable")`` for integer ``keys`` in ``[0, n_keys)``, by counting (one pass, no
-    comparison sort): 12.4 M observations of 25,600 images, the block's four stable argsorts took 4.1 s."""
+    comparison sort): 12.4 M random keys in 4.6 M values, 0.67 s against 2.0 s for numpy's stable argsort (the
+    argsorts of a 25,600-image adjustment took 4.1 s in all before)."""
     keys = np.ascontiguousarray(keys, dtype=np.int64)
     starts = np.zeros(n_keys + 1, dtype=np.int64)
     np.cumsum(np.bincount(keys, minlength=n_keys), out=starts[1:])

@@ -26,12 +26,12 @@ def pixels_to_rays(
     dtemp = np.broadcast_to(np.asarray(dtemp, dtype=float), (len(uv),))
     out = np.empty((len(uv), 3))
     cam = Camera(width=1, height=1, f=1.0, cx=0.0, cy=0.0, k1=io[3], k2=io[4], k3=io[5], p1=io[6], p2=io[7])
+    b1, b2 = io[8], io[9]
     for s in range(0, len(uv), ROW_CHUNK):
         rows = slice(s, s + ROW_CHUNK)
         f = io[0] + slopes[0] * dtemp[rows]
         cx = io[1] + slopes[1] * dtemp[rows]
         cy = io[2] + slopes[2] * dtemp[rows]
-        b1, b2 = io[8], io[9]
         yd = (uv[rows, 1] - cy) / f
         xd = (uv[rows, 0] - cx - yd * b2) / (f + b1)
         xy = cam.undistort(np.stack([xd, yd], axis=-1))
