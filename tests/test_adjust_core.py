@@ -325,6 +325,17 @@ def test_factorise_solves_by_cholesky_and_falls_back_to_superlu(monkeypatch):
     assert np.allclose(f.solve(B / d[:, None]) / d[:, None], want, rtol=1e-9, atol=1e-12), f"seed {seed}"
     assert np.allclose(f.solve(B[:, 0] / d) / d, want[:, 0], rtol=1e-9, atol=1e-12), f"seed {seed}: one column"
     assert f.solve(np.zeros((n, 0))).shape == (n, 0)  # no check points: no columns
+    # the next step's system (same pattern, other numbers) factorised with the first one's analysis
+    S2 = (S + sp.diags(rng.uniform(0.1, 2.0, n))).tocsc()  # S holds its diagonal: the same pattern
+    f2, d2 = factorise(S2, n_global=2, earlier=f)
+    assert f2 is f, f"seed {seed}: the analysis of the same pattern is kept"
+    assert np.allclose(f2.solve(B / d2[:, None]) / d2[:, None], spla.spsolve(S2, B), rtol=1e-9, atol=1e-12)
+    corner = sp.csc_matrix(([0.01, 0.01], ([0, n - 1], [n - 1, 0])), shape=(n, n))
+    other = (S + corner).tocsc()  # another pattern: a new analysis
+    assert not f.refactor(other)
+    f3, d3 = factorise(other, earlier=f)
+    assert f3 is not f and np.allclose(f3.solve(B / d3[:, None]) / d3[:, None], spla.spsolve(other, B),
+                                       rtol=1e-9, atol=1e-12), f"seed {seed}"
     with monkeypatch.context() as m:
         m.setattr(cholesky, "available", lambda: False)
         lu, d = factorise(S, n_global=2)
@@ -422,3 +433,37 @@ def test_counting_order_and_unique_ids_equal_numpys():
     for ids in (rng.integers(-50, 9000, 20_000), rng.integers(0, 2**40, 20_000), np.zeros(0, np.int64)):
         got, want = unique_ids(ids), np.unique(ids, return_inverse=True)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1].ravel()), f"seed {seed}"
+
+
+def test_a_point_a_step_brings_next_to_a_camera_is_put_back_from_the_candidates_own_depths():
+    """The depths of the candidate's linearisation find the tie points a step moved next to a camera that
+    sees them (below a fraction of the start's median depth), as projecting them again does; those points go
+    back to where they were, the others keep their step."""
+    from aerocal.adjust.bundle import initial_state
+    from aerocal.adjust.problem import build_block
+    from aerocal.adjust.solver import MIN_DEPTH_FRACTION, Problem
+
+    seed = 32
+    sim = simulate_flight("conte-calibration", seed=seed, max_images=12)
+    cfg = AdjustConfig(gnss_sigma_m=(0.1, 0.1, 0.15))
+    blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)
+    blk, st = initial_state(blk, sim.camera_nominal)
+    prob = Problem(blk, cfg, 0.0)
+    prob.residuals(st, jac=True, sparse=False)
+    view = prob.point_view()
+    prob.set_depth_floor(prob.last_depth[view.is_tie])
+    median = float(np.median(prob.last_depth[view.is_tie]))
+    assert prob.depth_floor == pytest.approx(MIN_DEPTH_FRACTION * median), f"seed {seed}"
+    rng = np.random.default_rng(seed)
+    step = st.copy()
+    step.X = st.X + rng.normal(0, 0.05, st.X.shape)  # every point moves a little
+    m = int(np.flatnonzero(view.is_tie)[0])
+    i, p = int(view.image[m]), int(view.point[m])
+    step.X[p] = st.C[i] + 0.5 * prob.depth_floor * st.R[i][2]  # and one to half the floor in front of camera i
+    a, b = step.copy(), step.copy()
+    prob.residuals(a, jac=True, sparse=False)
+    held = prob.hold_close_points(st, a, prob.last_depth)
+    assert held == prob.hold_close_points(st, b) == 1, f"seed {seed}"
+    assert np.array_equal(a.X, b.X) and np.array_equal(a.X[p], st.X[p]), f"seed {seed}"
+    others = np.arange(len(st.X)) != p
+    assert np.array_equal(a.X[others], step.X[others]), f"seed {seed}"

@@ -28,8 +28,9 @@ import scipy.sparse as sp
 
 #: PARDISO's matrix type for real symmetric positive definite systems
 _SPD = 2
-#: PARDISO phases: analysis + numerical factorisation; solve with iterative refinement; release memory
-_ANALYSE_FACTOR, _SOLVE, _RELEASE = 12, 33, -1
+#: PARDISO phases: analysis + numerical factorisation; numerical factorisation alone (the analysis of the
+#: same pattern kept); solve with iterative refinement; release memory
+_ANALYSE_FACTOR, _FACTOR, _SOLVE, _RELEASE = 12, 22, 33, -1
 #: PARDISO's error codes (its documentation), for the messages
 _ERRORS = {-1: "input inconsistent", -2: "not enough memory", -3: "reordering problem",
            -4: "zero pivot (the matrix is not positive definite)", -5: "unclassified internal error",
@@ -71,6 +72,30 @@ def available() -> bool:
     return _library() is not None
 
 
+def _upper_triangle(A, pattern: tuple | None = None) -> tuple:
+    """``(indptr, indices, data, pattern)``: the upper triangle of the symmetric ``A`` as zero-based CSR arrays
+    (int32 indices, sorted within rows) as PARDISO reads it. ``pattern`` (what an earlier call returned) is
+    returned as it is, with the indices it holds, when ``A`` has the same one: only ``data`` is new.
+
+    A symmetric CSC matrix's arrays are its CSR arrays too, so the triangle is a mask over its entries
+    (25,600-image reduced camera system, 13.7 M entries: scipy's ``triu`` through COO took ~0.3 s and two
+    index conversions)."""
+    A = A if sp.issparse(A) and A.format in ("csr", "csc") else sp.csr_matrix(A)
+    if not A.has_canonical_format:
+        A = A.copy()
+        A.sum_duplicates()
+    n = A.shape[0]
+    if pattern is not None and np.array_equal(pattern[0], A.indptr) and np.array_equal(pattern[1], A.indices):
+        return pattern[2], pattern[3], A.data[pattern[4]], pattern
+    rows = np.repeat(np.arange(n, dtype=A.indices.dtype), np.diff(A.indptr))  # the row of each entry (CSR view)
+    keep = np.flatnonzero(A.indices >= rows)
+    indptr = np.zeros(n + 1, dtype=np.int32)
+    np.cumsum(np.bincount(rows[keep], minlength=n), out=indptr[1:])
+    indices = A.indices[keep].astype(np.int32)
+    pattern = (A.indptr.copy(), A.indices.copy(), indptr, indices, keep)
+    return indptr, indices, np.ascontiguousarray(A.data[keep], dtype=np.float64), pattern
+
+
 class PardisoCholesky:
     """``L L^T`` of a sparse symmetric positive definite matrix ``A`` (n, n); :meth:`solve` gives ``A^-1 b``.
 
@@ -82,13 +107,9 @@ class PardisoCholesky:
         if fn is None:
             raise PardisoError("MKL PARDISO is not installed (the 'mkl' package)")
         self._fn = fn
-        U = sp.triu(sp.csr_matrix(A), format="csr")  # PARDISO reads the upper triangle of a symmetric matrix
-        U.sum_duplicates()
-        U.sort_indices()
-        self.n = U.shape[0]
-        self._indptr = U.indptr.astype(np.int32)
-        self._indices = U.indices.astype(np.int32)
-        self._data = np.ascontiguousarray(U.data, dtype=np.float64)
+        indptr, indices, data, self._pattern = _upper_triangle(A)
+        self.n = len(indptr) - 1
+        self._indptr, self._indices, self._data = indptr, indices, data
         self._pt = np.zeros(64, dtype=np.int64)  # PARDISO's internal handle, zeroed before the first call
         self._iparm = np.zeros(64, dtype=np.int32)
         self._iparm[0] = 1  # the values below, not PARDISO's defaults
@@ -98,6 +119,19 @@ class PardisoCholesky:
         self._iparm[17] = -1  # report the factor's entries
         self._iparm[34] = 1  # zero-based indices
         self._call(_ANALYSE_FACTOR, np.zeros((self.n, 1), order="F"))
+
+    def refactor(self, A) -> bool:
+        """Factorise ``A`` in place of the factor held, keeping the analysis (ordering and symbolic factor)
+        when ``A`` has the held matrix's pattern (the reduced camera systems of one block, step after step):
+        PARDISO's numerical phase alone. 25,600-image conte-city block (153,600 unknowns, 13.7 M entries):
+        analysis 0.9 s, numerical factorisation 1.9 s. Returns False, the held factor unchanged, when the
+        pattern differs."""
+        indptr, indices, data, pattern = _upper_triangle(A, self._pattern)
+        if pattern is not self._pattern:
+            return False
+        self._data = data
+        self._call(_FACTOR, np.zeros((self.n, 1), order="F"))
+        return True
 
     @property
     def factor_entries(self) -> int:
@@ -133,5 +167,5 @@ class PardisoCholesky:
         if getattr(self, "_pt", None) is not None and self._pt.any():  # PARDISO holds memory for this handle
             try:
                 self._call(_RELEASE, np.zeros((self.n, 1), order="F"))
-            except PardisoError:  # nothing to do about a failed release at teardown
-                pass
+            except (PardisoError, ImportError):  # nothing to do about a failed release at teardown (an
+                pass  # ImportError: the interpreter is shutting down and ctypes can no longer be imported)

@@ -184,11 +184,15 @@ class SubBlock:
         metric = float(dc @ rhs)
         self.step_parts = None  # the per-observation operator goes before the next residuals
         cand = self.problem.apply(self.state, dc, dp)
-        self.problem.hold_close_points(self.state, cand)
         self.candidate = cand
         # linearised at the candidate at once, as :func:`aerocal.adjust.solver.solve` does: an accepted step
-        # then needs no second projection; a rejected one re-linearises at the current state
+        # then needs no second projection; a rejected one re-linearises at the current state. Points brought
+        # too close to a camera are found from that projection's depths, put back and linearised again
         self.candidate_cost, _, _, _, _, _, self.candidate_Hpp = self.problem.residuals(cand, jac=True, sparse=False)
+        if self.problem.hold_close_points(self.state, cand, self.problem.last_depth):
+            self.candidate_Hpp = None
+            self.candidate_cost, _, _, _, _, _, self.candidate_Hpp = self.problem.residuals(cand, jac=True,
+                                                                                            sparse=False)
         return self.candidate_cost, metric
 
     def accept(self) -> float:
@@ -204,7 +208,8 @@ class SubBlock:
     def finish(self) -> tuple[sp.coo_matrix, np.ndarray]:
         """The undamped reduced system at the solution (for the covariances); frees the linearisation."""
         out = self.reduce(0.0)
-        self.step_parts, self.Hpp, self.problem.blocks = None, None, None
+        self.step_parts, self.Hpp = None, None
+        self.problem.release()
         return out
 
     def result(self) -> tuple[State, np.ndarray, np.ndarray, float]:
@@ -279,7 +284,7 @@ def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: 
         cfg, sum(_gather([p.linearise() for p in parts])), step,
         accept=lambda: sum(_gather([p.accept() for p in parts])), reject=lambda: _gather([p.reject() for p in parts]))
     S, _ = reduced_system(None)
-    cov = SparseInverse(S, ng)
+    cov = SparseInverse(S, ng, earlier=reduced.spend())
     del S
     results = _gather([p.result() for p in parts])
     parts.clear()  # the actors are released with their last reference

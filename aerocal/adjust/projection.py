@@ -221,7 +221,8 @@ def _project_observations(io, slopes, dtemp, R, C, X, image, point, jac, io_jac,
 
 def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarray, R: np.ndarray, C: np.ndarray,
                          X: np.ndarray, image: np.ndarray, point: np.ndarray, jacobians: bool = True,
-                         io_jacobians: bool = False) -> Projection:
+                         io_jacobians: bool = False, d_rot_out: np.ndarray | None = None,
+                         d_point_out: np.ndarray | None = None) -> Projection:
     """:func:`project` of the observations (``image``, ``point``) of a block: the same model and Jacobians
     (``d_io``, ``d_slope`` only with ``io_jacobians``, else empty), computed in one compiled loop that reads each
     observation's pose and point in place instead of gathering (M, 3, 3) rotations first.
@@ -229,11 +230,18 @@ def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarr
     ``dtemp_img`` (N,): each image's temperature minus the reference; ``R`` (N, 3, 3), ``C`` (N, 3), ``X``
     (P, 3). Measured on the 800-image conte-city block (382k observations): 0.19 s a call with Jacobians
     through :func:`project`'s batched numpy products (~40 % of an adjustment iteration); the agreement with
-    :func:`project` is checked in ``tests/test_adjust_core.py``."""
+    :func:`project` is checked in ``tests/test_adjust_core.py``.
+    ``d_rot_out`` (M, 2, k >= 3) and ``d_point_out`` (M, 2, 3), C-contiguous float64: arrays to write the
+    Jacobians into (``d_rot`` into the first 3 columns of the last axis) instead of new ones, e.g. the
+    adjustment's image blocks of the last iteration (:func:`aerocal.adjust.schur_kernels.jacobian_blocks`)"""
     M = len(image)
     uv, depth = np.empty((M, 2)), np.empty(M)
     shape = (M, 2, 3) if jacobians else (0, 2, 3)
-    d_point, d_rot = np.empty(shape), np.empty(shape)
+    d_point = d_point_out if jacobians and d_point_out is not None else np.empty(shape)
+    d_rot = d_rot_out if jacobians and d_rot_out is not None else np.empty(shape)
+    for name, a in (("d_rot_out", d_rot), ("d_point_out", d_point)):
+        if a.shape[:2] != shape[:2] or a.shape[2] < 3 or a.dtype != np.float64 or not a.flags.c_contiguous:
+            raise ValueError(f"{name}: a C-contiguous float64 array ({M}, 2, >= 3) is needed, not {a.shape}")
     io_jacobians = io_jacobians and jacobians
     d_io = np.empty((M, 2, len(PARAM_NAMES)) if io_jacobians else (0, 2, len(PARAM_NAMES)))
     d_slope = np.empty((M, 2, 3) if io_jacobians else (0, 2, 3))
@@ -248,4 +256,4 @@ def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarr
         d_point = d_rot = empty
     if not io_jacobians:
         d_io = d_slope = empty
-    return Projection(uv, d_point, d_rot, d_io, d_slope, depth)
+    return Projection(uv, d_point, d_rot[:, :, :3], d_io, d_slope, depth)

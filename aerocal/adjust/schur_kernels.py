@@ -224,35 +224,37 @@ def _reduce(p0, p1, order, pstart, visit, image, Ji, Jx, r, Hpp, damp, point_gra
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _jacobian_blocks(point, d_rot, d_point, scale, Ji, Jx, Hpp):  # pragma: no cover - compiled
+def _jacobian_blocks(point, scale, Ji, Jx, Hpp):  # pragma: no cover - compiled
     for m in range(len(point)):
         p, k = point[m], scale[m]
         for u in range(2):
             for v in range(3):
-                Ji[m, u, v] = d_rot[m, u, v] * k
-                Jx[m, u, v] = d_point[m, u, v] * k
+                Ji[m, u, v] *= k
+                Jx[m, u, v] *= k
                 Ji[m, u, v + 3] = -Jx[m, u, v]
         for u in range(3):
             for v in range(3):
                 Hpp[p, u, v] += Jx[m, 0, u] * Jx[m, 0, v] + Jx[m, 1, u] * Jx[m, 1, v]
 
 
-def jacobian_blocks(point: np.ndarray, d_rot: np.ndarray, d_point: np.ndarray, scale: np.ndarray,
-                    n_points: int, overwrite: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(Ji, Jx, Hpp)``: the observations' rows of the Jacobian scaled by ``scale`` (M,) (sqrt of the robust
-    weight over the a-priori sigma), ``Ji`` (M, 2, 6) in the image's (w, C) columns (``d(uv)/dC = -d_point``),
-    ``Jx`` (M, 2, 3) in the point's, and the points' 3 x 3 blocks of J^T J (P, 3, 3), in one pass. On 382k
-    observations in point order numpy's strided products and its batched (3 x 2) by (2 x 3) ones with a sparse
-    sum took ~0.1 s, this loop ~0.01 s. With ``overwrite``, ``Jx`` is written over ``d_point`` (when it is a
-    contiguous float64 array) instead of a new (M, 2, 3) array: 0.6 GB less per iteration at 25,600 images."""
-    M = len(point)
+def jacobian_blocks(point: np.ndarray, Ji: np.ndarray, Jx: np.ndarray, scale: np.ndarray,
+                    n_points: int) -> np.ndarray:
+    """The observations' rows of the Jacobian scaled by ``scale`` (M,) (sqrt of the robust weight over the
+    a-priori sigma), in place, and the points' 3 x 3 blocks of J^T J (P, 3, 3), returned, in one pass.
+
+    On entry ``Ji`` (M, 2, 6) holds d(uv)/dw in its first 3 columns and ``Jx`` (M, 2, 3) d(uv)/dX (both as
+    :func:`aerocal.adjust.projection.project_observations` writes them with ``d_rot_out=Ji``,
+    ``d_point_out=Jx``); on return ``Ji`` is the image's block in its (w, C) columns (``d(uv)/dC = -d(uv)/dX``)
+    and ``Jx`` the point's, both scaled. On 382k observations in point order numpy's strided products and its
+    batched (3 x 2) by (2 x 3) ones with a sparse sum took ~0.1 s, this loop ~0.01 s. Written in place of the
+    projection's own arrays: no (M, 2, 3) array more per iteration (0.6 GB at 25,600 images), and the same
+    arrays serve every iteration (:meth:`aerocal.adjust.solver.Problem.residuals`)."""
     f8 = np.float64
-    d_point = np.ascontiguousarray(d_point, dtype=f8)
-    Ji, Hpp = np.empty((M, 2, 6)), np.zeros((n_points, 3, 3))
-    Jx = d_point if overwrite and d_point.flags.writeable else np.empty((M, 2, 3))
-    _jacobian_blocks(np.ascontiguousarray(point, dtype=np.int64), np.ascontiguousarray(d_rot, dtype=f8),
-                     d_point, np.ascontiguousarray(scale, dtype=f8), Ji, Jx, Hpp)
-    return Ji, Jx, Hpp
+    if not (Ji.dtype == f8 and Jx.dtype == f8 and Ji.flags.c_contiguous and Jx.flags.c_contiguous):
+        raise ValueError("Ji and Jx must be C-contiguous float64 arrays")
+    Hpp = np.zeros((n_points, 3, 3))
+    _jacobian_blocks(np.ascontiguousarray(point, dtype=np.int64), np.ascontiguousarray(scale, dtype=f8), Ji, Jx, Hpp)
+    return Hpp
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

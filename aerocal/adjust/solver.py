@@ -199,6 +199,9 @@ class Problem:
         self._pair_layout: PairLayout | None = None  # formed on the first Jacobian (:meth:`by_point`)
         self._block_layout: PairLayout | None = None  # formed on first use (:meth:`block_order_layout`)
         self.depth_floor: float | None = None  # metres, set from the first state a step starts from
+        self.last_depth: np.ndarray | None = None  # see :meth:`residuals`
+        self._inv_sigma: np.ndarray | None = None  # 1 / the point view's sigma (:meth:`residuals`)
+        self._work: dict[str, np.ndarray] = {}  # arrays reused from one Jacobian to the next (:meth:`_buffer`)
         self.gnss_sigma = None if config.gnss_sigma_m is None else np.asarray(config.gnss_sigma_m, float)
         self.att_sigma = (
             None
@@ -211,6 +214,31 @@ class Problem:
                 f"there are "
                 f"{len(block.control_ids)} control GCPs; give GNSS sigmas or at least 3 control points"
             )
+
+    def in_block_order(self, a: np.ndarray | None) -> np.ndarray:
+        """Per-observation values in point order (:meth:`point_view`) put in the block's order; ``None``: the
+        weights of an adjustment without a robust loss (all 1)."""
+        view = self.point_view()
+        if a is None:
+            return np.ones(len(view.order))
+        out = np.empty_like(a)
+        out[view.order] = a
+        return out
+
+    def _buffer(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
+        """A float64 array of ``shape`` kept for the next call (its content is not kept): the per-observation
+        blocks of the Jacobian are formed again at every step of an adjustment, and new arrays of that size
+        cost page faults on every call (25,600 images: 1.8 GB of them a step)."""
+        a = self._work.get(name)
+        if a is None or a.shape != shape:
+            self._work.pop(name, None)
+            a = self._work[name] = np.empty(shape)
+        return a
+
+    def release(self) -> None:
+        """Free the last Jacobian and the arrays kept for the next one (after the last step)."""
+        self.blocks = None
+        self._work.clear()
 
     def point_view(self) -> ObsView:
         """The observations in point order (:class:`ObsView`), formed once for the block."""
@@ -246,10 +274,12 @@ class Problem:
     def residuals(self, st: State, jac: bool, sparse: bool = True) -> tuple:
         """``(cost, res_px, w)``, with ``jac`` also ``(r, Jc, Jp, Hpp)``: the scaled residual vector, the
         camera-side and point-side Jacobians (``scipy.sparse`` CSR) and the 3 x 3 point blocks of J^T J.
-        With ``sparse=False`` ``Jc`` and ``Jp`` are ``None``: :attr:`blocks` holds everything
+        With ``sparse=False`` ``r``, ``Jc`` and ``Jp`` are ``None``: :attr:`blocks` holds everything
         :func:`schur_complement` needs, without the sparse matrices' indices (~0.5 kB per observation), and
-        the image rows of ``r`` are in point order (:class:`ObsView`). ``res_px`` and ``w`` are in the block's
-        order."""
+        ``res_px`` and ``w`` are in point order (:class:`ObsView`; :meth:`in_block_order` puts them back):
+        an adjustment's steps need neither, and each (M,)-sized array a step does not form saves its page
+        faults (~1.2 s per GB on this VM, 0.1 GB per (M,) array at 25,600 images). Otherwise ``res_px`` and
+        ``w`` are in the block's order."""
         b, lay = self.b, self.layout
         if jac and sparse:
             view, pair_layout = None, None
@@ -261,13 +291,28 @@ class Problem:
             i, j, uv_obs, sigma, is_tie = b.obs_image, b.obs_point, b.obs_uv, b.obs_sigma, b.obs_is_tie
         else:
             i, j, uv_obs, sigma, is_tie = view.image, view.point, view.uv, view.sigma, view.is_tie
+        # the compiled loop over the observations, no (M, 3, 3) gathers; IO and slope Jacobians when they are free
         if jac:
             self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
-        # the compiled loop over the observations, no (M, 3, 3) gathers; IO and slope Jacobians when they are free
+            # the image and point blocks of the last Jacobian are written over (:func:`jacobian_blocks`)
+            Ji_buf, Jx_buf = self._buffer("Ji", (len(i), 2, 6)), self._buffer("Jx", (len(i), 2, 3))
+        else:
+            Ji_buf = Jx_buf = None
         pr = project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=jac,
-                                  io_jacobians=lay.n_global > 0)
-        res_px = pr.uv - uv_obs
-        r_obs = res_px / sigma[:, None]
+                                  io_jacobians=lay.n_global > 0, d_rot_out=Ji_buf, d_point_out=Jx_buf)
+        # depths (metres) of this state's observations in point order, for :meth:`hold_close_points`
+        self.last_depth = None if view is None else pr.depth
+        res_px = pr.uv
+        res_px -= uv_obs
+        d_io, d_slope = pr.d_io, pr.d_slope
+        del pr
+        if view is not None:  # 1 / sigma of the point-ordered observations, formed once for the block
+            if self._inv_sigma is None:
+                self._inv_sigma = 1.0 / sigma
+            inv_sigma = self._inv_sigma
+        else:
+            inv_sigma = 1.0 / sigma
+        r_obs = res_px * inv_sigma[:, None]
         s = np.einsum("ij,ij->i", r_obs, r_obs)
         robust = self.cfg.robust_loss != "none"
         if robust:
@@ -277,11 +322,14 @@ class Problem:
             w = np.ones_like(s)
             w[is_tie] = w_t
         else:
-            rho, w = s, np.ones_like(s)
+            rho, w = s, None  # every weight 1: formed only where it is returned
         res_out, w_out = res_px, w
-        if view is not None:  # back to the block's order
-            res_out, w_out = np.empty_like(res_px), np.empty_like(w)
-            res_out[view.order], w_out[view.order] = res_px, w
+        if jac and not sparse:
+            pass  # in point order, and w None without a robust loss (see the docstring)
+        elif view is not None:  # back to the block's order
+            res_out, w_out = self.in_block_order(res_px), self.in_block_order(w)
+        elif w_out is None:
+            w_out = np.ones(len(i))
         parts = [r_obs.ravel()]
         cost_parts = [float(np.sum(rho))]
         pw = self.prior_weight[:, None]
@@ -306,10 +354,12 @@ class Problem:
         # (M,)-sized temporaries are formed only where they differ from what is at hand: at 6 M observations
         # each fresh (M, 2) array cost ~0.1-0.3 s a call in page faults on this VM
         M = len(i)
-        sw = np.sqrt(w) / sigma if robust else 1.0 / sigma
-        Jg = np.concatenate([pr.d_io[:, :, lay.io_free], pr.d_slope[:, :, lay.slope_free]], axis=2) * sw[:, None, None]
+        sw = np.sqrt(w) * inv_sigma if robust else inv_sigma
+        Jg = np.concatenate([d_io[:, :, lay.io_free], d_slope[:, :, lay.slope_free]], axis=2) * sw[:, None, None]
+        del d_io, d_slope
         # the pose and point blocks and the points' blocks of J^T J (each row touches one point), one pass
-        Ji, Jx, Hpp = jacobian_blocks(j, pr.d_rot, pr.d_point, sw, lay.n_points, overwrite=True)  # pr is ours
+        Ji, Jx = Ji_buf, Jx_buf
+        Hpp = jacobian_blocks(j, Ji, Jx, sw, lay.n_points)
         ng = lay.n_global
         if robust:
             r_obs *= np.sqrt(w)[:, None]  # the cost is summed above; from here on the rows are IRLS-scaled
@@ -330,9 +380,9 @@ class Problem:
                                 layout=self.block_order_layout() if view is None else pair_layout)
         if G:
             Hpp[b.n_tie :] += np.einsum("gi,ij->gij", 1.0 / b.control_sigma**2, np.eye(3))
-        r_all = [rw.ravel()] + parts[1:]
         if not sparse:
-            return cost, res_out, w_out, np.concatenate(r_all), None, None, Hpp
+            return cost, res_out, w_out, None, None, None, Hpp
+        r_all = [rw.ravel()] + parts[1:]
         rr, cc, vv = [], [], []
         rows_obs = np.arange(2 * M).reshape(M, 2)
         if ng:
@@ -374,24 +424,31 @@ class Problem:
         return cost, res_out, w_out, np.concatenate(r_all), Jc, Jp, Hpp
 
     # ------------------------------------------------------------------ updates
-    def hold_close_points(self, old: State, new: State) -> int:
+    def hold_close_points(self, old: State, new: State, depth: np.ndarray | None = None) -> int:
         """Put back (in ``new``) the tie points a step brought closer to a camera that sees them than
         :data:`MIN_DEPTH_FRACTION` of the median depth of ``old``'s first call; returns how many.
+        ``depth``: ``new``'s depths of every observation in point order (:attr:`last_depth` of its residuals),
+        when they are at hand; else they are projected here.
 
         Their Jacobian grows as 1 / depth^2: one such point makes the reduced normal matrix overflow."""
         view = self.point_view()
-        i, j = view.image[view.is_tie], view.point[view.is_tie]
 
-        def depths(st: State) -> np.ndarray:
-            return project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=False).depth
+        def depths(st: State) -> np.ndarray:  # of every observation, in point order
+            return project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, view.image, view.point,
+                                        jacobians=False).depth
 
         if self.depth_floor is None:
-            z = depths(old)
-            self.depth_floor = MIN_DEPTH_FRACTION * float(np.median(z[z > 0])) if (z > 0).any() else 0.0
-        z = depths(new)
-        close = np.unique(j[~(z > self.depth_floor)])
+            self.set_depth_floor(depths(old)[view.is_tie])
+        z = depths(new) if depth is None else depth
+        close = np.unique(view.point[np.flatnonzero(~(z > self.depth_floor) & view.is_tie)])
         new.X[close] = old.X[close]
         return len(close)
+
+    def set_depth_floor(self, tie_depth: np.ndarray) -> None:
+        """The depth (metres) below which a step's tie point is held (:meth:`hold_close_points`), from the tie
+        observations' depths at the start."""
+        z = tie_depth[tie_depth > 0]
+        self.depth_floor = MIN_DEPTH_FRACTION * float(np.median(z)) if len(z) else 0.0
 
     def apply(self, st: State, dc: np.ndarray, dp: np.ndarray) -> State:
         lay = self.layout
@@ -484,6 +541,7 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     data = red.data
     data[b.layout.diagonal] += Hii
     S_ii = sp.bsr_matrix((data, b.layout.indices, b.layout.indptr), shape=(6 * N, 6 * N)).tocsr()
+    S_ii.sort_indices()
     del data, red
     if ng:
         # global columns (IO, thermal slopes): few, so their blocks are dense
@@ -503,7 +561,9 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
         Hcp_g = Hcp_p.transpose(1, 0, 2)  # (ng, P, 3) for the operator below
     else:
         Hcp_g = np.zeros((0, P, 3))
-        S = S_ii.tocsc()
+        # the system is symmetric (each image pair's block is written with its transpose, the image's own
+        # block is symmetric), so its CSR arrays are its CSC arrays: no conversion (0.14 s a step at 25,600)
+        S = sp.csc_matrix((S_ii.data, S_ii.indices, S_ii.indptr), shape=S_ii.shape)
 
     def hcp_t(dc: np.ndarray) -> np.ndarray:
         """``Hcp^T dc`` (3P,): per point, the sum over its observations of ``W_m^T dc_image``."""
@@ -577,7 +637,18 @@ def camera_ordering(S, n_global: int) -> np.ndarray:
     return np.concatenate([(n_global + 6 * perm[:, None] + np.arange(6)).ravel(), np.arange(n_global)])
 
 
-def factorise(S, n_global: int | None = None) -> tuple:
+def jacobi_scaled(S, d: np.ndarray):
+    """``D^-1 S D^-1`` for ``D = diag(d)``, in ``S``'s sparse format (CSR or CSC), by scaling its entries (the
+    two sparse products it replaces took 1.2 s on the 25,600-image reduced camera system, 13.7 M entries)."""
+    inv = 1.0 / d
+    major = np.repeat(inv, np.diff(S.indptr))  # the row (CSR) or column (CSC) of each entry, scaled
+    out = S.copy()
+    out.data *= major
+    out.data *= inv[S.indices]
+    return out
+
+
+def factorise(S, n_global: int | None = None, earlier=None) -> tuple:
     """Sparse factor of the Jacobi-scaled reduced camera system: ``(f, d)`` with ``S = D (F) D``,
     ``D = diag(d)`` and ``f.solve`` applying ``F^-1``; ``f`` is ``None`` when ``S`` is exactly singular.
 
@@ -592,8 +663,12 @@ def factorise(S, n_global: int | None = None) -> tuple:
     by minimum degree, 12,800 images 6.1 s (51.9 M) against 14.0 s (60.4 M); minimum degree itself against
     scipy's default COLAMD, whole adjustments: 800 images 16.8 s against 14.6 s, 2745 images 57.0 s against
     68.5 s; the dense matrix and LAPACK solve it replaces took 17.9 s / 2.0 GB at 800 images.
+
+    ``earlier``: a factor an earlier call returned for a system of the same pattern (the steps of one
+    adjustment); PARDISO's analysis of it is kept and only the numbers are factorised again (the factor
+    given is then spent: it becomes the one returned).
     """
-    S = sp.csc_matrix(S)
+    S = S if sp.issparse(S) and S.format == "csc" else sp.csc_matrix(S)
     diag = S.diagonal()
     if not (np.isfinite(S.data).all()):
         bad = np.flatnonzero(~np.isfinite(diag))
@@ -602,10 +677,11 @@ def factorise(S, n_global: int | None = None) -> tuple:
             "a projection overflowed; the start poses or a tie point are far from any consistent geometry"
         )
     d = np.sqrt(np.maximum(diag, 1e-300))
-    Dinv = sp.diags(1.0 / d)
-    Ss = (Dinv @ S @ Dinv).tocsc()
+    Ss = jacobi_scaled(S, d)
     if cholesky.available() and np.all(diag > 0):
         try:
+            if isinstance(earlier, cholesky.PardisoCholesky) and earlier.refactor(Ss):
+                return earlier, d
             return cholesky.PardisoCholesky(Ss), d
         except cholesky.NotPositiveDefinite:
             pass  # SuperLU tells a singular system from an indefinite one
@@ -655,8 +731,14 @@ class ReducedSolver:
         self.cg_iterations: list[int] = []
 
     def _factor(self, S) -> None:
-        self._lu, self._d = factorise(S, self.n_global)
+        self._lu, self._d = factorise(S, self.n_global, earlier=self._lu)
         self.factorisations += 1
+
+    def spend(self):
+        """The factor held, handed over (to :class:`SparseInverse`, which factorises the last system with
+        its analysis) and no longer this solver's."""
+        lu, self._lu = self._lu, None
+        return lu
 
     def _direct(self, S, rhs: np.ndarray) -> np.ndarray:
         d = self._d
@@ -671,7 +753,7 @@ class ReducedSolver:
     def _conjugate_gradients(self, S, rhs: np.ndarray) -> np.ndarray | None:
         """Conjugate gradients on ``S`` preconditioned by the kept factor, every column of ``rhs`` (n, k) at
         once; ``None`` when they do not converge in :data:`REUSE_MAX_ITERATIONS`."""
-        S = sp.csr_matrix(S)
+        # (a symmetric CSC matrix multiplies as fast as its CSR twin: no conversion)
         X = self._direct(S, rhs)
         R = rhs - S @ X
         Z = self._direct(S, R)
@@ -760,12 +842,14 @@ class SparseInverse:
     the whole inverse when it is really wanted.
     """
 
-    def __init__(self, S, n_global: int | None = None) -> None:
+    def __init__(self, S, n_global: int | None = None, earlier=None) -> None:
+        """``earlier``: a factor of a system of ``S``'s pattern (:meth:`ReducedSolver.spend`), whose analysis
+        serves (:func:`factorise`)."""
         # factorised, not solved by conjugate gradients on a step's factor (:class:`ReducedSolver`): each of
         # their iterations would solve for every column asked (3200 images, 51 check points, 153 columns: the
         # whole adjustment took 40.4 s that way against 23.0 s factorising, measured beside another job)
         self.n = S.shape[0]
-        self._lu, self.d = factorise(S, n_global)
+        self._lu, self.d = factorise(S, n_global, earlier=earlier)
         self._dense = None
         if self._lu is None:  # exactly singular: fall back to the pseudo-inverse
             self._dense = inverse_spd(sp.csc_matrix(S).toarray())
@@ -869,6 +953,8 @@ def solve(problem: Problem, start: State) -> Solution:
     # the linearisation at the current state: (cost, res_px, w, r, Jc, Jp, Hpp); problem.blocks holds its blocks
     st, cand = start, None
     lin = problem.residuals(st, jac=True, sparse=False)
+    if problem.depth_floor is None:
+        problem.set_depth_floor(problem.last_depth[problem.point_view().is_tie])
     cand_lin = None
     reduced = ReducedSolver(n_global=problem.layout.n_global)
 
@@ -883,10 +969,15 @@ def solve(problem: Problem, start: State) -> Solution:
         # needed past the step: freed before the next residuals are evaluated next to them
         del S, Hpp_inv, Hcp, gp
         cand = problem.apply(st, dc, dp)
-        problem.hold_close_points(st, cand)
         # linearised at the candidate at once: most steps are accepted, and an accepted step then needs no
-        # second projection of every observation (a rejected one re-linearises at the current state)
+        # second projection of every observation (a rejected one re-linearises at the current state). The
+        # points the step brought too close to a camera are found from the same projection's depths and,
+        # when there are any (rarely), put back and the candidate linearised again (one projection without
+        # Jacobians a step less: 25,600 images, 0.4-1.0 s each)
         cand_lin = problem.residuals(cand, jac=True, sparse=False)
+        if problem.hold_close_points(st, cand, problem.last_depth):
+            cand_lin = None
+            cand_lin = problem.residuals(cand, jac=True, sparse=False)
         return cand_lin[0], step_metric
 
     def accept() -> float:
@@ -902,7 +993,9 @@ def solve(problem: Problem, start: State) -> Solution:
     _, it, converged, history = levenberg_marquardt(problem.cfg, lin[0], step, accept, reject)
     cost, res_px, w, r, Jc, Jp, Hpp = lin
     S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0, problem.blocks)
-    cov = SparseInverse(S, problem.layout.n_global)
+    problem.release()
+    res_px, w = problem.in_block_order(res_px), problem.in_block_order(w)
+    cov = SparseInverse(S, problem.layout.n_global, earlier=reduced.spend())
     dof = redundancy(problem)
     sigma0 = float(np.sqrt(2.0 * cost / dof))
     return Solution(
