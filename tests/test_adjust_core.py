@@ -467,3 +467,25 @@ def test_a_point_a_step_brings_next_to_a_camera_is_put_back_from_the_candidates_
     assert np.array_equal(a.X, b.X) and np.array_equal(a.X[p], st.X[p]), f"seed {seed}"
     others = np.arange(len(st.X)) != p
     assert np.array_equal(a.X[others], step.X[others]), f"seed {seed}"
+
+
+def test_blocks_formed_in_the_projection_equal_the_separate_pass():
+    """Without a robust loss the rows' scale is known before the residuals, so the projection forms the scaled
+    image and point blocks and the points' J^T J itself; with one (weights all 1 here: a huge Huber threshold)
+    a separate pass scales them once the residuals give the weights. Both give the same blocks."""
+    from aerocal.adjust.bundle import initial_state
+    from aerocal.adjust.problem import build_block
+    from aerocal.adjust.solver import Problem
+
+    seed = 33
+    sim = simulate_flight("conte-calibration", seed=seed, max_images=12)
+    got = {}
+    for loss in ("none", "huber"):
+        cfg = AdjustConfig(gnss_sigma_m=(0.1, 0.1, 0.15), robust_loss=loss, robust_scale=1e9)
+        blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)
+        blk, st = initial_state(blk, sim.camera_nominal)
+        prob = Problem(blk, cfg, 0.0)
+        Hpp = prob.residuals(st, jac=True, sparse=False)[6]
+        got[loss] = (prob.blocks.Ji.copy(), prob.blocks.Jx.copy(), Hpp)
+    for a, b, name in zip(got["none"], got["huber"], ("Ji", "Jx", "Hpp"), strict=True):
+        assert np.allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max()), f"seed {seed}: {name}"

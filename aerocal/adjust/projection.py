@@ -155,8 +155,12 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _project_observations(io, slopes, dtemp, R, C, X, image, point, jac, io_jac, uv, d_point, d_rot, d_io, d_slope,
-                          depth):  # pragma: no cover
-    """:func:`project` of observation ``m`` through image ``image[m]`` and point ``point[m]``, one loop."""
+                          depth, scale, Hpp):  # pragma: no cover
+    """:func:`project` of observation ``m`` through image ``image[m]`` and point ``point[m]``, one loop. With
+    ``scale`` (M,) (not empty), the pose and point Jacobians are scaled by it as they are formed, ``d_rot``
+    (M, 2, 6) gets -d_point in its last 3 columns (the image's (w, C) block) and ``Hpp`` the points' 3 x 3
+    blocks of J^T J, as :func:`aerocal.adjust.schur_kernels.jacobian_blocks` does in a pass of its own."""
+    fused = len(scale) > 0
     f0, cx0, cy0, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
     A = np.empty((2, 3))
     for m in range(len(image)):
@@ -197,6 +201,16 @@ def _project_observations(io, slopes, dtemp, R, C, X, image, point, jac, io_jac,
             d_rot[m, u, 0] = -A[u, 1] * z + A[u, 2] * q1
             d_rot[m, u, 1] = A[u, 0] * z - A[u, 2] * q0
             d_rot[m, u, 2] = -A[u, 0] * q1 + A[u, 1] * q0
+        if fused:
+            w = scale[m]
+            for u in range(2):
+                for k in range(3):
+                    d_rot[m, u, k] *= w
+                    d_point[m, u, k] *= w
+                    d_rot[m, u, k + 3] = -d_point[m, u, k]
+            for u in range(3):
+                for k in range(3):
+                    Hpp[j, u, k] += d_point[m, 0, u] * d_point[m, 0, k] + d_point[m, 1, u] * d_point[m, 1, k]
         if not io_jac:
             continue
         # d(uv)/d(IO) in PARAM_NAMES order and d(uv)/d(slopes of f, cx, cy), as :func:`project`
@@ -222,7 +236,8 @@ def _project_observations(io, slopes, dtemp, R, C, X, image, point, jac, io_jac,
 def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarray, R: np.ndarray, C: np.ndarray,
                          X: np.ndarray, image: np.ndarray, point: np.ndarray, jacobians: bool = True,
                          io_jacobians: bool = False, d_rot_out: np.ndarray | None = None,
-                         d_point_out: np.ndarray | None = None) -> Projection:
+                         d_point_out: np.ndarray | None = None, scale: np.ndarray | None = None,
+                         Hpp: np.ndarray | None = None) -> Projection:
     """:func:`project` of the observations (``image``, ``point``) of a block: the same model and Jacobians
     (``d_io``, ``d_slope`` only with ``io_jacobians``, else empty), computed in one compiled loop that reads each
     observation's pose and point in place instead of gathering (M, 3, 3) rotations first.
@@ -233,7 +248,11 @@ def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarr
     :func:`project` is checked in ``tests/test_adjust_core.py``.
     ``d_rot_out`` (M, 2, k >= 3) and ``d_point_out`` (M, 2, 3), C-contiguous float64: arrays to write the
     Jacobians into (``d_rot`` into the first 3 columns of the last axis) instead of new ones, e.g. the
-    adjustment's image blocks of the last iteration (:func:`aerocal.adjust.schur_kernels.jacobian_blocks`)"""
+    adjustment's image blocks of the last iteration (:func:`aerocal.adjust.schur_kernels.jacobian_blocks`).
+    ``scale`` (M,) and ``Hpp`` (P, 3, 3, zeroed by the caller), with ``d_rot_out`` (M, 2, 6): the loop also
+    does :func:`aerocal.adjust.schur_kernels.jacobian_blocks`' work (the returned ``d_rot`` and ``d_point``
+    are then the scaled blocks, ``d_rot_out`` the whole image block, ``Hpp`` summed): one pass over the
+    observations less (25,600 images: 0.47 s a step)"""
     M = len(image)
     uv, depth = np.empty((M, 2)), np.empty(M)
     shape = (M, 2, 3) if jacobians else (0, 2, 3)
@@ -246,11 +265,16 @@ def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarr
     d_io = np.empty((M, 2, len(PARAM_NAMES)) if io_jacobians else (0, 2, len(PARAM_NAMES)))
     d_slope = np.empty((M, 2, 3) if io_jacobians else (0, 2, 3))
     f8 = np.float64
+    fused = jacobians and scale is not None
+    if fused and (Hpp is None or d_rot.shape[2] != 6):
+        raise ValueError("scale needs Hpp and a d_rot_out of shape (M, 2, 6)")
+    scale = np.ascontiguousarray(scale, dtype=f8) if fused else np.zeros(0)
+    Hpp = Hpp if fused else np.zeros((0, 3, 3))
     _project_observations(np.ascontiguousarray(io, dtype=f8), np.ascontiguousarray(slopes, dtype=f8),
                           np.ascontiguousarray(dtemp_img, dtype=f8), np.ascontiguousarray(R, dtype=f8),
                           np.ascontiguousarray(C, dtype=f8), np.ascontiguousarray(X, dtype=f8),
                           np.ascontiguousarray(image, dtype=np.int64), np.ascontiguousarray(point, dtype=np.int64),
-                          jacobians, io_jacobians, uv, d_point, d_rot, d_io, d_slope, depth)
+                          jacobians, io_jacobians, uv, d_point, d_rot, d_io, d_slope, depth, scale, Hpp)
     empty = np.zeros((M, 2, 0))
     if not jacobians:
         d_point = d_rot = empty

@@ -292,29 +292,33 @@ class Problem:
         else:
             i, j, uv_obs, sigma, is_tie = view.image, view.point, view.uv, view.sigma, view.is_tie
         # the compiled loop over the observations, no (M, 3, 3) gathers; IO and slope Jacobians when they are free
-        if jac:
-            self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
-            # the image and point blocks of the last Jacobian are written over (:func:`jacobian_blocks`)
-            Ji_buf, Jx_buf = self._buffer("Ji", (len(i), 2, 6)), self._buffer("Jx", (len(i), 2, 3))
-        else:
-            Ji_buf = Jx_buf = None
-        pr = project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=jac,
-                                  io_jacobians=lay.n_global > 0, d_rot_out=Ji_buf, d_point_out=Jx_buf)
-        # depths (metres) of this state's observations in point order, for :meth:`hold_close_points`
-        self.last_depth = None if view is None else pr.depth
-        res_px = pr.uv
-        res_px -= uv_obs
-        d_io, d_slope = pr.d_io, pr.d_slope
-        del pr
         if view is not None:  # 1 / sigma of the point-ordered observations, formed once for the block
             if self._inv_sigma is None:
                 self._inv_sigma = 1.0 / sigma
             inv_sigma = self._inv_sigma
         else:
             inv_sigma = 1.0 / sigma
+        robust = self.cfg.robust_loss != "none"
+        Hpp = None
+        if jac:
+            self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
+            # the image and point blocks of the last Jacobian are written over (:func:`jacobian_blocks`)
+            Ji_buf, Jx_buf = self._buffer("Ji", (len(i), 2, 6)), self._buffer("Jx", (len(i), 2, 3))
+            if not robust:  # the rows' scale is known before the residuals: blocks formed in the projection
+                Hpp = np.zeros((lay.n_points, 3, 3))
+        else:
+            Ji_buf = Jx_buf = None
+        pr = project_observations(st.io, st.slopes, self.dtemp_img, st.R, st.C, st.X, i, j, jacobians=jac,
+                                  io_jacobians=lay.n_global > 0, d_rot_out=Ji_buf, d_point_out=Jx_buf,
+                                  scale=None if Hpp is None else inv_sigma, Hpp=Hpp)
+        # depths (metres) of this state's observations in point order, for :meth:`hold_close_points`
+        self.last_depth = None if view is None else pr.depth
+        res_px = pr.uv
+        res_px -= uv_obs
+        d_io, d_slope = pr.d_io, pr.d_slope
+        del pr
         r_obs = res_px * inv_sigma[:, None]
         s = np.einsum("ij,ij->i", r_obs, r_obs)
-        robust = self.cfg.robust_loss != "none"
         if robust:
             rho_t, w_t = _robust(s[is_tie], self.cfg.robust_loss, self.cfg.robust_scale)
             rho = s.copy()
@@ -359,7 +363,8 @@ class Problem:
         del d_io, d_slope
         # the pose and point blocks and the points' blocks of J^T J (each row touches one point), one pass
         Ji, Jx = Ji_buf, Jx_buf
-        Hpp = jacobian_blocks(j, Ji, Jx, sw, lay.n_points)
+        if Hpp is None:  # robust weights: the rows scaled now that the residuals give them
+            Hpp = jacobian_blocks(j, Ji, Jx, sw, lay.n_points)
         ng = lay.n_global
         if robust:
             r_obs *= np.sqrt(w)[:, None]  # the cost is summed above; from here on the rows are IRLS-scaled
