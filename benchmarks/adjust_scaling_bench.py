@@ -7,8 +7,8 @@ production case) and, up to ``--self-cal-max`` images, self-calibrating (f, cx, 
 so that each peak memory is the adjustment's own.
 
 Run: ``python -m benchmarks.adjust_scaling_bench [--sizes 800,3200,12800,25600] [--repeat 3] [--work DIR]``. This is
-the single adjustment in one process (~0.8 kB per observation: 25,600 images, 12.4 M observations, took
-10.2 GB); simulating the 25,600-image block once takes ~10 min and peaks at 16.6 GB. The partitioned
+the single adjustment in one process (~0.6 kB per observation: 25,600 images, 12.4 M observations, took
+7.2 GB with the tables); simulating the 25,600-image block once takes ~10 min and peaks at 16.6 GB. The partitioned
 adjustment (``benchmarks/partition_bench.py``) spreads the observations over the Dask workers.
 """
 
