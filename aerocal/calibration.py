@@ -236,7 +236,7 @@ def self_calibrate(
         # then 16 from a better start with f 0.06 px away); a certificate needs the optimum, so adjust the
         # selected model again with a longer budget, and let the review reject it if that fails too
         longer = dataclasses.replace(cfg, free=result.config.free, thermal=result.config.thermal, adaptive=False,
-                                     max_iterations=3 * cfg.max_iterations)
+                                     max_iterations=3 * cfg.max_iterations, marginal_over=_dropped_io(result))
         again = adjust(sub_images, sub_obs, camera, longer, gcps, sub_gobs)
         notes.append(f"the self-calibration stopped after {result.iterations} iterations without converging; "
                      f"adjusted again with up to {longer.max_iterations}: "
@@ -277,7 +277,7 @@ def self_calibrate(
     held_out: dict[str, HeldOutComparison] = {}
     if result.thermal_slopes:
         final = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal,
-                                    adaptive=False)
+                                    adaptive=False, marginal_over=_dropped_io(result))
         simple = dataclasses.replace(final, thermal=())
         cmp = compare_models(sub_images, sub_obs, camera, simple, final, gcps, sub_gobs, config.held_out)
         for name in result.thermal_slopes:
@@ -311,6 +311,8 @@ def self_calibrate(
                 selection = result.selection
                 result = fit(simple)
                 result.dropped, result.selection = dropped, selection + [notes[-1]]
+    if result.marginal_note:  # the sigmas are marginal over the dropped IO parameters: say over which
+        notes.append(result.marginal_note)
     review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
     if input_errors:
         review = review.merged(problems=[
@@ -319,6 +321,12 @@ def self_calibrate(
     held_sigmas = {n: nominal_sigma(n, camera, config.decision) for n in held if n in ("f", "cx", "cy")}
     return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi,
                        held_sigmas)
+
+
+def _dropped_io(result: AdjustmentResult) -> tuple[str, ...]:
+    """The IO parameters an adaptive selection dropped: a re-adjustment of the selected model keeps its sigmas
+    marginal over them (``AdjustConfig.marginal_over``)."""
+    return tuple(n for n in result.dropped if n in PARAM_NAMES)
 
 
 def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, run_cfg: AdjustConfig,

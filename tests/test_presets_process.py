@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from aerocal.camera import PARAM_NAMES
 from aerocal.certificate import Certificate
 from aerocal.effects import CATALOGUE, plausible_size
 
@@ -66,6 +67,15 @@ def test_preset_runs_through_process_and_diagnose(preset, max_images, effect, tm
         assert abs(cert.camera.f - truth["camera_true"]["f"]) < 4 * cert.sigmas["f"], f"{preset} seed {seed}"
     else:
         assert "not determined" in cert.significance["f"].dropped, cert.significance
+
+    # IO parameters the selection dropped (not held at nominal for want of determination): the certificate's
+    # sigmas are marginal over them, and its review says so
+    held = {n for n, sig in cert.significance.items() if sig.prior_sigma is not None}
+    dropped = [n for n, sig in cert.significance.items()
+               if sig.dropped and n in PARAM_NAMES and n not in held and n not in cert.estimated]
+    if dropped:
+        note = [n for n in cert.review.notes if n.startswith("sigmas marginal over")]
+        assert note and all(d in note[0] for d in dropped), f"{preset} seed {seed}: {cert.review.notes}"
 
     diagnosed = _cli("diagnose", str(out), "--json")
     assert diagnosed.exit_code == 0, diagnosed.output

@@ -78,7 +78,12 @@ class AdjustConfig:
     * ``adaptive``: drop insignificant or near-singular parameters and re-adjust (default False);
       ``corr_limit`` (0.95) and ``t_limit`` (1.96, 95 % two-sided) are the thresholds, a correlated pair
       whose members are both significant is kept unless its |correlation| exceeds ``singular_corr``
-      (0.999), and ``always_keep`` (f, cx, cy) are the parameters never dropped for insignificance.
+      (0.999), and ``always_keep`` (f, cx, cy) are the parameters never dropped for insignificance. The
+      sigmas, covariance and correlation of the result are then marginal over the IO parameters dropped
+      (:func:`aerocal.adjust.bundle.marginal_covariance`); ``AdjustmentResult.conditional_sigmas`` keeps the
+      ones given the dropped parameters' values, and the selection's t values are those of its last model.
+    * ``marginal_over``: IO parameters held at their value (not in ``free``) that the sigmas are made
+      marginal over all the same, as for dropped ones (default none): the re-adjustment of a selected model.
     """
 
     free: tuple[str, ...] = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
@@ -102,11 +107,14 @@ class AdjustConfig:
     singular_corr: float = 0.999
     t_limit: float = 1.96
     always_keep: tuple[str, ...] = ("f", "cx", "cy")
+    marginal_over: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
-        bad = [n for n in self.free if n not in PARAM_NAMES]
-        if bad:
-            raise AdjustmentError(f"AdjustConfig.free has unknown parameter(s) {bad}; valid: {PARAM_NAMES}")
+        for field_name in ("free", "marginal_over"):
+            bad = [n for n in getattr(self, field_name) if n not in PARAM_NAMES]
+            if bad:
+                raise AdjustmentError(
+                    f"AdjustConfig.{field_name} has unknown parameter(s) {bad}; valid: {PARAM_NAMES}")
         bad = [n for n in self.thermal if n not in THERMAL_PARAMS]
         if bad:
             raise AdjustmentError(
