@@ -236,7 +236,8 @@ def self_calibrate(
         # then 16 from a better start with f 0.06 px away); a certificate needs the optimum, so adjust the
         # selected model again with a longer budget, and let the review reject it if that fails too
         longer = dataclasses.replace(cfg, free=result.config.free, thermal=result.config.thermal, adaptive=False,
-                                     max_iterations=3 * cfg.max_iterations, marginal_over=_dropped_io(result))
+                                     max_iterations=3 * cfg.max_iterations,
+                                     marginal_over=_dropped_io(result, cfg))
         again = adjust(sub_images, sub_obs, camera, longer, gcps, sub_gobs)
         notes.append(f"the self-calibration stopped after {result.iterations} iterations without converging; "
                      f"adjusted again with up to {longer.max_iterations}: "
@@ -277,7 +278,7 @@ def self_calibrate(
     held_out: dict[str, HeldOutComparison] = {}
     if result.thermal_slopes:
         final = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal,
-                                    adaptive=False, marginal_over=_dropped_io(result))
+                                    adaptive=False, marginal_over=_dropped_io(result, run_cfg))
         simple = dataclasses.replace(final, thermal=())
         cmp = compare_models(sub_images, sub_obs, camera, simple, final, gcps, sub_gobs, config.held_out)
         for name in result.thermal_slopes:
@@ -323,10 +324,12 @@ def self_calibrate(
                        held_sigmas)
 
 
-def _dropped_io(result: AdjustmentResult) -> tuple[str, ...]:
-    """The IO parameters an adaptive selection dropped: a re-adjustment of the selected model keeps its sigmas
-    marginal over them (``AdjustConfig.marginal_over``)."""
-    return tuple(n for n in result.dropped if n in PARAM_NAMES)
+def _dropped_io(result: AdjustmentResult, config: AdjustConfig) -> tuple[str, ...]:
+    """The IO parameters an adaptive selection dropped (``result.dropped``) or ``config`` already keeps the
+    sigmas marginal over (a re-adjustment of a re-adjustment: seneca's selected model, its slope dropped, then
+    refitted with a longer budget): the re-adjustment keeps its sigmas marginal over them
+    (``AdjustConfig.marginal_over``)."""
+    return tuple(dict.fromkeys([*config.marginal_over, *(n for n in result.dropped if n in PARAM_NAMES)]))
 
 
 def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, run_cfg: AdjustConfig,

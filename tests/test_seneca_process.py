@@ -69,6 +69,12 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
             assert getattr(cert.camera, name) == getattr(info["camera"], name)
             assert "not determined" in cert.significance[name].dropped, text
     assert cert.status == "accepted", text
+    # Brown terms the selection dropped: the kept parameters' sigmas are marginal over them, and it is said
+    dropped = [n for n, sig in cert.significance.items() if sig.dropped and sig.dropped.startswith(("|corr", "t = "))
+               and n in ("k1", "k2", "k3", "p1", "p2")]
+    if dropped:
+        note = [n for n in cert.review.notes if n.startswith(("sigmas marginal over", "sigmas given"))]
+        assert note and all(d in note[0] for d in dropped), text
 
     # nothing named beyond what the block determines or what is physically possible
     diagnosis = json.loads((out / "diagnosis.json").read_text())

@@ -18,6 +18,7 @@ import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from aerocal.adjust.schur_kernels import scale_observation_blocks
 from aerocal.camera import PARAM_NAMES
 
 #: Index of each IO parameter in the parameter vector (order of :data:`aerocal.camera.PARAM_NAMES`).
@@ -202,15 +203,7 @@ def _project_observations(io, slopes, dtemp, R, C, X, image, point, jac, io_jac,
             d_rot[m, u, 1] = A[u, 0] * z - A[u, 2] * q0
             d_rot[m, u, 2] = -A[u, 0] * q1 + A[u, 1] * q0
         if fused:
-            w = scale[m]
-            for u in range(2):
-                for k in range(3):
-                    d_rot[m, u, k] *= w
-                    d_point[m, u, k] *= w
-                    d_rot[m, u, k + 3] = -d_point[m, u, k]
-            for u in range(3):
-                for k in range(3):
-                    Hpp[j, u, k] += d_point[m, 0, u] * d_point[m, 0, k] + d_point[m, 1, u] * d_point[m, 1, k]
+            scale_observation_blocks(m, j, scale[m], d_rot, d_point, Hpp)
         if not io_jac:
             continue
         # d(uv)/d(IO) in PARAM_NAMES order and d(uv)/d(slopes of f, cx, cy), as :func:`project`

@@ -224,17 +224,24 @@ def _reduce(p0, p1, order, pstart, visit, image, Ji, Jx, r, Hpp, damp, point_gra
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def scale_observation_blocks(m, p, k, Ji, Jx, Hpp):  # pragma: no cover - compiled
+    """Observation ``m`` of :func:`jacobian_blocks`: its rows scaled by ``k``, ``-Jx`` into the last 3 columns
+    of ``Ji``, its share of point ``p``'s J^T J added to ``Hpp``. Also called from the projection's loop
+    (:func:`aerocal.adjust.projection.project_observations` with ``scale``)."""
+    for u in range(2):
+        for v in range(3):
+            Ji[m, u, v] *= k
+            Jx[m, u, v] *= k
+            Ji[m, u, v + 3] = -Jx[m, u, v]
+    for u in range(3):
+        for v in range(3):
+            Hpp[p, u, v] += Jx[m, 0, u] * Jx[m, 0, v] + Jx[m, 1, u] * Jx[m, 1, v]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _jacobian_blocks(point, scale, Ji, Jx, Hpp):  # pragma: no cover - compiled
     for m in range(len(point)):
-        p, k = point[m], scale[m]
-        for u in range(2):
-            for v in range(3):
-                Ji[m, u, v] *= k
-                Jx[m, u, v] *= k
-                Ji[m, u, v + 3] = -Jx[m, u, v]
-        for u in range(3):
-            for v in range(3):
-                Hpp[p, u, v] += Jx[m, 0, u] * Jx[m, 0, v] + Jx[m, 1, u] * Jx[m, 1, v]
+        scale_observation_blocks(m, point[m], scale[m], Ji, Jx, Hpp)
 
 
 def jacobian_blocks(point: np.ndarray, Ji: np.ndarray, Jx: np.ndarray, scale: np.ndarray,
