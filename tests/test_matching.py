@@ -87,6 +87,18 @@ def test_local_cluster_workers_keep_one_blas_thread_and_glibc_malloc_defaults(cl
         assert values == {"MALLOC_TRIM_THRESHOLD_": None, "OPENBLAS_NUM_THREADS": "1"}, (worker, values)
 
 
+def test_local_cluster_teardown_stops_the_worker_heartbeats_before_the_scheduler_goes():
+    """A heartbeat that finds the scheduler's stream closed logs a traceback on the user's terminal."""
+    from aerocal.matching import local_client
+    from aerocal.matching.cluster import _quiet_teardown
+
+    with local_client(n_workers=2) as c:
+        assert all(c.run(lambda dask_worker: dask_worker.periodic_callbacks["heartbeat"].is_running()).values())
+        _quiet_teardown(c)
+        running = c.run(lambda dask_worker: dask_worker.periodic_callbacks["heartbeat"].is_running())
+        assert len(running) == 2 and not any(running.values()), running
+
+
 @pytest.fixture(scope="module")
 def h20t_paths() -> list[Path]:
     _need(H20T)
