@@ -8,6 +8,7 @@ reports progress through an optional ``progress(done, total)`` callback.
 from __future__ import annotations
 
 import contextlib
+import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
 
@@ -61,8 +62,6 @@ WORKER_CLOSE_TIMEOUT_S = 10.0
 def _stop_heartbeat(dask_worker: object) -> None:
     """On a worker (through ``Client.run``): stop its heartbeat to the scheduler and raise its logger's
     threshold to CRITICAL, for the teardown only."""
-    import logging
-
     callback = dask_worker.periodic_callbacks.get("heartbeat")  # type: ignore[attr-defined]
     if callback is not None:
         callback.stop()
