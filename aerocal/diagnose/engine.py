@@ -54,6 +54,13 @@ SWITCH_TOLERANCE_SIGMA = 4.0
 #: real block without GCPs (plausible: 12 px) says nothing about the camera.
 DETERMINED_FRACTION = 1.0 / 3.0
 
+#: An image effect is named only when its estimate moves at least 1 % of the block's measurements by this many
+#: pixels (:attr:`Evidence.shift_px`). Below it an effect cannot be told from the measurements' own systematic
+#: errors: sub-pixel matching biases (pixel locking), a rendering's interpolation, a lens's residual profile.
+#: The rendered, effect-free 818-frame conte-city block (global shutter) named a rolling shutter of
+#: 0.243 +- 0.051 ms at 4.8 sigma: at 60 m/s and a GSD of 0.5 m, 0.029 px between the first and the last row.
+MATERIAL_SHIFT_PX = 0.05
+
 
 def physical_verdict(e: Evidence, camera: Camera, ctx: hyp.Context, sigma_scale: float = 1.0) -> str | None:
     """``None`` when hypothesis ``e`` can be named on physical grounds; else why not: "not determined" (its
@@ -131,6 +138,9 @@ class Evidence:
     bic_gain: float
     significant: bool
     units: str
+    # how far the estimate moves the image measurements (pixels, the 99th percentile over the block's
+    # observations); None for effects that act on the GNSS or attitude observations
+    shift_px: float | None = None
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -264,6 +274,7 @@ def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str
             continue
         inv = inverse_spd(info)
         theta = -inv @ grad
+        shift = _image_shift_px(cols[k], theta, base.block.obs_sigma) if name in hyp.IMAGE_EFFECTS else None
         cov = inv * s02 * overdispersion
         if io_idx is not None:
             A = inv @ conditional.cross(idx, io_idx)
@@ -274,8 +285,26 @@ def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str
         bic = stat - dof * np.log(n_obs)
         p_adj = min(1.0, p * m)
         out.append(Evidence(name, round_no, dof, stat, p, p_adj, theta.tolist(), sigma.tolist(), float(bic),
-                            p_adj < family_alpha, hyp.UNITS[name]))
+                            p_adj < family_alpha, hyp.UNITS[name], shift))
     return out
+
+
+def _estimate_text(e: Evidence) -> str:
+    """``"0.000243 +- 5.1e-05 s"``, or the values and sigmas comma-separated for several parameters."""
+    values = ", ".join(f"{v:.3g}" for v in e.estimate)
+    sigmas = ", ".join(f"{v:.2g}" for v in e.sigma)
+    return f"{values} +- {sigmas} {e.units}"
+
+
+def _image_shift_px(cols: np.ndarray, theta: np.ndarray, obs_sigma: np.ndarray) -> float:
+    """How far an image effect's estimate ``theta`` moves the measurements: the 99th percentile over the block's
+    image observations of the length (pixels) of the move, from its whitened signature ``cols`` (the first
+    ``2 M`` rows: x and y of each observation, over its sigma)."""
+    M = len(obs_sigma)
+    if not M:
+        return 0.0
+    move = (cols[: 2 * M] @ theta).reshape(M, 2) * obs_sigma[:, None]
+    return float(np.percentile(np.hypot(move[:, 0], move[:, 1]), 99.0))
 
 
 #: a hypothesis whose conditional information matrix has eigenvalues below this fraction of its diagonal is
@@ -403,6 +432,12 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
             notes.append(f"{e.name}: a signal of its shape, {e.estimate[0]:.3g} +- {e.sigma[0]:.2g} times its "
                          "physical size (1 = on): not named, another cause shares its signature (for refraction "
                          "at a constant flying height: a focal length or radial distortion off the certificate's)")
+        for e in [e for e in candidates if e.shift_px is not None and e.shift_px < MATERIAL_SHIFT_PX]:
+            candidates.remove(e)
+            notes.append(f"{e.name}: {_estimate_text(e)} (statistic {e.statistic:.1f}) moves 1 % of the "
+                         f"measurements by {e.shift_px:.2g} px at the most, under {MATERIAL_SHIFT_PX:g} px: too small "
+                         "to tell from the measurements' own sub-pixel errors (matching, rendering, the lens's "
+                         "residual profile); not named")
         for e in ev:
             why = physical_verdict(e, current.camera, ctx)
             if why is None:
