@@ -104,6 +104,8 @@ class Calibration:
     * ``review``: the verdict.
     * ``overdispersion``: how many times larger than chi-square the statistics of pure-noise hypotheses are
       on the block (1: the formal sigmas hold); calibrated sigmas are the formal ones times its square root.
+      ``overdispersion_measured``: False when it was not measured (``null_draws`` 0, or the null could not be
+      fitted): the certificate then says its sigmas are the formal ones.
     """
 
     result: AdjustmentResult
@@ -117,6 +119,7 @@ class Calibration:
     overdispersion: float = 1.0
     #: standard deviation (px) of each nominal value held (:func:`aerocal.decision.nominal_sigma`)
     held_sigmas: dict[str, float] = dataclasses.field(default_factory=dict)
+    overdispersion_measured: bool = True
 
     def summary(self) -> dict:
         """JSON-ready figures a user checks."""
@@ -313,7 +316,8 @@ def self_calibrate(
                 result = fit(simple)
                 result.dropped, result.selection = dropped, selection + [notes[-1]]
     if result.marginal_note:  # the sigmas are marginal over the dropped IO parameters: say over which
-        notes.append(result.marginal_note)
+        notes.append(result.marginal_note + (f" (formal; the certificate's are these x {np.sqrt(phi):.3g}, the "
+                                             "square root of the block's overdispersion)" if phi > 1.0 else ""))
     review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
     if input_errors:
         review = review.merged(problems=[
@@ -321,7 +325,7 @@ def self_calibrate(
             "calibrate again"])
     held_sigmas = {n: nominal_sigma(n, camera, config.decision) for n in held if n in ("f", "cx", "cy")}
     return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi,
-                       held_sigmas)
+                       held_sigmas, overdispersion_measured=config.null_draws > 0 and failure is None)
 
 
 def _dropped_io(result: AdjustmentResult, config: AdjustConfig) -> tuple[str, ...]:
@@ -375,7 +379,12 @@ def certificate_from_calibration(
     """The certificate of a self-calibration: IO and sigmas, correlations, significance (formal t, why each
     dropped parameter was dropped, the held-out gain of each thermal slope tested), the thermal model over the
     block's temperature range, the conditions (date, images, strips, GCPs, priors), quality figures and the
-    review. ``images`` and ``gcp_observations`` are the flight's; the calibration block is taken from them."""
+    review. ``images`` and ``gcp_observations`` are the flight's; the calibration block is taken from them.
+
+    The sigmas written are the calibrated ones (formal x the square root of the block's measured
+    overdispersion, recorded in ``quality.overdispersion``): on seneca's real matches the formal sigmas were
+    16x too small, and a certificate printing them claimed a k1 of -0.0301 +- 0.0007 where the block supports
+    +- 0.011."""
     cal = calibration.result
     sub_images = select_images(images, calibration.image_ids)
     sub_gobs = select_images(gcp_observations, calibration.image_ids) if gcp_observations is not None else None
@@ -383,6 +392,7 @@ def certificate_from_calibration(
     names = [SLOPE_NAMES.get(n, n) for n in cal.names]
 
     root_phi = float(np.sqrt(max(calibration.overdispersion, 1.0)))
+    measured_phi = float(calibration.overdispersion) if calibration.overdispersion_measured else None
 
     def tested(n: str) -> dict[str, float | None]:
         h = calibration.held_out.get(n)
@@ -405,7 +415,8 @@ def certificate_from_calibration(
     thermal = None
     if isinstance(cal.thermal, LinearThermalModel) and trange is not None:
         model = dataclasses.replace(cal.thermal, valid_range=trange)
-        thermal = ThermalCalibration(model, {SLOPE_NAMES.get(k, k): float(v) for k, v in cal.thermal_sigmas.items()})
+        thermal = ThermalCalibration(model, {SLOPE_NAMES.get(k, k): float(v) * root_phi
+                                             for k, v in cal.thermal_sigmas.items()})
     if thermal is None:  # a slope dropped leaves no thermal model to attach it to: the review's notes say why
         significance = {n: s for n, s in significance.items() if n not in SLOPE_NAMES.values()}
     cfg = cal.config
@@ -421,7 +432,7 @@ def certificate_from_calibration(
     return Certificate(
         identity=identity,
         camera=cal.camera,
-        sigmas={n: float(cal.sigmas[n]) for n in io_names},
+        sigmas={n: float(cal.sigmas[n]) * root_phi for n in io_names},
         estimated=tuple(io_names),
         correlation=Correlation(tuple(names), np.asarray(cal.correlation, dtype=float)),
         significance=significance,
@@ -436,7 +447,7 @@ def certificate_from_calibration(
             priors=priors,
             images=tuple(sub_images.column("name").to_pylist()),
         ),
-        quality=Quality(float(cal.sigma0), float(cal.reprojection_rms), int(cal.dof)),
+        quality=Quality(float(cal.sigma0), float(cal.reprojection_rms), int(cal.dof), measured_phi),
         provenance=Provenance(flow_run=run_id, inputs=inputs),
         review=calibration.review,
     )

@@ -28,7 +28,7 @@ indexes::
      "thermal": null | {"kind": "linear" | "similarity" | "polynomial", <model fields>, "sigmas": {...}},
      "conditions": {"date": "YYYY-MM-DD" | null, "temperature_range": [lo, hi] | null, "n_images",
                     "strips", "transversal_strip", "n_gcp", "priors": {name: sigma}, "images": [...]},
-     "quality": {"sigma0", "reprojection_rms_px", "dof"},
+     "quality": {"sigma0", "reprojection_rms_px", "dof", "overdispersion" (optional)},
      "provenance": {"flow_run": str | null, "code_version": str, "inputs": {name: sha256 hex}}}
 
 Units: f, cx, cy, b1, b2 and their sigmas in pixels; k1..k3, p1, p2 dimensionless; temperatures in
@@ -290,14 +290,42 @@ class Conditions:
 
 @dataclass(frozen=True)
 class Quality:
-    """A-posteriori sigma0 (unitless), RMS reprojection error (pixels), degrees of freedom."""
+    """A-posteriori sigma0 (unitless), RMS reprojection error (pixels), degrees of freedom, and the calibration
+    block's measured overdispersion.
+
+    ``overdispersion``: how many times larger than chi-square the statistics of pure-noise hypotheses were on
+    the calibration block (:func:`aerocal.diagnose.engine.overdispersion`; real matches measure 10-300). Where
+    it is recorded, the certificate's ``sigmas`` (and its thermal sigmas) are *calibrated*: the formal sigmas of
+    the adjustment times the square root of ``max(overdispersion, 1)``, the precision the block supports;
+    ``significance[...].t`` stays the formal t. ``None`` (documents written before it was recorded, imported
+    certificates, a block where it could not be measured): the sigmas are as written, formal where they came
+    from an adjustment."""
 
     sigma0: float | None = None
     reprojection_rms_px: float | None = None
     dof: int | None = None
+    overdispersion: float | None = None
+
+    @property
+    def sigma_scale(self) -> float:
+        """The factor the recorded sigmas carry over the formal ones (1 where none is recorded)."""
+        if self.overdispersion is None or not math.isfinite(self.overdispersion):
+            return 1.0
+        return math.sqrt(max(self.overdispersion, 1.0))
+
+    def sigmas_text(self) -> str:
+        """What the certificate's sigmas are, in words (the certificate's text, ``certificates show``, the
+        report)."""
+        if self.overdispersion is None:
+            return "as written (formal where they came from an adjustment; no overdispersion recorded)"
+        return (f"calibrated: formal x {self.sigma_scale:.3g}, the square root of the block's measured "
+                f"overdispersion {self.overdispersion:.3g}")
 
     def to_dict(self) -> dict:
-        return {"sigma0": self.sigma0, "reprojection_rms_px": self.reprojection_rms_px, "dof": self.dof}
+        d = {"sigma0": self.sigma0, "reprojection_rms_px": self.reprojection_rms_px, "dof": self.dof}
+        if self.overdispersion is not None:
+            d["overdispersion"] = self.overdispersion
+        return d
 
 
 def code_version() -> str:
@@ -340,7 +368,8 @@ class Certificate:
     Build one with at least ``identity`` and ``camera``; ``id`` (uuid4 hex) and ``issued`` (now, UTC)
     are filled in. Every construction is validated as :meth:`from_dict` validates a document, so a
     certificate that exists always serialises to a valid document. ``sigmas`` hold the standard
-    deviations of the estimated IO parameters (units of :data:`aerocal.camera.PARAM_UNITS`).
+    deviations of the estimated IO parameters (units of :data:`aerocal.camera.PARAM_UNITS`): calibrated by the
+    block's overdispersion where ``quality.overdispersion`` is recorded (:class:`Quality`), else as written.
     """
 
     identity: CameraIdentity
@@ -509,7 +538,11 @@ class Certificate:
         if cam.pixel_size_mm is not None:
             size += f", pixel {cam.pixel_size_mm * 1000:.3g} um, focal {cam.focal_mm:.4f} mm"
         lines.append(f"  model    Brown, {size}")
-        lines.append("  parameters (value ± sigma):")
+        q = self.quality
+        if q.overdispersion is not None:
+            lines.append(f"  parameters (value ± sigma, {q.sigmas_text()}):")
+        else:
+            lines.append("  parameters (value ± sigma):")
         for name in PARAM_NAMES:
             value = getattr(cam, name)
             unit = "" if PARAM_UNITS[name] == "1" else f" {PARAM_UNITS[name]}"
@@ -548,7 +581,6 @@ class Certificate:
         )
         if c.priors:
             lines.append("  priors (sigma): " + ", ".join(f"{k} {v:g}" for k, v in c.priors.items()))
-        q = self.quality
         sigma0 = "?" if q.sigma0 is None else f"{q.sigma0:.3f}"
         rms = "?" if q.reprojection_rms_px is None else f"{q.reprojection_rms_px:.3f} px"
         lines.append(f"  quality: sigma0 {sigma0}, reprojection RMS {rms}, dof {_or_q(q.dof)}")
@@ -641,7 +673,8 @@ def _fields_of(d: CertificateDocument) -> dict[str, Any]:
         "conditions": Conditions(date=c.date, temperature_range=c.temperature_range, n_images=c.n_images,
                                  strips=c.strips, transversal_strip=c.transversal_strip, n_gcp=c.n_gcp,
                                  priors=FrozenMap(c.priors), images=tuple(c.images)),
-        "quality": Quality(sigma0=q.sigma0, reprojection_rms_px=q.reprojection_rms_px, dof=q.dof),
+        "quality": Quality(sigma0=q.sigma0, reprojection_rms_px=q.reprojection_rms_px, dof=q.dof,
+                           overdispersion=q.overdispersion),
         "provenance": Provenance(flow_run=p.flow_run, code_version=p.code_version, inputs=FrozenMap(p.inputs)),
         "id": d.id,
         "issued": d.issued,

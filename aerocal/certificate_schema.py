@@ -414,13 +414,17 @@ class ConditionsSection(_Section):
 
 
 class QualitySection(_Section):
-    """``quality``: a-posteriori sigma0 (unitless), RMS reprojection error (pixels), degrees of freedom."""
+    """``quality``: a-posteriori sigma0 (unitless), RMS reprojection error (pixels), degrees of freedom, and
+    where measured the calibration block's overdispersion (``sigmas`` are then calibrated by its square root)."""
 
     sigma0: _number("a positive number or null", "write the a-posteriori sigma0 (unitless), or null when unknown",
                     gt=0.0) | None
     reprojection_rms_px: _number("a non-negative number or null",
                                  "write the RMS reprojection error in pixels, or null", ge=0.0) | None
     dof: _integer(0, "an integer >= 0 or null") | None
+    overdispersion: _number("a positive number or null",
+                            "write the calibration block's measured overdispersion (the sigmas are then calibrated "
+                            "by its square root), or leave it out when the sigmas are formal", gt=0.0) | None = None
 
 
 class ProvenanceSection(_Section):

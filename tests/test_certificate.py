@@ -382,6 +382,32 @@ def test_a_nominal_value_held_carries_its_prior_sigma_into_the_diagnosis():
     assert set(io.names[:-1]) == set(est)
 
 
+def test_calibrated_sigmas_are_printed_and_carried_once_into_the_diagnosis():
+    """A certificate whose block measured an overdispersion of 100 holds sigmas 10x its adjustment's formal
+    ones: it says so when printed, the JSON round trip keeps it, and the diagnosis takes those sigmas as they
+    are. A document written before the overdispersion was recorded holds formal sigmas: the diagnosis still
+    inflates them by the ratio of formal to calibrated t."""
+    from aerocal.diagnose.io_uncertainty import IOUncertainty
+
+    base = make_certificate()
+    sig = {n: dataclasses.replace(s, calibrated_t=s.t / 10.0) for n, s in base.significance.items()}
+    old = dataclasses.replace(base, significance=sig)
+    new = dataclasses.replace(old, sigmas={n: 10.0 * s for n, s in base.sigmas.items()},
+                              quality=dataclasses.replace(base.quality, overdispersion=100.0))
+    back = Certificate.from_json(new.to_json())
+    assert back.quality.overdispersion == 100.0 and back.quality.sigma_scale == pytest.approx(10.0)
+    text = back.render_text()
+    assert "sigma, calibrated: formal x 10, the square root of the block's measured overdispersion 100" in text
+    assert "1711.8 ± 4.2 px" in text  # 10 x the formal 0.42 px
+    io_new = IOUncertainty.from_certificate(back)
+    io_old = IOUncertainty.from_certificate(Certificate.from_json(old.to_json()))
+    assert io_new.names == io_old.names
+    np.testing.assert_allclose(io_new.covariance, io_old.covariance, rtol=1e-12)
+    f = io_new.names.index("f")
+    assert np.sqrt(io_new.covariance[f, f]) == pytest.approx(4.2)
+    assert "overdispersion" not in json.loads(old.to_json())["quality"]  # a document without it reads as before
+
+
 def test_a_nominal_camera_taken_as_it_is_is_uncertain_in_f_principal_point_and_distortion():
     """The certificate a block uses when no calibration is accepted holds the nominal camera with nothing
     estimated: its f, cx, cy and its unknown radial distortion carry their tolerances into the diagnosis."""

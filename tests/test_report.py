@@ -285,7 +285,7 @@ def processed_flight(tmp_path_factory):
     the reference DSM the simulator writes beside it."""
     from aerocal.adjust import AdjustConfig, adjust_fixed_io
     from aerocal.assess import reprojection_stats
-    from aerocal.certificate import CameraIdentity, Certificate, Conditions
+    from aerocal.certificate import CameraIdentity, Certificate, Conditions, Quality
     from aerocal.diagnose.engine import DiagnoseConfig, diagnose
     from aerocal.dsm import dsm_from_points, write_dsm
     from aerocal.simulate import simulate_flight, write_flight
@@ -300,6 +300,7 @@ def processed_flight(tmp_path_factory):
         sigmas={"f": 0.41, "cx": 0.3, "cy": 0.28, "k1": 0.002}, estimated=("f", "cx", "cy", "k1"),
         conditions=Conditions(date="2016-03-14", temperature_range=(min(temps), max(temps)), n_images=16,
                               strips=3, transversal_strip=True, n_gcp=6, priors={"gnss_position_m": 0.05}),
+        quality=Quality(sigma0=1.02, reprojection_rms_px=0.31, dof=4000, overdispersion=16.0),
     )
     res = adjust_fixed_io(images, obs, camera, AdjustConfig(), gcps, gobs, None)
     adjustment = {**res.summary(), "converged": res.converged, "iterations": res.iterations,
@@ -389,6 +390,7 @@ def test_flight_report_reads_as_a_report(processed_flight, tmp_path):
     assert _reader_problems(text) == [], _reader_problems(text)
     assert "Focal length f" in text and "Prior standard deviation: GNSS position 0.0500 m" in text
     assert "Strips 3, with a transversal strip" in text
+    assert "Sigmas calibrated: formal x 4, the square root of the block's measured overdispersion 16" in text
     assert "Step times were not given" not in text and "Total of the steps above 27.0 s" in text
     assert "No orthomosaic: the flight holds no image pixels" in text
     # summary.json keeps the machine keys and the figures' numbers

@@ -62,9 +62,15 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
     # f, cx, cy: determined by the calibrated sigma, or nominal with the reason
     root_phi = float(np.sqrt(calibration["overdispersion"]))
     assert calibration["overdispersion"] > 1.0, "real matches: the formal statistics are optimistic"
+    # the certificate's sigmas are the calibrated ones, and it says so
+    assert cert.quality.overdispersion == pytest.approx(calibration["overdispersion"])
+    formal = calibration["adjustment"]["sigmas"]
+    for name in cert.estimated:
+        assert cert.sigmas[name] == pytest.approx(formal[name] * root_phi, rel=1e-9), f"{name}: {text}"
+    assert "calibrated: formal x" in text
     for name, limit in (("f", 0.005 * info["camera"].f), ("cx", 0.005 * 1800), ("cy", 0.005 * 1800)):
         if name in cert.estimated:
-            assert cert.sigmas[name] * root_phi <= limit, f"{name}: {text}"
+            assert cert.sigmas[name] <= limit, f"{name}: {text}"
         else:
             assert getattr(cert.camera, name) == getattr(info["camera"], name)
             assert "not determined" in cert.significance[name].dropped, text

@@ -82,6 +82,7 @@ def test_import_list_show_and_export_json(make_certificate, storage_url, unique,
     shown = invoke(certificates_app, "show", docs[1]["id"][:12], *url)
     assert shown.exit_code == 0, shown.output
     assert f"NEC TS9260 s/n {serial}" in shown.output and "1670.5" in shown.output
+    assert "as written" in shown.output  # no overdispersion recorded: the sigmas are not said to be calibrated
     as_json = json.loads(invoke(certificates_app, "show", docs[1]["id"], "--json", *url).output)
     assert (as_json["version"], as_json["supersedes"]) == (2, docs[0]["id"])
 

@@ -46,8 +46,9 @@ class IOUncertainty:
     @classmethod
     def from_certificate(cls, cert) -> IOUncertainty | None:
         """The estimated IO of ``cert`` (:class:`aerocal.certificate.Certificate`) with its covariance from
-        its sigmas and correlation matrix, inflated by the overdispersion its calibration measured
-        (squared ratio of formal to calibrated t, where recorded), plus the nominal values it holds because
+        its sigmas and correlation matrix: calibrated sigmas where ``quality.overdispersion`` is recorded, else
+        the formal ones inflated by the overdispersion its calibration measured (squared ratio of formal to
+        calibrated t, where recorded), plus the nominal values it holds because
         the block could not determine them, with their recorded ``prior_sigma`` (uncorrelated). None when
         there is neither."""
         names = [n for n in cert.estimated if n in PARAM_NAMES and n in cert.sigmas
@@ -62,10 +63,11 @@ class IOUncertainty:
                     if na in cnames and nb in cnames:
                         corr[a, b] = R[cnames.index(na), cnames.index(nb)]
         phi = []
-        for n in names:
-            sig = cert.significance.get(n)
-            if sig is not None and sig.calibrated_t and sig.t and np.isfinite(sig.calibrated_t):
-                phi.append((float(sig.t) / float(sig.calibrated_t)) ** 2)
+        if cert.quality.overdispersion is None:  # formal sigmas (a document written before it was recorded)
+            for n in names:
+                sig = cert.significance.get(n)
+                if sig is not None and sig.calibrated_t and sig.t and np.isfinite(sig.calibrated_t):
+                    phi.append((float(sig.t) / float(sig.calibrated_t)) ** 2)
         inflate = max(1.0, float(np.median(phi))) if phi else 1.0
         cov = corr * np.outer(s, s) * inflate
         # nominal values held because the block could not determine them: their own uncertainty, uncorrelated

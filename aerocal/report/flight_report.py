@@ -373,6 +373,8 @@ def _certificate_view(cert: Certificate) -> dict:
     quality = [("Sigma naught", wording.number(q.sigma0, 3)),
                ("Reprojection error (RMS)", wording.with_unit(wording.number(q.reprojection_rms_px, 3), "px")),
                ("Degrees of freedom", wording.number(q.dof))]
+    if q.overdispersion is not None:
+        quality.append(("Sigmas", q.sigmas_text()))
     pairs = cert.correlation.high_pairs(0.9)
     return {
         "id": cert.id,

@@ -116,7 +116,8 @@ def certificates_show(
 
     Example: aerocal certificates show 3f2a9c --json
     """
-    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up); --help must not pay it
+    # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up), the engine numpy; --help must not pay it
+    from aerocal.certificate import Quality
     from storage.certificates import get_certificate
 
     with user_errors():
@@ -153,6 +154,7 @@ def certificates_show(
         ),
         ("sigma0", _fmt(quality.get("sigma0"))),
         ("reprojection RMS px", _fmt(quality.get("reprojection_rms_px"))),
+        ("sigmas", Quality(overdispersion=quality.get("overdispersion")).sigmas_text()),
         ("flow run", _fmt(provenance.get("flow_run"))),
         ("code version", _fmt(provenance.get("code_version"))),
     ):
