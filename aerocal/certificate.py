@@ -318,6 +318,9 @@ class Quality:
         report)."""
         if self.overdispersion is None:
             return "as written (formal where they came from an adjustment; no overdispersion recorded)"
+        if self.overdispersion <= 1.0:
+            return (f"formal: the block's measured overdispersion {self.overdispersion:.3g} is not above 1 and "
+                    "does not widen them")
         return (f"calibrated: formal x {self.sigma_scale:.3g}, the square root of the block's measured "
                 f"overdispersion {self.overdispersion:.3g}")
 
