@@ -143,7 +143,10 @@ class ProcessConfig:
       the residuals: on the real seneca flight (29-image calibration block, 23,515 tie observations) the
       Huber pass left a model without k3 that needed three restarts of 50 iterations, an overdispersion of
       270 and f, cx, cy undetermined; the Cauchy pass converged at once (28 s against 79 s), kept k3, measured
-      8.1, and determined cx 897.3 +- 4.1 and cy 658.6 +- 4.5 px (the full flight: 898.7, 658.7).
+      8.1, and determined cx 897.3 +- 4.1 and cy 658.6 +- 4.5 px (the full flight: 898.7, 658.7). On the
+      rendered conte-city flight the Huber certificate held k3 -202 +- 1.6 (the true lens has none) and the
+      diagnosis named a radial_k3 of 3.65; after a Cauchy pass every parameter is within 0.8 of its sigma
+      of the truth and nothing is named (``benchmarks/RESULTS.md``).
     * ``matched_tie_thinning``: :class:`aerocal.adjust.thinning.ThinningConfig` of the full-block
       adjustment when the observations come from image matching (default: its defaults, 4 tracks per cell
       of 8 x 6 per image; ``None``: every track adjusted). The tracks left out are intersected afterwards
