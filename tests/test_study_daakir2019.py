@@ -57,17 +57,20 @@ def test_daakir_gain_needs_the_full_field_and_stays_below_the_paper(tmp_path):
     for name, c in certs.items():
         assert c["status"] == "accepted" and not c["problems"], (name, c["problems"], c["notes"])
     # the default calibration (a focal slope only) recovers the simulated 0.075 px/degC within 3 of its sigmas,
-    # and the sigma is small enough for that to mean something (the corridor alone predicts 0.08 px/degC)
+    # and the sigma is small enough for that to mean something (the corridor alone predicts 0.08 px/degC). The
+    # sigmas are the calibrated ones (formal x the square root of the block's overdispersion: the warming block
+    # carries Eq. 2's full-field drift, which a focal slope alone does not model): 0.025 px/degC where the
+    # formal one was below 0.01
     fo = certs["focal-only"]["slopes"]
     assert set(fo) == {"df_dt"}, fo
     v, s = fo["df_dt"]
-    assert abs(v - study.DAAKIR_SLOPE) < 3 * s and s < 0.01, fo
+    assert abs(v - study.DAAKIR_SLOPE) < 3 * s and s < 0.4 * study.DAAKIR_SLOPE, fo
     # freeing the principal point's slopes gives Eq. 2's translation: all three slopes within 3 sigma of the truth
     eq = certs["Eq. 2"]["slopes"]
     truth = {"df_dt": study.DAAKIR_SLOPE, "dcx_dt": study.PP_SLOPE[0], "dcy_dt": study.PP_SLOPE[1]}
     assert set(eq) == set(truth), eq
     for k, t_ in truth.items():
-        assert abs(eq[k][0] - t_) < 3 * eq[k][1] and eq[k][1] < 0.01, (k, eq[k], t_)
+        assert abs(eq[k][0] - t_) < 3 * eq[k][1] and eq[k][1] < 0.4 * study.DAAKIR_SLOPE, (k, eq[k], t_)
     # the corridor: every run done with the pinned certificate, the correction applied exactly where asked
     runs = prod["corridor"]
     assert len(runs) == len(study.CERTIFICATES) * len(study.BLOCKS) * 2, sorted(runs)
