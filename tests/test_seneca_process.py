@@ -68,6 +68,10 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
     for name in cert.estimated:
         assert cert.sigmas[name] == pytest.approx(formal[name] * root_phi, rel=1e-9), f"{name}: {text}"
     assert "calibrated: formal x" in text
+    # "significant" only where the calibrated t is (seneca's cx: formal t 2.9, calibrated 1.0)
+    for name, sig in cert.significance.items():
+        if sig.significant:
+            assert sig.calibrated_t is not None and abs(sig.calibrated_t) > 1.96, f"{name}: {text}"
     for name, limit in (("f", 0.005 * info["camera"].f), ("cx", 0.005 * 1800), ("cy", 0.005 * 1800)):
         if name in cert.estimated:
             assert cert.sigmas[name] <= limit, f"{name}: {text}"
