@@ -272,9 +272,10 @@ def dsm_from_points(
         raise ValueError(f"dsm_from_points: need at least 3 finite points, got {len(pts)}")
     cell = config.cell_size(gsd_m)
     if config.cell_m is None and config.min_point_spacing is not None:
-        lo, hi = pts[:, :2].min(axis=0), pts[:, :2].max(axis=0)
         if bounds is not None:
             lo, hi = np.array(bounds[:2], dtype=float), np.array(bounds[2:], dtype=float)
+        else:
+            lo, hi = bulk_extent(pts[:, :2])
         spacing = float(np.sqrt(max(float(np.prod(hi - lo)), 0.0) / len(pts)))
         cell = max(cell, config.min_point_spacing * spacing)
     keep, supported = reject_outliers(pts, config, cell, return_supported=True)
@@ -306,6 +307,20 @@ def dsm_from_points(
     }
     return Dsm(heights=heights.astype(np.float32), west=float(west), north=float(north), cell_m=float(cell),
                crs=crs, distance_m=distance, counts=counts, stats=stats)
+
+
+def bulk_extent(xy: np.ndarray, tail: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """The (min, max) corners of the bulk of the points ``xy`` (N, 2): the ``tail`` and ``1 - tail`` quantiles
+    of each axis, widened by ``1 / (1 - 2 tail)`` (exact for points spread evenly between the true extremes).
+
+    The tie points' spacing comes from this extent, not from the extremes: on a rendered 129-frame city block
+    (2 km x 1.7 km, 48,659 points) one two-ray point intersected 320 km away made the spacing 2.5 km and
+    the DSM 8 x 8 cells of 635 m, and the orthomosaic was resampled on it. Up to ``tail`` of the points may
+    lie anywhere on either side."""
+    lo, hi = np.quantile(xy, [tail, 1.0 - tail], axis=0)
+    half = 0.5 * (hi - lo) / (1.0 - 2.0 * tail)
+    mid = 0.5 * (hi + lo)
+    return mid - half, mid + half
 
 
 def _fill(heights: np.ndarray, has: np.ndarray) -> np.ndarray:

@@ -57,6 +57,7 @@ from aerocal.dsm import Dsm
 from aerocal.geometry import matrix_from_quat_wxyz
 from aerocal.ingest.pixels import ImageReadError, read_raw
 from aerocal.io import atomic_path
+from aerocal.mosaic_kernels import NO_PIXEL, frame_view
 
 Progress = Callable[[int, int], None]
 
@@ -221,18 +222,19 @@ def render_tile(
     nn = n - (np.arange(tile.rows) + 0.5) * tile.gsd_m
     E, N = np.meshgrid(e, nn)
     H = dsm.height_at(E, N)
-    X = np.stack([E, N, H], axis=-1)
-    has_height = np.isfinite(H)
-    uvs, scores, tapers = [], [], []
+    maps, scores, tapers = [], [], []
     for fr in frames:
-        uv = fr.project(X)
-        cam = fr.camera
-        ok = has_height & np.all(np.isfinite(uv), axis=-1) & cam.in_image(uv)
-        border = np.minimum.reduce([uv[..., 0], cam.width - uv[..., 0], uv[..., 1], cam.height - uv[..., 1]])
-        score = np.hypot(uv[..., 0] - cam.cx, uv[..., 1] - cam.cy)
-        uvs.append(uv)
-        scores.append(np.where(ok, score, np.inf))
-        tapers.append(np.where(ok, np.clip(border / max(feather_px, 1e-9), 1e-6, 1.0), 0.0))
+        map_u, map_v = np.empty(shape, np.float32), np.empty(shape, np.float32)
+        score, taper = np.empty(shape), np.empty(shape)
+        if fr.thermal_model is None:
+            frame_view(e, nn, H, np.asarray(fr.R_cw, dtype=float), np.asarray(fr.C, dtype=float),
+                       fr.camera.params(), float(fr.camera.width), float(fr.camera.height), float(feather_px),
+                       map_u, map_v, score, taper)
+        else:
+            _frame_view_numpy(fr, np.stack([E, N, H], axis=-1), feather_px, map_u, map_v, score, taper)
+        maps.append((map_u, map_v))
+        scores.append(score)
+        tapers.append(taper)
     S = np.stack(scores)
     best = S.min(axis=0)
     seen = np.isfinite(best)
@@ -253,10 +255,7 @@ def render_tile(
         if img.shape[:2] != (cam.height, cam.width):
             raise ValueError(f"image {fr.image_id}: pixels are {img.shape[1]}x{img.shape[0]}, its camera says "
                              f"{cam.width}x{cam.height}; give the frame's original pixels")
-        uv = np.nan_to_num(uvs[k], nan=-10.0).astype(np.float32)
-        # OpenCV puts the centre of the first pixel at (0, 0): ours minus 0.5
-        vals = cv2.remap(img.astype(np.float32), uv[..., 0] - 0.5, uv[..., 1] - 0.5, cv2.INTER_LINEAR,
-                         borderMode=cv2.BORDER_REPLICATE)
+        vals = cv2.remap(img.astype(np.float32), *maps[k], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         vals = vals.reshape(shape + (-1,))
         acc += np.moveaxis(vals, -1, 0) * wk
         wsum += wk
@@ -269,6 +268,22 @@ def render_tile(
         mean = np.where(mean == nodata, nodata - 1 if nodata == info.max else nodata + 1, mean)
     out[:, valid] = mean[:, valid].astype(dtype)
     return tile, out
+
+
+def _frame_view_numpy(fr: FrameGeometry, X: np.ndarray, feather_px: float, map_u: np.ndarray, map_v: np.ndarray,
+                      score: np.ndarray, taper: np.ndarray) -> None:
+    """:func:`aerocal.mosaic_kernels.frame_view` for the frames whose thermal model corrects measurements
+    (:meth:`FrameGeometry.project` inverts it), with numpy: the same outputs from the ground points ``X``."""
+    uv = fr.project(X)
+    cam = fr.camera
+    ok = np.isfinite(X[..., 2]) & np.all(np.isfinite(uv), axis=-1) & cam.in_image(uv)
+    border = np.minimum.reduce([uv[..., 0], cam.width - uv[..., 0], uv[..., 1], cam.height - uv[..., 1]])
+    score[...] = np.where(ok, np.hypot(uv[..., 0] - cam.cx, uv[..., 1] - cam.cy), np.inf)
+    taper[...] = np.where(ok, np.clip(border / max(feather_px, 1e-9), 1e-6, 1.0), 0.0)
+    uv = np.nan_to_num(uv, nan=NO_PIXEL + 0.5).astype(np.float32)
+    # OpenCV puts the centre of the first pixel at (0, 0): ours minus 0.5
+    map_u[...] = uv[..., 0] - np.float32(0.5)
+    map_v[...] = uv[..., 1] - np.float32(0.5)
 
 
 @dataclass(frozen=True)

@@ -104,3 +104,31 @@ def test_thinned_block_lands_on_the_truth_and_returns_every_track(flight):
                          - sim.tie.points[full.points.column("track_id").to_numpy()], axis=1)
     print(f"point error median thinned {np.median(d):.3f} m, all tracks {np.median(ref):.3f} m")
     assert np.median(d) < 1.3 * np.median(ref), f"seed {SEED}: intersected points worse than adjusted ones"
+
+
+def test_a_point_the_rays_cannot_place_is_not_handed_back():
+    """Two frames 60 m apart, 850 m up (the city's base and height): a ground point seen by both is placed to
+    ~2 m and kept; rays off by 0.002 px from parallel put a point 50,000 km away, and one behind the cameras
+    is not kept either (a single such point once made a city's DSM 8 x 8 cells of 635 m)."""
+    from aerocal.adjust.projection import project
+    from aerocal.adjust.triangulate import placed_by_rays, refine_points
+    from aerocal.camera import Camera
+
+    cam = Camera(width=640, height=480, f=1674.0, cx=320.0, cy=240.0)
+    io, slopes = cam.params(), np.zeros(3)
+    R = np.repeat(np.diag([1.0, -1.0, -1.0])[None], 2, axis=0)  # world-to-camera, looking down
+    C = np.array([[0.0, 0.0, 850.0], [60.0, 0.0, 850.0]])
+    image, j = np.tile([0, 1], 3), np.repeat(np.arange(3), 2)
+    truth = np.array([[30.0, 10.0, 0.0], [30.0, 10.0, 0.0], [30.0, 10.0, 1700.0]])
+    uv = project(io, slopes, np.zeros(6), R[image], C[image], truth[j], jacobians=False).uv
+    uv[3] = uv[2] - [0.002, 0.0]  # point 1: rays parallel to within 0.002 px (the ground's parallax: 118 px)
+    sigma = np.full(6, 0.2)
+    start = truth.copy()
+    start[1] = [0.0, 0.0, 850.0 - 1674.0 * 60.0 / 0.002]
+    X, _ = refine_points(io, slopes, np.zeros(6), R[image], C[image], j, uv, sigma, start)
+    keep = placed_by_rays(X, R, C, image, j, sigma, cam.f)
+    assert np.abs(X[0] - truth[0]).max() < 1e-6 and keep[0], (X[0], keep)
+    assert abs(X[1, 2]) > 1e6 and not keep[1], (X[1], keep)
+    assert not keep[2], "a point behind the cameras"
+    assert placed_by_rays(X[:1], R, C, image[:2], j[:2], sigma[:2], cam.f)[0]
+    assert not placed_by_rays(X[:1], R, C, image[:1], j[:1], sigma[:1], cam.f)[0], "one ray places nothing"

@@ -112,3 +112,24 @@ def test_sparse_points_over_a_large_area_get_cells_sized_by_their_spacing():
     E, N = dsm.cell_centres()
     inside = (E > 686200) & (E < 689500) & (N > 4929200) & (N < 4932500)
     assert np.nanmax(np.abs(dsm.heights[inside] - _plane(E[inside], N[inside]))) < 0.5, f"seed {seed}"
+
+
+@pytest.mark.parametrize("wild", [1, 20])
+def test_a_few_points_intersected_far_off_the_block_do_not_coarsen_the_grid(wild):
+    """One two-ray tie point 320 km from a 2 km block (measured on a rendered city flight) made the cells
+    635 m; the cells follow the spacing of the block's own points whatever a few wild ones do."""
+    seed = 7 + wild
+    rng = np.random.default_rng(seed)
+    e = rng.uniform(686000, 688000, 5000)
+    n = rng.uniform(4929000, 4930700, 5000)
+    pts = np.column_stack([e, n, _plane(e, n)])
+    far = np.column_stack([rng.uniform(366000, 1e6, wild), rng.uniform(3.9e6, 6e6, wild),
+                           rng.uniform(-1e7, 1e4, wild)])
+    clean = dsm_from_points(pts, CRS, gsd_m=0.5)
+    dsm = dsm_from_points(np.vstack([pts, far]), CRS, gsd_m=0.5)
+    assert dsm.cell_m == pytest.approx(clean.cell_m, rel=0.02), f"seed {seed}: {dsm.cell_m} m, {clean.cell_m} m"
+    w, s, e_, n_ = dsm.bounds()
+    assert w > 685900 and s > 4928900 and e_ < 688100 and n_ < 4930800, f"seed {seed}: grid {dsm.bounds()}"
+    E, N = dsm.cell_centres()
+    inside = (E > 686200) & (E < 687800) & (N > 4929200) & (N < 4930500)
+    assert np.nanmax(np.abs(dsm.heights[inside] - _plane(E[inside], N[inside]))) < 0.5, f"seed {seed}"

@@ -160,3 +160,35 @@ def test_thermal_model_gives_each_frame_its_io_and_a_missing_temperature_is_name
     temps.pop(3)
     with pytest.raises(ValueError, match="image 3 has no sensor temperature"):
         frames_from_poses(poses, cam, temps, model)
+
+
+def test_compiled_frame_view_is_the_camera_model(flight):
+    """The compiled per-frame loop of the tiles gives the recorded pixels, nadir scores and tapers of the
+    camera model (numpy, :meth:`FrameGeometry.project`) on a strongly distorted, affine camera, including
+    ground points behind the camera, outside the frame and without a height."""
+    import dataclasses
+
+    from aerocal.mosaic import _frame_view_numpy
+    from aerocal.mosaic_kernels import frame_view
+
+    rng = np.random.default_rng(SEED)
+    fr = flight["frames"][4]
+    cam = fr.camera.replace(k1=-0.3, k2=0.2, k3=-0.05, p1=1e-3, p2=-2e-3, b1=3.0, b2=-1.5)
+    fr = dataclasses.replace(fr, camera=cam)
+    e = fr.C[0] + np.linspace(-250.0, 250.0, 96)
+    n = fr.C[1] + np.linspace(200.0, -200.0, 80)
+    H = rng.uniform(-50.0, 80.0, (80, 96))
+    H[rng.random(H.shape) < 0.05] = np.nan
+    H[:3, :3] = fr.C[2] + 100.0  # above the camera: behind it
+    E, N = np.meshgrid(e, n)
+    got = [np.empty(H.shape, np.float32), np.empty(H.shape, np.float32), np.empty(H.shape), np.empty(H.shape)]
+    want = [np.empty_like(a) for a in got]
+    frame_view(e, n, H, fr.R_cw, fr.C, cam.params(), float(cam.width), float(cam.height), 8.0, *got)
+    _frame_view_numpy(fr, np.stack([E, N, H], axis=-1), 8.0, *want)
+    inside = np.isfinite(want[2])
+    assert 0.2 < inside.mean() < 0.9, "the test grid must reach beyond the frame"
+    np.testing.assert_allclose(got[0], want[0], atol=1e-3)
+    np.testing.assert_allclose(got[1], want[1], atol=1e-3)
+    np.testing.assert_array_equal(np.isfinite(got[2]), inside)
+    np.testing.assert_allclose(got[2][inside], want[2][inside], rtol=1e-9)
+    np.testing.assert_allclose(got[3], want[3], rtol=1e-9, atol=1e-12)

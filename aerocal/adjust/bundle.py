@@ -32,7 +32,13 @@ from aerocal.adjust.projection import IDX, THERMAL_PARAMS, project
 from aerocal.adjust.selection import select_parameters
 from aerocal.adjust.solver import MIN_DEPTH_FRACTION, Problem, Solution, SparseInverse, State, schur_complement, solve
 from aerocal.adjust.thinning import ThinningConfig, thin_tracks
-from aerocal.adjust.triangulate import pixels_to_rays, refine_points, triangulate_linear
+from aerocal.adjust.triangulate import (
+    MAX_POINT_SIGMA_FRACTION,
+    pixels_to_rays,
+    placed_by_rays,
+    refine_points,
+    triangulate_linear,
+)
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel, correct_measurements
 from aerocal.geometry import matrix_from_quat_wxyz, quat_wxyz_from_matrix
 from aerocal.poses import poses_arrays
@@ -189,14 +195,19 @@ def _poses_table(block: Block, st: State) -> pa.Table:
     )
 
 
-def _points_table(block: Block, sol: Solution) -> pa.Table:
+def _points_table(block: Block, sol: Solution) -> tuple[pa.Table, int]:
+    """The adjusted tie points the rays place (:func:`placed_by_rays`), by track id, and how many were not."""
     tie = block.obs_is_tie
     j = block.obs_point[tie]
     err = np.linalg.norm(sol.obs_residual_px[tie], axis=1)
     n = np.bincount(j, minlength=block.n_tie)
     mean_err = np.bincount(j, weights=err, minlength=block.n_tie) / np.maximum(n, 1)
-    X = sol.state.X[: block.n_tie] + block.origin
+    st = sol.state
+    placed = placed_by_rays(st.X[: block.n_tie], st.R, st.C, block.obs_image[tie], j, block.obs_sigma[tie],
+                            float(st.io[0]))
+    X = st.X[: block.n_tie] + block.origin
     order = np.argsort(block.track_ids, kind="stable")  # by track id, whatever the block's numbering
+    order = order[placed[order]]
     return tables.from_columns(
         "points",
         {
@@ -208,7 +219,7 @@ def _points_table(block: Block, sol: Solution) -> pa.Table:
             "error": mean_err[order],
         },
         crs=block.crs,
-    )
+    ), int(block.n_tie - len(order))
 
 
 def _result(
@@ -260,6 +271,7 @@ def _result(
     var = np.einsum("kii->ki", chk.cov) + block.check_sigma**2 if len(chk.ids) else np.zeros((0, 3))
     good = np.isfinite(err).all(axis=1)
     rmse = np.sqrt(np.mean(err[good] ** 2, axis=0)) if good.any() else np.full(3, np.nan)
+    points, unplaced = _points_table(block, sol)
     return AdjustmentResult(
         camera=cam,
         thermal=thermal,
@@ -273,7 +285,7 @@ def _result(
         thermal_slopes=slopes,
         thermal_sigmas=slope_sig,
         poses=_poses_table(block, st),
-        points=_points_table(block, sol),
+        points=points,
         sigma0=sol.sigma0,
         reprojection_rms=rms,
         dof=sol.dof,
@@ -290,6 +302,9 @@ def _result(
         config=config,
         crs=block.crs,
         obs_weight=weight,
+        selection=[f"{unplaced} adjusted tie points not handed back: their rays do not place them (behind a "
+                   f"camera, or nearly parallel: sigma along them above {MAX_POINT_SIGMA_FRACTION:g} of their depth)"]
+        if unplaced else [],
     )
 
 
@@ -388,7 +403,7 @@ def adjust(
         final_cfg, freed = config, []
     else:
         result, reasons, final_cfg = select_parameters(run, config)
-        result.selection = reasons
+        result.selection = reasons + result.selection
         freed = [n for n in result.dropped if n in config.free]
     freed += [n for n in config.marginal_over if n not in final_cfg.free and n not in freed]
     if freed:
@@ -563,8 +578,8 @@ def _intersect_left_out(
     weight[used] = inner.obs_weight
     rest = np.setdiff1d(np.arange(n_rows), used)
     n_tracks = len(np.unique(observations.column("track_id").to_numpy()))
-    n_used = inner.points.num_rows
-    added = flagged = 0
+    n_used = len(np.unique(observations.column("track_id").to_numpy()[used]))
+    added = flagged = unplaced = 0
     if len(rest):
         obs = observations.take(pa.array(rest, pa.int64()))
         p_ids, R, C = poses_arrays(inner.poses)
@@ -593,6 +608,9 @@ def _intersect_left_out(
         X, ok = _intersect_in_front(j, len(track_ids), R[i_safe, 2], C[i_safe], rays)
         ok &= ok_track
         X, _ = refine_points(io, slopes, dtemp, R[i_safe], C[i_safe], j, uv, sigma, np.where(ok[:, None], X, 0.0))
+        placed = placed_by_rays(X, R, C, i_safe, j, sigma, float(io[0]))
+        unplaced = int(np.count_nonzero(ok & ~placed))
+        ok &= placed
         r = project(io, slopes, dtemp, R[i_safe], C[i_safe], X[j], jacobians=False).uv - uv
         good_obs = ok[j] & np.isfinite(r).all(axis=1)
         res[rest[good_obs]] = r[good_obs]
@@ -620,6 +638,7 @@ def _intersect_left_out(
         f"tie points thinned: {n_used} of {n_tracks} tracks adjusted ({len(used)} of {n_rows} observations: "
         f"the {thinning.per_cell} tracks with the most rays in each cell of {thinning.grid[0]} x "
         f"{thinning.grid[1]} per image); {added} more intersected afterwards from the adjusted poses and IO"
+        + (f" ({unplaced} whose rays do not place them left out)" if unplaced else "")
         + (f", {flagged} of their observations rejected as blunders (normalised squared residual above "
            f"{inner.config.reject_chi2:g})" if inner.config.reject_chi2 is not None else "")
     ] + inner.selection

@@ -7,6 +7,7 @@ The linear step minimises the sum of squared perpendicular distances from the po
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from aerocal.adjust.projection import project
@@ -105,3 +106,67 @@ def refine_points(
         if np.nanmax(np.abs(step), initial=0.0) < 1e-9:
             break
     return X, N
+
+
+#: A tie point is handed back only when its rays place it: in front of every camera seeing it, and spread
+#: by an angle that puts its sigma along them below this fraction of its depth (for rays spread by ``theta``
+#: radians the sigma along them is about ``depth sqrt(2) sigma_px / (f theta)``). A two-ray thermal point
+#: 850 m deep on a 60 m base at 0.2 px has 0.002 of its depth; nearly parallel rays have more than all of it.
+MAX_POINT_SIGMA_FRACTION = 0.1
+
+
+def placed_by_rays(
+    X: np.ndarray, R: np.ndarray, C: np.ndarray, image: np.ndarray, point: np.ndarray, sigma_px: np.ndarray,
+    f: float,
+) -> np.ndarray:
+    """Mask (P,) of the points ``X`` (P, 3) that their rays place (:data:`MAX_POINT_SIGMA_FRACTION`).
+
+    ``R`` (N, 3, 3) world-to-camera and ``C`` (N, 3) per image; one row per observation in ``image``,
+    ``point`` and ``sigma_px`` (pixels); ``f`` the focal length in pixels. The spread of a point's rays is
+    the largest angle between its first ray and another: exact for two rays, at least half the largest
+    angle between any two of more (their spread is then far above the limit anyway).
+
+    On a rendered 129-frame city block one two-ray point the adjustment handed back lay 320 km off the
+    block and 9,700 km deep (a residual of 0.17 px), and the DSM gridded with it had 8 x 8 cells of 635 m.
+    Compiled (numba), one pass: 12 M observations took 14 s with numpy's ``bincount`` and ``minimum.at``.
+    """
+    X = np.ascontiguousarray(X, dtype=float)
+    axis = np.ascontiguousarray(np.asarray(R, dtype=float)[:, 2])
+    acc = _ray_spread(X, axis, np.ascontiguousarray(C, dtype=float), np.asarray(image, dtype=np.int64),
+                      np.asarray(point, dtype=np.int64), np.asarray(sigma_px, dtype=float))
+    min_cos, sigma_sum, n, front = acc[:, 3], acc[:, 4], acc[:, 5], acc[:, 6] > 0
+    spread = np.arccos(np.clip(min_cos, -1.0, 1.0))
+    sigma = sigma_sum / np.maximum(n, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sigma_fraction = np.sqrt(2.0) * sigma / (f * spread)
+    return front & np.isfinite(X).all(axis=1) & (n >= 2) & (sigma_fraction < MAX_POINT_SIGMA_FRACTION)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _ray_spread(X, axis, C, image, point, sigma_px):
+    """Per point, in one pass over the observations, a row of 8 (one cache line; the observations come in
+    image order, so the points are visited at random): its first ray's direction (3), the smallest cosine
+    between that ray and another, the sum of its sigmas, its rays, and 1 while it is in front of every
+    camera seeing it, else 0."""
+    P = X.shape[0]
+    acc = np.zeros((P, 8))
+    acc[:, 3] = 1.0
+    acc[:, 6] = 1.0
+    for m in range(point.shape[0]):
+        i, j = image[m], point[m]
+        v0, v1, v2 = X[j, 0] - C[i, 0], X[j, 1] - C[i, 1], X[j, 2] - C[i, 2]
+        a = acc[j]
+        if not axis[i, 0] * v0 + axis[i, 1] * v1 + axis[i, 2] * v2 > 0:
+            a[6] = 0.0
+        norm = np.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+        if norm > 0:
+            v0, v1, v2 = v0 / norm, v1 / norm, v2 / norm
+            if a[5] == 0:
+                a[0], a[1], a[2] = v0, v1, v2
+            else:
+                c = v0 * a[0] + v1 * a[1] + v2 * a[2]
+                if c < a[3]:
+                    a[3] = c
+        a[5] += 1.0
+        a[4] += sigma_px[m]
+    return acc

@@ -1,0 +1,76 @@
+"""Compiled inner loop of the orthomosaic: where one frame sees every pixel of an output tile.
+
+:func:`aerocal.mosaic.render_tile` needs, for every candidate frame and every output pixel, the recorded
+pixel of the ground point (the full Brown + affinity camera model), whether it falls inside the frame, its
+distance to the principal point (the nadir score) and the border taper. numpy formed these with ~20
+full-tile float64 temporaries per frame (the ground points, the camera-frame points, the distortion terms,
+the masks); measured on a 129-frame conte-city block (208 tiles of 256 x 256, 1184 frame-tile pairs) that
+was 8 of the 11.6 s of the tiles. Here it is one pass over the pixels per frame, compiled by numba, with
+the operations of :meth:`aerocal.camera.Camera.project` in the same order; ``tests/test_mosaic.py`` checks
+it against that numpy path (:func:`aerocal.mosaic._frame_view_numpy`, still used for the thermal models that
+correct measurements) on a strongly distorted affine camera: scores to 1e-9, maps to 1e-3 px (float32).
+The whole mosaic of that block took 6.9 s instead of 15.5 s; 3 of its 13 M pixels differ by 1 DN (a sum
+rounded the other way).
+
+Conventions: ``e`` (cols,) and ``n`` (rows,) are the world E, N of the tile's pixel centres, ``h``
+(rows, cols) the DSM heights (NaN: none); ``R`` is world-to-camera, ``C`` the projection centre; ``io``
+the camera parameters in the order of :data:`aerocal.camera.PARAM_NAMES`; pixels from the top-left corner.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+#: Map value (OpenCV pixel convention) written where a frame has no projection: outside any image.
+NO_PIXEL = -10.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score, taper):
+    """Fill, for one frame, the tile's ``map_u``/``map_v`` (float32, OpenCV's pixel convention: ours minus
+    0.5, :data:`NO_PIXEL` where the ground point is behind the camera or has no height), ``score`` (float64
+    distance to the principal point, inf where the pixel is not inside the frame) and ``taper`` (min(border
+    distance / feather_px, 1), at least 1e-6 inside the frame, 0 outside). Returns whether any pixel is
+    inside the frame."""
+    f, cx, cy, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
+    feather = max(feather_px, 1e-9)
+    half = np.float32(0.5)
+    seen = False
+    rows, cols = h.shape
+    for r in range(rows):
+        dn = n[r] - C[1]
+        for c in range(cols):
+            score[r, c] = np.inf
+            taper[r, c] = 0.0
+            map_u[r, c] = NO_PIXEL
+            map_v[r, c] = NO_PIXEL
+            hh = h[r, c]
+            if not np.isfinite(hh):
+                continue
+            de = e[c] - C[0]
+            dh = hh - C[2]
+            px = de * R[0, 0] + dn * R[0, 1] + dh * R[0, 2]
+            py = de * R[1, 0] + dn * R[1, 1] + dh * R[1, 2]
+            pz = de * R[2, 0] + dn * R[2, 1] + dh * R[2, 2]
+            if not pz > 0:
+                continue
+            x = px / pz
+            y = py / pz
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
+            yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
+            u = cx + xd * (f + b1) + yd * b2
+            v = cy + yd * f
+            if not (np.isfinite(u) and np.isfinite(v)):
+                continue
+            map_u[r, c] = np.float32(u) - half
+            map_v[r, c] = np.float32(v) - half
+            if not (u >= 0.0 and u <= width and v >= 0.0 and v <= height):
+                continue
+            score[r, c] = np.hypot(u - cx, v - cy)
+            border = min(u, width - u, v, height - v)
+            taper[r, c] = min(max(border / feather, 1e-6), 1.0)
+            seen = True
+    return seen
