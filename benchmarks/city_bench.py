@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import rasterio
 
 from aerocal import tables
 from aerocal.camera import Camera
@@ -220,6 +221,9 @@ def main(argv: list[str] | None = None) -> None:
             run_dir = Path(summary["out_dir"])
             adj = json.loads((run_dir / "adjustment.json").read_text())
             mosaic = summary["steps"]["mosaic"]
+            with rasterio.open(run_dir / "dsm.tif") as d, rasterio.open(run_dir / "orthomosaic.tif") as o:
+                grids = (f"- DSM: {d.height} x {d.width} cells of {d.res[0]:.2f} m; orthomosaic {o.height} x "
+                         f"{o.width} px of {o.res[0]:.3f} m")
             lines += [
                 f"| **total (wall, flow start to report)** | | **{wall:.1f} s** |", "",
                 f"- peak memory: flow process {peak_flow:.0f} MB, largest Dask worker {peak_workers:.0f} MB",
@@ -230,6 +234,7 @@ def main(argv: list[str] | None = None) -> None:
                 f"- matching (features + matches): {summary['steps']['match'].get('seconds', float('nan')):.1f} s "
                 f"(target < 180 s for 800 frames)",
                 f"- DSM + orthomosaic: {mosaic.get('seconds', float('nan')):.1f} s (target < 120 s)",
+                grids,
                 f"- diagnosis: {json.loads((run_dir / 'diagnosis.json').read_text()).get('summary')}",
                 "",
             ]
