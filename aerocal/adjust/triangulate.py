@@ -128,7 +128,8 @@ def placed_by_rays(
 
     On a rendered 129-frame city block one two-ray point the adjustment handed back lay 320 km off the
     block and 9,700 km deep (a residual of 0.17 px), and the DSM gridded with it had 8 x 8 cells of 635 m.
-    Compiled (numba), one pass: 12 M observations took 14 s with numpy's ``bincount`` and ``minimum.at``.
+    Compiled (numba), one pass over the observations: 12 M of them, grouped by point, took 2.7 s
+    (7 s in random order), against 14 s with numpy's ``bincount`` and ``minimum.at`` (measured under load).
     """
     X = np.ascontiguousarray(X, dtype=float)
     axis = np.ascontiguousarray(np.asarray(R, dtype=float)[:, 2])
@@ -144,8 +145,8 @@ def placed_by_rays(
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _ray_spread(X, axis, C, image, point, sigma_px):
-    """Per point, in one pass over the observations, a row of 8 (one cache line; the observations come in
-    image order, so the points are visited at random): its first ray's direction (3), the smallest cosine
+    """Per point, in one pass over the observations, a row of 8 (one cache line: the observations need not be
+    grouped by point, so the points are visited in any order): its first ray's direction (3), the smallest cosine
     between that ray and another, the sum of its sigmas, its rays, and 1 while it is in front of every
     camera seeing it, else 0."""
     P = X.shape[0]
