@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import re
+import time
 from pathlib import Path
 
 import cv2
@@ -186,6 +187,32 @@ def test_dask_and_serial_matching_give_identical_matches(client, dask_case_items
     assert on_cluster.matches.num_rows > 200
     assert on_cluster.matches.equals(here.matches)
     assert on_cluster.pair_stats.equals(here.pair_stats)
+
+
+@pytest.mark.parametrize("granularity", ["image", "tile"])
+def test_streamed_detection_and_matching_give_the_two_phase_tables(
+    client, dask_case_items, h20t_loader, serial_keypoints, granularity
+):
+    """Pairs matched as soon as their images are detected: the serial keypoints and matches, every column; an
+    image in a pair but not in the images has no features, as in the two-phase path."""
+    from aerocal.matching import detect_and_match
+
+    pairs = np.vstack([exhaustive_pairs([3, 7, 11]), [[3, 99]]])
+    cfg, fcfg = MatchConfig(pairs_per_task=2), dataclasses.replace(DASK_CASE, granularity=granularity)
+    calls: list[tuple[int, int]] = []
+    kp, streamed = detect_and_match(dask_case_items, h20t_loader, pairs, fcfg, cfg, client,
+                                    progress=lambda d, t: calls.append((d, t)))
+    here = match_pairs_detailed(pairs, serial_keypoints, cfg)
+    assert kp.equals(serial_keypoints)
+    assert streamed.matches.num_rows > 200
+    assert streamed.matches.equals(here.matches)
+    assert streamed.pair_stats.equals(here.pair_stats)
+    assert streamed.pair_stats.num_rows == 4  # (3, 99) tried, not verified
+    assert calls[-1] == (3 + 4, 3 + 4) and all(a[0] <= b[0] for a, b in zip(calls, calls[1:], strict=False))
+    deadline = time.monotonic() + 10.0  # releases reach the scheduler asynchronously
+    while client.who_has() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not client.who_has(), "the cluster still holds features or matches after the call"
 
 
 # ----------------------------------------------------------------------------- (d) footprint pairs

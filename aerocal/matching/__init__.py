@@ -8,9 +8,13 @@ The steps, each usable alone and each exchanging the Arrow tables of :mod:`aeroc
         matches = match_pairs(pairs, kp, MatchConfig(), client)                   # matches table
     obs = build_tracks(matches, kp)                                               # observations table
 
+On a cluster, :func:`detect_and_match` gives the same keypoints and matches with detection and matching
+streamed as one set of tasks (a pair is matched as soon as its two images are detected).
+
 Modules: :mod:`.features` (detection on tiles), :mod:`.pairs` (footprint overlap),
 :mod:`.verify` (FLANN, ratio test, RANSAC), :mod:`.tracks` (connected components),
-:mod:`.cluster` (Dask), :mod:`.config` (the configuration dataclasses).
+:mod:`.stream` (detection and matching streamed on Dask), :mod:`.cluster` (Dask), :mod:`.config` (the
+configuration dataclasses).
 """
 
 from aerocal.matching.cluster import dask_client, local_client
@@ -24,6 +28,7 @@ from aerocal.matching.pairs import (
     prior_poses,
     sequential_pairs,
 )
+from aerocal.matching.stream import detect_and_match
 from aerocal.matching.tracks import build_tracks
 from aerocal.matching.verify import (
     PAIR_STATS,
@@ -46,6 +51,7 @@ __all__ = [
     "candidate_pairs_from_footprints",
     "convex_overlap_area",
     "detect",
+    "detect_and_match",
     "exhaustive_pairs",
     "extract_features",
     "footprints",

@@ -295,7 +295,12 @@ def match_pairs_detailed(
         scattered = client.scatter([feats[i] for i in used])  # type: ignore[attr-defined]
         source = dict(zip(used, scattered, strict=True))
     args = [(b, {int(i): source[int(i)] for i in np.unique(b) if int(i) in source}, config) for b in batches]
-    results = run_all(_match_batch, args, client, progress, weights=[len(b) for b in batches])
+    return match_result(pairs, run_all(_match_batch, args, client, progress, weights=[len(b) for b in batches]))
+
+
+def match_result(pairs: np.ndarray, results: list) -> MatchResult:
+    """The :class:`MatchResult` of normalised ``pairs`` from the ``(matches, stats)`` of their batches
+    (:func:`_match_batch`), batches in the order of the pairs."""
     matches = np.concatenate([r[0] for r in results]) if results else np.zeros((0, 4), np.int64)
     stats = np.concatenate([r[1] for r in results]) if results else np.zeros((0, 4))
     table = tables.from_columns("matches", {

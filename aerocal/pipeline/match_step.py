@@ -17,9 +17,8 @@ from aerocal.matching import (
     build_tracks,
     candidate_pairs_from_footprints,
     dask_client,
+    detect_and_match,
     exhaustive_pairs,
-    extract_features,
-    match_pairs,
 )
 from aerocal.orient import has_priors
 from aerocal.pipeline.config import MatchStepConfig
@@ -66,8 +65,8 @@ def match_images(
     """Enhance and match the frames of an ``images`` table: (keypoints, matches, observations, pairs tried).
 
     Candidate pairs come from the GNSS/IMU footprints on a plane at :func:`terrain_height`; without GNSS/IMU
-    for every image, all pairs (up to ``config.exhaustive_max_images``). SIFT runs on image tiles on the Dask
-    client :func:`aerocal.matching.dask_client` chooses.
+    for every image, all pairs (up to ``config.exhaustive_max_images``). SIFT and the pairs run on the Dask client
+    :func:`aerocal.matching.dask_client` chooses, streamed (:func:`aerocal.matching.detect_and_match`).
     """
     config = config or MatchStepConfig()
     loader = frame_loader(images.column("path").to_pylist(), config.enhance)
@@ -86,8 +85,8 @@ def match_images(
     megapixels = float(np.sum(images.column("width").to_numpy().astype(float)
                               * images.column("height").to_numpy().astype(float))) / 1e6
     with dask_client(dask_address, config.dask_workers, megapixels <= config.serial_max_megapixels) as client:
-        kp = extract_features(images, loader, config.features or FeatureConfig(), client)
-        matches = match_pairs(pairs, kp, mcfg, client)
+        kp, result = detect_and_match(images, loader, pairs, config.features or FeatureConfig(), mcfg, client)
+    matches = result.matches
     return kp, matches, build_tracks(matches, kp, mcfg), int(len(pairs))
 
 

@@ -1,0 +1,113 @@
+"""Detection and matching as one stream of tasks on a Dask cluster.
+
+:func:`aerocal.matching.extract_features` followed by :func:`aerocal.matching.match_pairs_detailed` runs in
+two phases: every image's features come back to the caller, are assembled into the ``keypoints`` table,
+split again per image and sent back to the cluster before the first pair is matched, and the workers idle
+while the last images finish. Here a pair's matching task depends on the detection tasks of its two images
+and starts as soon as both are done; each image's features are sent to the caller once (for the table) and
+dropped from the cluster when the last pair that needs them is matched, so the workers hold the features of
+the images in flight, not of the whole flight.
+
+Measured on the rendered 818-frame ``conte-city`` flight (640x480 thermal, 3418 footprint pairs, 2 workers):
+69.5 s against 74.6 s for the two phases; the work itself (SIFT 95 ms per frame, a pair 13 ms, one core)
+is 61 s of it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pyarrow as pa
+
+from aerocal.matching.cluster import Progress, n_workers
+from aerocal.matching.config import FeatureConfig, MatchConfig
+from aerocal.matching.features import _detect_image_task, _image_items, extract_features, keypoints_table
+from aerocal.matching.verify import (
+    MatchResult,
+    _batches,
+    _match_batch,
+    match_pairs_detailed,
+    match_result,
+    normalise_pairs,
+)
+
+
+def _match_detected(pairs: np.ndarray, detected: dict[int, tuple], config: MatchConfig):
+    """:func:`aerocal.matching.verify._match_batch` on detection results ``{image_id: (image_id, (kp, desc))}``;
+    keypoint ids number each image's keypoints 0..N-1, as :func:`keypoints_table` does."""
+    features = {i: (np.arange(len(kp), dtype=np.int32), kp[:, :2].astype(np.float64), desc)
+                for i, (_, (kp, desc)) in detected.items()}
+    return _match_batch(pairs, features, config)
+
+
+def detect_and_match(
+    images,
+    loader: Callable[[object], np.ndarray],
+    pairs,
+    features: FeatureConfig | None = None,
+    match: MatchConfig | None = None,
+    client: object | None = None,
+    progress: Progress | None = None,
+) -> tuple[pa.Table, MatchResult]:
+    """The ``keypoints`` table and the verified matches of ``pairs``: the same tables as
+    :func:`extract_features` then :func:`match_pairs_detailed`, streamed on ``client``.
+
+    Without a client, or when ``features.granularity`` chooses tiles (few large images), the two phases run
+    one after the other. ``progress(done, total)`` counts images detected plus pairs matched.
+    """
+    fcfg = features or FeatureConfig()
+    mcfg = match or MatchConfig()
+    items = _image_items(images)
+    pairs = normalise_pairs(pairs)
+    tiles = client is not None and fcfg.tile_size > 0 and (
+        fcfg.granularity == "tile" or (fcfg.granularity == "auto" and len(items) < 2 * n_workers(client)))
+    if client is None or tiles or not items:
+        n = len(items)
+        kp = extract_features(images, loader, fcfg, client, None if progress is None else
+                              (lambda d, t: progress(d * n // max(t, 1), n + len(pairs))))
+        return kp, match_pairs_detailed(pairs, kp, mcfg, client, None if progress is None else
+                                        (lambda d, t: progress(n + d, n + t)))
+
+    # lazy: distributed costs ~1.2 s to import (measured); only the Dask path needs it
+    from distributed import as_completed
+
+    detected = {i: client.submit(_detect_image_task, i, s, loader, fcfg, pure=False)  # type: ignore[attr-defined]
+                for i, s in items}
+    batches = _batches(pairs, mcfg.pairs_per_task)
+    users = {i: 0 for i in detected}  # batches still to run that need the image's features
+    batch_images = []
+    for b in batches:
+        ids = [int(i) for i in np.unique(b) if int(i) in detected]
+        batch_images.append(ids)
+        for i in ids:
+            users[i] += 1
+    matched = [client.submit(_match_detected, b, {i: detected[i] for i in ids}, mcfg, pure=False)  # type: ignore[attr-defined]
+               for b, ids in zip(batches, batch_images, strict=True)]
+    kind = {f.key: ("image", i) for i, f in detected.items()} | {f.key: ("batch", k) for k, f in enumerate(matched)}
+    total, done = len(items) + len(pairs), 0
+    found: dict[int, tuple] = {}
+    results: list = [None] * len(batches)
+    try:
+        for fut in as_completed([*detected.values(), *matched]):
+            what, k = kind[fut.key]
+            if what == "image":
+                found[k] = fut.result()[1]
+                done += 1
+                if users[k] == 0:
+                    detected.pop(k).release()
+            else:
+                results[k] = fut.result()
+                done += len(batches[k])
+                for i in batch_images[k]:
+                    users[i] -= 1
+                    if users[i] == 0 and i in found:
+                        detected.pop(i).release()
+                fut.release()
+            if progress is not None:
+                progress(done, total)
+    finally:
+        for fut in [*detected.values(), *matched]:
+            fut.release()
+    kp = keypoints_table([(i, *found[i]) for i, _ in items])
+    return kp, match_result(pairs, results)
