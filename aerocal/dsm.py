@@ -22,10 +22,11 @@ Method (what :func:`dsm_from_points` does)
    height range, gave every tile every frame.
 2. **Median per cell** of the remaining points (robust to a residual blunder in a crowded cell).
 3. **Hole filling** by linear interpolation on the Delaunay triangulation of the filled cells
-   (``scipy.interpolate.griddata``), nearest value outside their convex hull, optionally limited to
-   ``max_fill_distance_m`` from the nearest data cell. :attr:`Dsm.distance_m` keeps, per cell, the
-   distance to the nearest cell that held a tie point, so users (and :mod:`aerocal.assess`) can tell
-   measured heights from interpolated ones.
+   (``scipy.interpolate.griddata``'s values, rasterised triangle by triangle), nearest value outside their
+   convex hull (everywhere when the data cells lie on one line), optionally limited to
+   ``max_fill_distance_m`` from the nearest data cell. :attr:`Dsm.distance_m` keeps, per cell, the distance
+   to the nearest cell that held a tie point, so users (and :mod:`aerocal.assess`) can tell measured heights
+   from interpolated ones.
 
 Why tie points and no dense stereo (cv2.StereoSGBM on rectified pairs) - measured on the
 ``conte-calibration`` flight (850 m, GSD 0.51 m, 12-14 frames, ~1100 tie points, i.e. one per ~200 m2,
@@ -48,12 +49,12 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numba
 import numpy as np
 import rasterio
 from rasterio.transform import from_origin
 from scipy import ndimage
-from scipy.interpolate import griddata
-from scipy.spatial import cKDTree
+from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from aerocal.io import atomic_path
 
@@ -324,21 +325,62 @@ def bulk_extent(xy: np.ndarray, tail: float = 0.01) -> tuple[np.ndarray, np.ndar
 
 
 def _fill(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
-    """Linear interpolation on the Delaunay triangulation of the data cells, nearest outside the hull."""
+    """Linear interpolation on the Delaunay triangulation of the data cells, nearest outside the hull.
+
+    The values of ``scipy.interpolate.griddata`` (linear, then nearest), computed differently: the data cells
+    lie on the grid, so each Delaunay triangle is rasterised over the hole cells it covers
+    (:func:`_raster_triangles`) instead of locating every hole cell in the triangulation, and the nearest data
+    cell outside the hull comes from the distance transform's indices. Measured on the rendered 818-frame city
+    (2064 x 2690 cells, 257,924 with data; another job on the second core): 4.4 s against 7.1 s for
+    ``griddata``, of which Delaunay takes 3.0 s in both. Inside the hull the heights agree to 3e-13 m; of the
+    65,720 cells outside it, 466 took the other one of two equally near data cells."""
     rr, cc = np.nonzero(has)
-    known = np.column_stack([rr, cc]).astype(float)
-    values = heights[has]
-    hr, hc = np.nonzero(~has)
-    if len(hr) == 0:
+    if not (~has).any():
         return heights
-    holes = np.column_stack([hr, hc]).astype(float)
-    out = heights.copy()
-    lin = griddata(known, values, holes, method="linear")
-    miss = ~np.isfinite(lin)
-    if miss.any():
-        lin[miss] = griddata(known, values, holes[miss], method="nearest")
-    out[hr, hc] = lin
+    out = heights.astype(np.float64, copy=True)
+    filled = has.copy()
+    try:
+        tri = Delaunay(np.column_stack([rr, cc]).astype(float))
+    except QhullError:  # the data cells lie on one line: no triangle, the nearest value everywhere
+        tri = None
+    if tri is not None:
+        corners = np.stack([rr[tri.simplices], cc[tri.simplices]], axis=2).astype(np.int64)
+        _raster_triangles(corners, heights[rr, cc][tri.simplices].astype(np.float64), out, filled)
+    if not filled.all():
+        near = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+        hr, hc = np.nonzero(~filled)
+        out[hr, hc] = heights[near[0, hr, hc], near[1, hr, hc]]
     return out
+
+
+@numba.njit(cache=True)
+def _raster_triangles(rows: np.ndarray, values: np.ndarray, out: np.ndarray, filled: np.ndarray) -> None:
+    """Fill the cells of ``out`` (not yet ``filled``) that triangles cover, by barycentric interpolation.
+
+    ``rows`` (T, 3, 2) int64: each triangle's vertices as (row, col) cell indices; ``values`` (T, 3) their
+    heights. A cell on an edge shared by two triangles takes the first one's value (the two agree there).
+    Cells covered get ``filled[r, c] = True``."""
+    n_rows, n_cols = out.shape
+    for t in range(rows.shape[0]):
+        r0, c0 = rows[t, 0, 0], rows[t, 0, 1]
+        r1, c1 = rows[t, 1, 0], rows[t, 1, 1]
+        r2, c2 = rows[t, 2, 0], rows[t, 2, 1]
+        det = (r1 - r0) * (c2 - c0) - (r2 - r0) * (c1 - c0)
+        if det == 0:
+            continue
+        inv = 1.0 / det
+        v0, v1, v2 = values[t, 0], values[t, 1], values[t, 2]
+        for r in range(max(min(r0, r1, r2), 0), min(max(r0, r1, r2), n_rows - 1) + 1):
+            for c in range(max(min(c0, c1, c2), 0), min(max(c0, c1, c2), n_cols - 1) + 1):
+                if filled[r, c]:
+                    continue
+                # integer cross products: exact, so a cell on an edge is inside both triangles
+                a1 = (r - r0) * (c2 - c0) - (r2 - r0) * (c - c0)
+                a2 = (r1 - r0) * (c - c0) - (r - r0) * (c1 - c0)
+                a0 = det - a1 - a2
+                if (det > 0 and a0 >= 0 and a1 >= 0 and a2 >= 0) or (det < 0 and a0 <= 0 and a1 <= 0 and a2 <= 0):
+                    out[r, c] = (a0 * v0 + a1 * v1 + a2 * v2) * inv
+                    filled[r, c] = True
 
 
 def write_dsm(dsm: Dsm, path: str | Path) -> Path:

@@ -133,3 +133,42 @@ def test_a_few_points_intersected_far_off_the_block_do_not_coarsen_the_grid(wild
     E, N = dsm.cell_centres()
     inside = (E > 686200) & (E < 687800) & (N > 4929200) & (N < 4930500)
     assert np.nanmax(np.abs(dsm.heights[inside] - _plane(E[inside], N[inside]))) < 0.5, f"seed {seed}"
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_hole_filling_gives_scipy_griddata_values(seed):
+    """Linear on the data cells' Delaunay triangles, nearest outside their hull: scipy's griddata values (an
+    equidistant tie outside the hull may take either cell)."""
+    from scipy.interpolate import griddata
+    from scipy.spatial import cKDTree
+
+    from aerocal.dsm import _fill
+
+    rng = np.random.default_rng(seed)
+    heights = np.full((120, 90), np.nan)
+    r, c = rng.integers(10, 110, 300), rng.integers(5, 80, 300)
+    heights[r, c] = 100.0 + 0.3 * r - 0.2 * c + rng.normal(0.0, 2.0, 300)
+    has = np.isfinite(heights)
+    filled = _fill(heights, has)
+    known, holes = np.argwhere(has).astype(float), np.argwhere(~has).astype(float)
+    linear = griddata(known, heights[has], holes, method="linear")
+    inside = np.isfinite(linear)
+    got = filled[~has]
+    assert np.isfinite(filled).all(), f"seed {seed}"
+    np.testing.assert_allclose(got[inside], linear[inside], atol=1e-9, err_msg=f"seed {seed}")
+    d, _ = cKDTree(known).query(holes[~inside], k=2)
+    nearest = griddata(known, heights[has], holes[~inside], method="nearest")
+    differ = got[~inside] != nearest
+    assert np.allclose(d[differ, 0], d[differ, 1]), f"seed {seed}: a hole took a data cell that is not nearest"
+    assert differ.mean() < 0.05, f"seed {seed}"
+
+
+def test_data_cells_on_one_line_fill_the_grid_with_the_nearest_height():
+    """No triangle to interpolate on (one row of tie points, e.g. a single strip's centre line): the DSM is
+    filled from the nearest cell instead of failing in qhull."""
+    pts = np.column_stack([np.linspace(0.0, 100.0, 50), np.full(50, 10.0), np.linspace(20.0, 30.0, 50)])
+    dsm = dsm_from_points(pts, "EPSG:32632", config=DsmConfig(cell_m=2.0))
+    assert np.isfinite(dsm.heights).all()
+    assert dsm.heights.min() >= 20.0 - 1e-6 and dsm.heights.max() <= 30.0 + 1e-6
+    west_col = dsm.heights[:, :3]
+    assert np.all(west_col < 21.0)
