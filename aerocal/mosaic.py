@@ -416,6 +416,10 @@ def build_mosaic(
         "transform": transform, "nodata": nodata, "tiled": True, "blockxsize": config.tile_px,
         "blockysize": config.tile_px, "compress": "deflate", "predictor": 2, "BIGTIFF": "IF_SAFER",
     }
+    # the working file is written by this process while the workers render, and read once by _finalise:
+    # zstd level 1 instead of the product's deflate. Measured on the rendered 818-frame city's orthomosaic
+    # (10365 x 7953 px, uint16): written in 0.4 s against 3.2 s, 97 MB against 87 MB (176 MB uncompressed)
+    work_profile = profile | {"compress": "zstd", "zstd_level": 1}
     total = len(tiles)
     with_data = 0
     valid_px = 0
@@ -423,7 +427,7 @@ def build_mosaic(
                                    else None))
     try:
         work = tmpdir / "work.tif"
-        with rasterio.open(work, "w", **profile) as dst:
+        with rasterio.open(work, "w", **work_profile) as dst:
             done = 0
             for tile, arr in _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client):
                 dst.write(arr, window=rasterio.windows.Window(tile.col0, tile.row0, tile.cols, tile.rows))
@@ -483,20 +487,24 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
 
 
 def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict) -> None:
-    """Copy the working GeoTIFF to ``out_path`` as a COG (or tiled GeoTIFF with overviews), atomically."""
+    """Copy the working GeoTIFF to ``out_path`` as a COG (or tiled GeoTIFF with overviews), atomically.
+
+    GDAL compresses with every core (``NUM_THREADS``): the workers are done by now. Measured on the rendered
+    818-frame city's orthomosaic: the COG copy in 3.4 s against 4.8 s with one thread (2 cores)."""
     resampling = Resampling[config.overview_resampling]
     with atomic_path(out_path) as tmp:
         if config.cog:
             rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", PREDICTOR="YES",
                                  BLOCKSIZE=config.tile_px, OVERVIEW_RESAMPLING=config.overview_resampling.upper(),
-                                 BIGTIFF="IF_SAFER")
+                                 BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
         else:
             with rasterio.open(work, "r+") as src:
                 factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 64]
                 if factors:
                     src.build_overviews(factors, resampling)
             rasterio.shutil.copy(work, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", PREDICTOR=2,
-                                 BLOCKXSIZE=config.tile_px, BLOCKYSIZE=config.tile_px, COPY_SRC_OVERVIEWS="YES")
+                                 BLOCKXSIZE=config.tile_px, BLOCKYSIZE=config.tile_px, COPY_SRC_OVERVIEWS="YES",
+                                 NUM_THREADS="ALL_CPUS")
 
 
 def write_temperature_raster(
