@@ -132,3 +132,28 @@ def test_a_point_the_rays_cannot_place_is_not_handed_back():
     assert not keep[2], "a point behind the cameras"
     assert placed_by_rays(X[:1], R, C, image[:2], j[:2], sigma[:2], cam.f)[0]
     assert not placed_by_rays(X[:1], R, C, image[:1], j[:1], sigma[:1], cam.f)[0], "one ray places nothing"
+
+
+def test_a_mismatch_placed_kilometres_below_the_ground_is_not_handed_back():
+    """Rays spread well enough still place a mismatch along the epipolar line: on the rendered city two-ray
+    points lay up to 6.8 km below the ground with tenths of a pixel of residual. Deeper than 3 times the mean
+    depth of a camera's points, such a point is left out; a valley 400 m below the 850 m flying height stays."""
+    from aerocal.adjust.projection import project
+    from aerocal.adjust.triangulate import MAX_POINT_SIGMA_FRACTION, placed_by_rays
+    from aerocal.camera import Camera
+
+    cam = Camera(width=640, height=480, f=1674.0, cx=320.0, cy=240.0)
+    R = np.repeat(np.diag([1.0, -1.0, -1.0])[None], 2, axis=0)  # world-to-camera, looking down
+    C = np.array([[0.0, 0.0, 850.0], [60.0, 0.0, 850.0]])
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(-40.0, 100.0, 50), rng.uniform(-60.0, 60.0, 50), np.zeros(50)])
+    X = np.vstack([ground, [[30.0, 0.0, -400.0], [30.0, 0.0, -6000.0]]])
+    image, j = np.tile([0, 1], len(X)), np.repeat(np.arange(len(X)), 2)
+    sigma = np.full(len(j), 0.2)
+    uv = project(cam.params(), np.zeros(3), np.zeros(len(j)), R[image], C[image], X[j], jacobians=False).uv
+    assert np.isfinite(uv).all()
+    spread = 60.0 / 6850.0  # the deep point's rays are spread enough for the sigma test alone
+    assert np.sqrt(2.0) * 0.2 / (cam.f * spread) < MAX_POINT_SIGMA_FRACTION
+    keep = placed_by_rays(X, R, C, image, j, sigma, cam.f)
+    assert keep[:50].all() and keep[50], "the ground and a valley 400 m below it are kept"
+    assert not keep[51], "a point 6 km below the ground is not handed back"

@@ -33,6 +33,7 @@ from aerocal.adjust.selection import select_parameters
 from aerocal.adjust.solver import MIN_DEPTH_FRACTION, Problem, Solution, SparseInverse, State, schur_complement, solve
 from aerocal.adjust.thinning import ThinningConfig, thin_tracks
 from aerocal.adjust.triangulate import (
+    MAX_DEPTH_RATIO,
     MAX_POINT_SIGMA_FRACTION,
     pixels_to_rays,
     placed_by_rays,
@@ -303,7 +304,8 @@ def _result(
         crs=block.crs,
         obs_weight=weight,
         selection=[f"{unplaced} adjusted tie points not handed back: their rays do not place them (behind a "
-                   f"camera, or nearly parallel: sigma along them above {MAX_POINT_SIGMA_FRACTION:g} of their depth)"]
+                   f"camera, nearly parallel: sigma along them above {MAX_POINT_SIGMA_FRACTION:g} of their depth, "
+                   f"or deeper in a camera than {MAX_DEPTH_RATIO:g} times the mean depth of its points)"]
         if unplaced else [],
     )
 
@@ -608,7 +610,8 @@ def _intersect_left_out(
         X, ok = _intersect_in_front(j, len(track_ids), R[i_safe, 2], C[i_safe], rays)
         ok &= ok_track
         X, _ = refine_points(io, slopes, dtemp, R[i_safe], C[i_safe], j, uv, sigma, np.where(ok[:, None], X, 0.0))
-        placed = placed_by_rays(X, R, C, i_safe, j, sigma, float(io[0]))
+        use = ok[j]  # the rays of the intersected points only: the others' X is a placeholder
+        placed = ok & placed_by_rays(X, R, C, img[use], j[use], sigma[use], float(io[0]))
         unplaced = int(np.count_nonzero(ok & ~placed))
         ok &= placed
         r = project(io, slopes, dtemp, R[i_safe], C[i_safe], X[j], jacobians=False).uv - uv
