@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -57,6 +58,12 @@ def test_an_xt2_survey_off_the_drone_processes_with_aerocal_process_alone(tmp_pa
     done = _run(["process", "flight", "--out", "run", "--database-url", db, "--artifacts", "artifacts"], env,
                 tmp_path)
     assert "Traceback" not in done.stderr
+    # not a terminal: a line on standard error as each step starts and as its counted work completes
+    said = [line.split(": ", 1)[1] for line in done.stderr.splitlines() if line.startswith("processing flight: ")]
+    assert [s for s in said if " " not in s] == ["ingest", "match", "orient", "control", "calibrate", "adjust",
+                                                 "mosaic", "assess", "diagnose", "report"], done.stderr
+    for step in ("match", "mosaic"):
+        assert any(re.fullmatch(rf"{step} (\d+)/\1 done", s) for s in said), (step, done.stderr)
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     truth = json.loads((flight / "truth.json").read_text())
 

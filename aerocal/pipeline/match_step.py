@@ -20,9 +20,11 @@ from aerocal.matching import (
     detect_and_match,
     exhaustive_pairs,
 )
+from aerocal.matching.cluster import Progress
 from aerocal.orient import has_priors
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.dataset import FlightInputError
+from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
 
@@ -61,12 +63,14 @@ def match_images(
     flight: dict,
     config: MatchStepConfig | None = None,
     dask_address: str | None = None,
+    progress: Progress | None = None,
 ) -> tuple[pa.Table, pa.Table, pa.Table, int]:
     """Enhance and match the frames of an ``images`` table: (keypoints, matches, observations, pairs tried).
 
     Candidate pairs come from the GNSS/IMU footprints on a plane at :func:`terrain_height`; without GNSS/IMU
     for every image, all pairs (up to ``config.exhaustive_max_images``). SIFT and the pairs run on the Dask client
-    :func:`aerocal.matching.dask_client` chooses, streamed (:func:`aerocal.matching.detect_and_match`).
+    :func:`aerocal.matching.dask_client` chooses, streamed (:func:`aerocal.matching.detect_and_match`);
+    ``progress(done, total)`` counts images detected plus pairs matched.
     """
     config = config or MatchStepConfig()
     loader = frame_loader(images.column("path").to_pylist(), config.enhance)
@@ -85,7 +89,8 @@ def match_images(
     megapixels = float(np.sum(images.column("width").to_numpy().astype(float)
                               * images.column("height").to_numpy().astype(float))) / 1e6
     with dask_client(dask_address, config.dask_workers, megapixels <= config.serial_max_megapixels) as client:
-        kp, result = detect_and_match(images, loader, pairs, config.features or FeatureConfig(), mcfg, client)
+        kp, result = detect_and_match(images, loader, pairs, config.features or FeatureConfig(), mcfg, client,
+                                      progress)
     matches = result.matches
     return kp, matches, build_tracks(matches, kp, mcfg), int(len(pairs))
 
@@ -100,7 +105,8 @@ def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | Non
         try:
             kp, matches, obs, n_pairs = match_images(inp.table("images"),
                                                      Camera.from_dict(inp.json("camera")["camera"]),
-                                                     inp.table("gcps"), inp.json("flight"), config, dask_address)
+                                                     inp.table("gcps"), inp.json("flight"), config, dask_address,
+                                                     step_progress("match"))
         except ImageReadError as exc:
             # its header read at ingest, its pixels not: bad input, named, not a failure of the run
             raise FlightInputError(f"{exc}; the pixels of this image cannot be decoded although its header was "

@@ -21,6 +21,7 @@ from aerocal.matching import dask_client
 from aerocal.mosaic import MosaicConfig, build_mosaic, frames_from_poses, write_temperature_raster
 from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
+from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, StepResult
 
 
@@ -99,7 +100,7 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             serial = len(frames) <= config.serial_max_frames
             with dask_client(dask_address, config.dask_workers, serial) as client:
                 res = build_mosaic(frames, paths, dsm, work / "orthomosaic.tif", config.mosaic or MosaicConfig(),
-                                   client)
+                                   client, step_progress("mosaic"))
             out["orthomosaic"] = FileOutput(res.path, "orthomosaic", temporary=True)
             info.update({k: v for k, v in res.to_dict().items() if k != "path"})
             if res.dtype == "uint16":

@@ -47,6 +47,7 @@ from aerocal.pipeline.ingest_step import ingest_step
 from aerocal.pipeline.match_step import match_step
 from aerocal.pipeline.mosaic_step import mosaic_step
 from aerocal.pipeline.orient_step import INCREMENTAL, orient_step
+from aerocal.pipeline.progress import step_started
 from aerocal.pipeline.report_step import report_step
 from aerocal.pipeline.runner import JsonOutput, LocalRunner, Runner, StepResult
 
@@ -161,7 +162,8 @@ def process(
                                "give auto or none")
     dataset = dataset_of(flight)
     config = config or ProcessConfig()
-    runner = runner or LocalRunner()
+    given = runner or LocalRunner()
+    runner = _Announcing(given)
     store = certificates if certificates is not None else MemoryCertificates()
     record = recorder or NoRecord()
     steps: dict[str, StepResult] = {}
@@ -261,4 +263,19 @@ def process(
         files = {name: str(runner.export(outputs[name], Path(out_dir) / fname))
                  for name, fname in EXPORTS.items() if name in outputs}
     summary["files"] = files
-    return FlightRun(summary, steps, outputs, files, runner)
+    return FlightRun(summary, steps, outputs, files, given)
+
+
+class _Announcing:
+    """``runner``, announcing each step to :mod:`aerocal.pipeline.progress` as it starts."""
+
+    def __init__(self, runner: Runner) -> None:
+        self._runner = runner
+        self.run_id = runner.run_id
+
+    def run(self, step: str, inputs, config: Any, compute) -> StepResult:
+        step_started(step)
+        return self._runner.run(step, inputs, config, compute)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._runner, name)

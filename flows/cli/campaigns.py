@@ -13,7 +13,7 @@ from pathlib import Path
 import typer
 from rich.table import Table
 
-from flows.cli.console import console, err_console
+from flows.cli.console import console, err_console, run_status
 from flows.cli.errors import user_errors
 from flows.cli.flights import print_run
 from flows.cli.help_text import command
@@ -79,7 +79,7 @@ def campaign_run(
         # lazy: flows.campaign imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from flows.campaign import run_campaign
 
-        with console.status(f"processing campaign {name} ..."):
+        with run_status(f"processing campaign {name}"):
             result = run_campaign(
                 name,
                 str(out) if out else None,

@@ -1,4 +1,5 @@
-"""Where the ``aerocal`` commands print: the two consoles, the progress bar and the key-value table.
+"""Where the ``aerocal`` commands print: the two consoles, the progress bar, a run's status and the key-value
+table.
 
 Results go to standard output (:data:`console`), errors and progress to standard error (:data:`err_console`),
 so that ``aerocal ... --json > file`` holds the JSON alone. Neither console highlights numbers or wraps long
@@ -32,6 +33,35 @@ def progress(label: str, total: int) -> Iterator[Callable[[int, int], None]]:
     with bar:
         task = bar.add_task(label, total=total)
         yield lambda done, total: bar.update(task, completed=done, total=total)
+
+
+@contextmanager
+def run_status(label: str) -> Iterator[None]:
+    """What a flight's run shows while it goes (:mod:`aerocal.pipeline.progress`).
+
+    On a terminal: a status line with ``label``, the step running and its work done (``match 412/4236``).
+    Otherwise (a log file, a scheduled job, a pipe): a line on standard error as each step starts, and one when
+    a step's counted work is complete, so that a log says where a run was when it stopped."""
+    from aerocal.pipeline.progress import reporting_to  # the engine's listener, no Prefect import
+
+    if console.is_terminal:
+        with console.status(f"{label} ...") as status:
+
+            def show(step: str, done: int, total: int) -> None:
+                status.update(f"{label}: {step}" + (f" {done}/{total}" if total else "") + " ...")
+
+            with reporting_to(show):
+                yield
+        return
+
+    def log(step: str, done: int, total: int) -> None:
+        if not total:
+            err_console.print(f"{label}: {step}")
+        elif done >= total:
+            err_console.print(f"{label}: {step} {done}/{total} done")
+
+    with reporting_to(log):
+        yield
 
 
 def print_key_values(title: str, values: dict[str, Any]) -> None:

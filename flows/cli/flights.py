@@ -17,7 +17,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from flows.cli.console import console, err_console, print_key_values
+from flows.cli.console import console, err_console, print_key_values, run_status
 from flows.cli.errors import BAD_INPUT, FAILED, CommandInputError, fail, flow_errors, user_errors
 from flows.cli.options import ARTIFACT_ROOT_OPTION, DASK_OPTION, DATABASE_URL_OPTION
 from flows.environment import conceal_password, quiet_prefect
@@ -275,7 +275,7 @@ def process(
         # lazy: flows.process imports Prefect (~2.9 s CPU at start-up); --help must not pay it
         from flows.process import process_flight
 
-        with console.status(f"processing {flight_dir} ..."):
+        with run_status(f"processing {flight_dir}"):
             summary = process_flight(
                 flight_dir,
                 out,
@@ -351,7 +351,7 @@ def calibrate(
 
         cfg = ProcessConfig()
         cfg.calibration = dataclasses.replace(cfg.calibration, **settings)
-        with console.status(f"calibrating from {flight_dir} ..."):
+        with run_status(f"calibrating from {flight_dir}"):
             summary = calibrate_camera(
                 flight_dir, out, cfg, conceal_password(database_url), str(artifact_root) if artifact_root else None,
                 dask,

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import typer
 
-from flows.cli.console import console, print_key_values, progress
+from flows.cli.console import console, print_key_values, progress, run_status
 from flows.cli.errors import BAD_INPUT, fail, user_errors
 from flows.environment import demo_environment
 
@@ -94,7 +94,7 @@ def demo(
         from flows.demo import DemoConfig
         from flows.demo import demo as demo_flow
 
-        with console.status("simulating and processing the demo flight (about a minute) ..."):
+        with run_status("simulating and processing the demo flight (about a minute)"):
             summary = demo_flow(out, DemoConfig(seed=seed))
     print_key_values("demo: simulated thermal flight (one hidden effect: thermal_focal)", summary["simulated"])
     steps = ", ".join(f"{k} {v['status']}" for k, v in summary["steps"].items())
