@@ -67,6 +67,9 @@ def test_undecodable_pixels_stop_with_one_line_without_a_prefect_server(corpus):
     base, work, db, artifacts, env = corpus
     env = {k: v for k, v in env.items() if k != "PREFECT_API_URL"}
     out = run_case(base, "image-header-bitflip", 1093, work, db, artifacts, env)
-    lines = [line for line in out.output.splitlines() if line.strip()]
+    # not a terminal: the steps started are logged ("processing FOLDER: match"), then the failure is one line
+    steps = [line.rsplit(": ", 1)[1] for line in out.output.splitlines() if line.startswith("processing ")]
+    lines = [line for line in out.output.splitlines() if line.strip() and not line.startswith("processing ")]
     assert out.exit_code == 2 and not out.problems, f"flight seed {SEED}: {out.problems}\n{out.output[-3000:]}"
     assert len(lines) == 1 and "IMG_0011.tif" in lines[0] and "Fix:" in lines[0], out.output
+    assert steps[-1] == "match", out.output  # where the pixels are first decoded

@@ -43,9 +43,14 @@ def test_a_failing_run_is_one_line_and_leaves_a_run_json_that_says_so(tmp_path):
     done = subprocess.run([AEROCAL, "process", str(flight), "--database-url", f"sqlite:///{db}", "--artifacts",
                            str(tmp_path / "art"), "--out", str(tmp_path / "run")],
                           capture_output=True, text=True, timeout=600, cwd=tmp_path)
-    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip()]
+    # not a terminal: the steps started are logged on stderr, then the failure is one line
+    progress = f"processing {flight}: "
+    steps = [line[len(progress):] for line in done.stderr.splitlines() if line.startswith(progress)]
+    lines = [line for line in (done.stdout + done.stderr).splitlines() if line.strip() and
+             not line.startswith(progress)]
     assert done.returncode == 2, f"seed {SEED}: {done.stdout}\n{done.stderr}"  # bad input
     assert len(lines) == 1 and "camera.json is missing" in lines[0], lines
+    assert steps == ["ingest"], steps
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["status"] == "failed" and "camera.json is missing" in run["error"] and "again" in run["resume"]
     assert "Traceback" in (tmp_path / "run" / "aerocal-error.log").read_text()

@@ -56,9 +56,9 @@ def run_status(label: str) -> Iterator[None]:
 
     def log(step: str, done: int, total: int) -> None:
         if not total:
-            err_console.print(f"{label}: {step}")
+            err_console.print(f"{label}: {step}", markup=False)
         elif done >= total:
-            err_console.print(f"{label}: {step} {done}/{total} done")
+            err_console.print(f"{label}: {step} {done}/{total} done", markup=False)
 
     with reporting_to(log):
         yield
