@@ -117,8 +117,9 @@ MAX_POINT_SIGMA_FRACTION = 0.1
 #: ... and only when no camera sees it deeper than this many times the mean depth of that camera's points.
 #: Rays spread well enough still place a mismatch along the epipolar line: on the rendered 818-frame city
 #: (850 m above ground), two-ray points up to 6.8 km below the ground passed the test above with residuals
-#: of tenths of a pixel. Three times the mean depth is 1.7 km below the ground there, and leaves room for
-#: relief and oblique views (a 60 degree oblique view's far edge is about twice its mean depth).
+#: of tenths of a pixel. Three times the mean depth is 1.7 km below the ground there. Relief and oblique views
+#: need room (computed, not measured: a view 60 degrees off nadir with a 40 degree field sees its far edge
+#: 2.7 times as deep as its centre; wider or more oblique views would need a larger ratio).
 MAX_DEPTH_RATIO = 3.0
 
 
@@ -164,19 +165,22 @@ def _depth_ratio(X, axis, C, image, point, usable):
     for m in range(point.shape[0]):
         i, j = image[m], point[m]
         if usable[j]:
-            depth_sum[i] += (axis[i, 0] * (X[j, 0] - C[i, 0]) + axis[i, 1] * (X[j, 1] - C[i, 1])
-                             + axis[i, 2] * (X[j, 2] - C[i, 2]))
+            depth_sum[i] += _depth(X, axis, C, i, j)
             depth_n[i] += 1.0
     ratio = np.zeros(X.shape[0])
     for m in range(point.shape[0]):
         i, j = image[m], point[m]
         if usable[j]:
-            d = (axis[i, 0] * (X[j, 0] - C[i, 0]) + axis[i, 1] * (X[j, 1] - C[i, 1])
-                 + axis[i, 2] * (X[j, 2] - C[i, 2]))
-            r = d * depth_n[i] / depth_sum[i]
+            r = _depth(X, axis, C, i, j) * depth_n[i] / depth_sum[i]
             if r > ratio[j]:
                 ratio[j] = r
     return ratio
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _depth(X, axis, C, i, j):
+    """Depth of point ``j`` along camera ``i``'s optical axis (metres)."""
+    return axis[i, 0] * (X[j, 0] - C[i, 0]) + axis[i, 1] * (X[j, 1] - C[i, 1]) + axis[i, 2] * (X[j, 2] - C[i, 2])
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

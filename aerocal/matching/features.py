@@ -183,6 +183,15 @@ def keypoints_table(features: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> p
     })
 
 
+def detects_tiles(n_images: int, config: FeatureConfig, client: object | None) -> bool:
+    """Whether the cluster's unit of work is a tile (``config.granularity``; ``"auto"``: fewer than two images
+    per worker, tiled), not an image; never without a cluster."""
+    return client is not None and (
+        config.granularity == "tile"
+        or (config.granularity == "auto" and n_images < 2 * n_workers(client) and config.tile_size > 0)
+    )
+
+
 def extract_features(
     images,
     loader: Callable[[object], np.ndarray],
@@ -216,11 +225,7 @@ def extract_features(
     items = _image_items(images)
     if not items:
         return tables.empty("keypoints")
-    use_tiles = client is not None and (
-        config.granularity == "tile"
-        or (config.granularity == "auto" and len(items) < 2 * n_workers(client) and config.tile_size > 0)
-    )
-    if not use_tiles:
+    if not detects_tiles(len(items), config, client):
         results = run_all(_detect_image_task, [(i, s, loader, config) for i, s in items], client, progress)
         return keypoints_table([(i, kp, desc) for i, (kp, desc) in results])
 

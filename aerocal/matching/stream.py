@@ -9,8 +9,9 @@ dropped from the cluster when the last pair that needs them is matched, so the w
 the images in flight, not of the whole flight.
 
 Measured on the rendered 818-frame ``conte-city`` flight (640x480 thermal, 3418 footprint pairs, 2 workers):
-69.5 s against 74.6 s for the two phases; the work itself (SIFT 95 ms per frame, a pair 13 ms, one core)
-is 61 s of it.
+69.5 s against 74.6 s for the two phases in one script; the match step of ``aerocal process`` alone, runs
+alternated, 76.3 and 72.0 s against 77.6 and 78.7 s. The work itself is 61 s of it (from SIFT's 95 ms per
+frame and a pair's 13 ms, each measured on one core).
 """
 
 from __future__ import annotations
@@ -20,9 +21,15 @@ from collections.abc import Callable
 import numpy as np
 import pyarrow as pa
 
-from aerocal.matching.cluster import Progress, n_workers
+from aerocal.matching.cluster import Progress
 from aerocal.matching.config import FeatureConfig, MatchConfig
-from aerocal.matching.features import _detect_image_task, _image_items, extract_features, keypoints_table
+from aerocal.matching.features import (
+    _detect_image_task,
+    _image_items,
+    detects_tiles,
+    extract_features,
+    keypoints_table,
+)
 from aerocal.matching.verify import (
     MatchResult,
     _batches,
@@ -60,9 +67,7 @@ def detect_and_match(
     mcfg = match or MatchConfig()
     items = _image_items(images)
     pairs = normalise_pairs(pairs)
-    tiles = client is not None and fcfg.tile_size > 0 and (
-        fcfg.granularity == "tile" or (fcfg.granularity == "auto" and len(items) < 2 * n_workers(client)))
-    if client is None or tiles or not items:
+    if client is None or detects_tiles(len(items), fcfg, client) or not items:
         n = len(items)
         kp = extract_features(images, loader, fcfg, client, None if progress is None else
                               (lambda d, t: progress(d * n // max(t, 1), n + len(pairs))))
