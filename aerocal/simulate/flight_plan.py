@@ -38,6 +38,13 @@ class FlightPlanConfig:
     turn_time_s: float = 60.0  # time between the end of a strip and the start of the next
     attitude_jitter_deg: float = 0.5  # std of true roll/pitch about level; yaw about the heading
     height_jitter_m: float = 2.0  # std of true height about the planned altitude
+    # wind (east, north) in m/s. Without it (the default) every strip is flown at ``speed_m_s`` over the ground,
+    # heading along its track. With it ``speed_m_s`` is the airspeed: the aircraft crabs into the cross wind to keep
+    # its track (heading = track + crab angle, the frames turned with it) and its ground speed is the airspeed along
+    # the track plus the wind along it, so strips flown against the wind are slower. Measured on the real seneca
+    # flight (fixed wing, 2013): ground speeds 5-8 m/s one way and 11-15 m/s the other, heading 2-10 deg off the
+    # track; a block flown at one ground speed cannot tell a rolling-shutter readout from an affinity
+    wind_m_s: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass
@@ -48,7 +55,7 @@ class Trajectory:
     C: np.ndarray  # (N, 3) projection centres, world metres
     R_cw: np.ndarray  # (N, 3, 3) world-to-camera
     velocity: np.ndarray  # (N, 3) m/s
-    heading_deg: np.ndarray  # planned heading, clockwise from north
+    heading_deg: np.ndarray  # planned track, clockwise from north (the aircraft's heading crabs off it in a wind)
     strip: np.ndarray  # strip index (transversal strips numbered after the main ones)
     transversal: np.ndarray  # bool: part of a transversal/cross strip
     gsd_m: float
@@ -127,15 +134,18 @@ def plan_flight(
     if config.transversal_strips:
         add_block(other, config.transversal_strips, config.transversal_images, False, True)
 
-    times, es, ns, headings, strips, transv = [], [], [], [], [], []
+    times, es, ns, headings, crabs, speeds, strips, transv = [], [], [], [], [], [], [], []
     t = 0.0
-    for e, n, heading, strip, is_t in segments:
+    for e, n, track, strip, is_t in segments:
         k = len(e)
-        times.append(t + np.arange(k) * base / config.speed_m_s)
+        crab, ground_speed = wind_triangle(track, config.speed_m_s, config.wind_m_s)
+        times.append(t + np.arange(k) * base / ground_speed)
         t = times[-1][-1] + config.turn_time_s
         es.append(e)
         ns.append(n)
-        headings.append(np.full(k, heading))
+        headings.append(np.full(k, track))
+        crabs.append(np.full(k, crab))
+        speeds.append(np.full(k, ground_speed))
         strips.append(np.full(k, strip))
         transv.append(np.full(k, is_t))
     time_s = np.concatenate(times)
@@ -143,15 +153,35 @@ def plan_flight(
     N = len(time_s)
     C = np.column_stack([np.concatenate(es), np.concatenate(ns), np.full(N, altitude)])
     C[:, 2] += rng.normal(0.0, config.height_jitter_m, N)
-    hr = np.radians(heading)
-    velocity = config.speed_m_s * np.column_stack([np.sin(hr), np.cos(hr), np.zeros(N)])
+    tr = np.radians(heading)
+    velocity = np.concatenate(speeds)[:, None] * np.column_stack([np.sin(tr), np.cos(tr), np.zeros(N)])
     jitter = rng.normal(0.0, config.attitude_jitter_deg, (N, 3))
-    R = np.stack([body_rpy_to_R_cw(j[0], j[1], h + j[2]) for j, h in zip(jitter, heading, strict=True)])
+    yaw = heading + np.concatenate(crabs)  # the aircraft points into the cross wind, the frames with it
+    R = np.stack([body_rpy_to_R_cw(j[0], j[1], h + j[2]) for j, h in zip(jitter, yaw, strict=True)])
     return Trajectory(
         time_s=time_s, C=C, R_cw=R, velocity=velocity, heading_deg=heading,
         strip=np.concatenate(strips).astype(np.int32), transversal=np.concatenate(transv),
         gsd_m=gsd, base_m=base, spacing_m=spacing,
     )
+
+
+def wind_triangle(track_deg: float, airspeed_m_s: float, wind_m_s: tuple[float, float]) -> tuple[float, float]:
+    """The crab angle (degrees, heading minus track, clockwise) and the ground speed (m/s) of an aircraft keeping
+    the track ``track_deg`` (clockwise from north) at ``airspeed_m_s`` in the wind ``wind_m_s`` (east, north)."""
+    t = math.radians(track_deg)
+    along = (math.sin(t), math.cos(t))
+    right = (math.cos(t), -math.sin(t))
+    w_along = wind_m_s[0] * along[0] + wind_m_s[1] * along[1]
+    w_cross = wind_m_s[0] * right[0] + wind_m_s[1] * right[1]
+    if abs(w_cross) >= airspeed_m_s:
+        raise ValueError(f"a cross wind of {abs(w_cross):.3g} m/s is not flown at an airspeed of "
+                         f"{airspeed_m_s:.3g} m/s")
+    air_along = math.sqrt(airspeed_m_s**2 - w_cross**2)
+    ground = air_along + w_along
+    if ground <= 0:
+        raise ValueError(f"a head wind of {-w_along:.3g} m/s stops an aircraft flying {airspeed_m_s:.3g} m/s on "
+                         f"a track of {track_deg:g} deg")
+    return math.degrees(math.atan2(-w_cross, air_along)), ground
 
 
 def overlaps(traj: Trajectory, camera: Camera, height_agl_m: float) -> tuple[float, float]:

@@ -410,6 +410,8 @@ def spec_summary(sim: SimulatedFlight) -> dict:
         "gcps": int(sum(r == "control" for r in sim.gcps.column("role").to_pylist())),
         "check_points": int(sum(r == "check" for r in sim.gcps.column("role").to_pylist())),
         "temperature_c": [float(np.min(t)), float(np.max(t))],
+        "ground_speed_m_s": [round(float(v), 1) for v in np.unique(np.round(
+            np.linalg.norm(sim.trajectory.velocity[:, :2], axis=1), 1))],
         "effects": {k: list(v) for k, v in sim.effects.items()},
         "crs": sim.crs,
     }
