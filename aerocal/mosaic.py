@@ -105,11 +105,21 @@ class FrameGeometry:
     C: np.ndarray
     thermal_model: ThermalModel | None = None
     temperature: float | None = None
+    #: a frame read out row by row while the camera moves: the projection centre's displacement (world metres) per
+    #: unit of ``row / height - 0.5`` (velocity x readout; ``C`` is the centre when the middle row is exposed)
+    motion: np.ndarray | None = None
 
     def project(self, X: np.ndarray) -> np.ndarray:
         """World points (..., 3) -> recorded pixels (..., 2) (top-left-corner convention); NaN behind."""
-        p = (np.asarray(X, dtype=float) - np.asarray(self.C, dtype=float)) @ np.asarray(self.R_cw).T
+        X = np.asarray(X, dtype=float)
+        C = np.asarray(self.C, dtype=float)
+        p = (X - C) @ np.asarray(self.R_cw).T
         uv = self.camera.project(p)
+        if self.motion is not None:
+            motion = np.asarray(self.motion, dtype=float)
+            for _ in range(3):  # the row each point is read on, by fixed-point iteration
+                frac = uv[..., 1:2] / self.camera.height - 0.5
+                uv = self.camera.project((X - C - frac * motion) @ np.asarray(self.R_cw).T)
         if self.thermal_model is None:
             return uv
 
@@ -143,12 +153,18 @@ def frames_from_poses(
     camera: Camera | Mapping[int, Camera],
     temperatures: Mapping[int, float] | None = None,
     thermal_model: ThermalModel | None = None,
+    motion: Mapping[int, np.ndarray] | None = None,
+    turn: Mapping[int, np.ndarray] | None = None,
 ) -> list[FrameGeometry]:
     """Frame geometries from a ``poses`` table (world-to-camera quaternions, projection centres).
 
     ``camera`` is one camera for the block or one per image id. With ``thermal_model`` every image id needs
     a temperature (degC) in ``temperatures``: a :class:`LinearThermalModel` gives the frame the IO
     ``camera_at(camera, T_i)``; the other models are applied to measurements in :meth:`FrameGeometry.project`.
+    ``motion``: per image id the rolling readout's displacement of the projection centre
+    (:attr:`FrameGeometry.motion`); ``turn``: per image id a rotation (3, 3) about the camera's own axes applied to
+    its adjusted attitude (a thermal rotation of the image about the principal point: the adjusted pose is the
+    camera's at the certificate's reference temperature).
     """
     poses = tables.validate(poses, "poses")
     ids = poses.column("image_id").to_numpy()
@@ -168,8 +184,10 @@ def frames_from_poses(
                 cam = thermal_model.camera_at(cam, temp)
             else:
                 model = thermal_model
-        frames.append(FrameGeometry(image_id=int(iid), camera=cam, R_cw=R[i], C=C[i], thermal_model=model,
-                                    temperature=temp))
+        R_i = R[i] if turn is None or iid not in turn else np.asarray(turn[iid]) @ R[i]
+        m = None if motion is None or iid not in motion else np.asarray(motion[iid], dtype=float)
+        frames.append(FrameGeometry(image_id=int(iid), camera=cam, R_cw=R_i, C=C[i], thermal_model=model,
+                                    temperature=temp, motion=m))
     return frames
 
 
@@ -229,7 +247,8 @@ def render_tile(
         if fr.thermal_model is None:
             frame_view(e, nn, H, np.asarray(fr.R_cw, dtype=float), np.asarray(fr.C, dtype=float),
                        fr.camera.params(), float(fr.camera.width), float(fr.camera.height), float(feather_px),
-                       map_u, map_v, score, taper)
+                       map_u, map_v, score, taper,
+                       np.zeros(3) if fr.motion is None else np.asarray(fr.motion, dtype=float))
         else:
             _frame_view_numpy(fr, np.stack([E, N, H], axis=-1), feather_px, map_u, map_v, score, taper)
         maps.append((map_u, map_v))

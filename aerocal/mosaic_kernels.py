@@ -27,16 +27,38 @@ NO_PIXEL = -10.0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score, taper):
+def _pixel(de, dn, dh, R, io):
+    """The recorded pixel (u, v) of a ground point ``(de, dn, dh)`` metres from the projection centre, and whether
+    it lies in front of the camera."""
+    f, cx, cy, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
+    px = de * R[0, 0] + dn * R[0, 1] + dh * R[0, 2]
+    py = de * R[1, 0] + dn * R[1, 1] + dh * R[1, 2]
+    pz = de * R[2, 0] + dn * R[2, 1] + dh * R[2, 2]
+    if not pz > 0:
+        return 0.0, 0.0, False
+    x = px / pz
+    y = py / pz
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
+    yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
+    return cx + xd * (f + b1) + yd * b2, cy + yd * f, True
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score, taper, motion):
     """Fill, for one frame, the tile's ``map_u``/``map_v`` (float32, OpenCV's pixel convention: ours minus
     0.5, :data:`NO_PIXEL` where the ground point is behind the camera or has no height), ``score`` (float64
     distance to the principal point, inf where the pixel is not inside the frame) and ``taper`` (min(border
     distance / feather_px, 1), at least 1e-6 inside the frame, 0 outside). Returns whether any pixel is
-    inside the frame."""
-    f, cx, cy, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
+    inside the frame. ``motion`` (3,): the projection centre's displacement (world metres) per unit of
+    ``row / height - 0.5`` of a frame read out row by row (velocity x readout; zeros: a global shutter), found
+    for each pixel by fixed-point iteration on its row as :class:`aerocal.simulate.exposure.Exposure` does."""
+    cx, cy = io[1], io[2]
     feather = max(feather_px, 1e-9)
     half = np.float32(0.5)
     seen = False
+    moving = motion[0] != 0.0 or motion[1] != 0.0 or motion[2] != 0.0
     rows, cols = h.shape
     for r in range(rows):
         dn = n[r] - C[1]
@@ -50,19 +72,13 @@ def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score
                 continue
             de = e[c] - C[0]
             dh = hh - C[2]
-            px = de * R[0, 0] + dn * R[0, 1] + dh * R[0, 2]
-            py = de * R[1, 0] + dn * R[1, 1] + dh * R[1, 2]
-            pz = de * R[2, 0] + dn * R[2, 1] + dh * R[2, 2]
-            if not pz > 0:
+            u, v, front = _pixel(de, dn, dh, R, io)
+            if moving:
+                for _ in range(3):  # the readout's shift is a few pixels of a frame's height: converges at once
+                    frac = v / height - 0.5
+                    u, v, front = _pixel(de - frac * motion[0], dn - frac * motion[1], dh - frac * motion[2], R, io)
+            if not front:
                 continue
-            x = px / pz
-            y = py / pz
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
-            yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
-            u = cx + xd * (f + b1) + yd * b2
-            v = cy + yd * f
             if not (np.isfinite(u) and np.isfinite(v)):
                 continue
             map_u[r, c] = np.float32(u) - half
