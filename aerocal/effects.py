@@ -57,6 +57,9 @@ class Effect:
     # estimate beyond it is a symptom of another cause, not this effect
     plausible: float = math.inf
     scale: str = ""
+    # True where only non-negative values are physical (a readout time): a negative estimate is a symptom of
+    # another cause sharing the signature, never this effect
+    nonnegative: bool = False
 
     @property
     def size(self) -> int:
@@ -86,7 +89,7 @@ CATALOGUE: dict[str, Effect] = {
                "the image rotates about the principal point linearly with sensor temperature (px at the "
                "image corner)", plausible=2e-4, scale="corner"),
         Effect("rolling_shutter", "s", ("readout",), "interior", ("image row", "velocity"),
-               "rows are read out one after the other while the camera moves", plausible=0.1),
+               "rows are read out one after the other while the camera moves", plausible=0.1, nonnegative=True),
         Effect("boresight", "deg", ("about_x", "about_y", "about_z"), "exterior", ("attitude",),
                "misalignment between the IMU and the camera axes", plausible=3.0),
         Effect("lever_arm", "m", ("x", "y", "z"), "exterior", ("attitude", "flight direction"),

@@ -17,8 +17,11 @@ from aerocal.effects import CATALOGUE
 from aerocal.simulate import PRESETS, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
 
-# conte-calibration flown while the camera warms from 10 to ~23 degC (so thermal effects are observable)
+# conte-calibration flown while the camera warms from 10 to ~23 degC (so thermal effects are observable), in a
+# wind, as real flights are (the real seneca flight: 5-8 m/s over the ground one way, 11-15 m/s the other): at one
+# ground speed a readout is an affinity and a GNSS lag an along-track lever arm, and the diagnosis says so
 SPEC = PRESETS["conte-calibration"].replace(
+    plan=dataclasses.replace(PRESETS["conte-calibration"].plan, wind_m_s=(9.0, 4.0)),
     sensors=dataclasses.replace(PRESETS["conte-calibration"].sensors,
                                 temperature=TemperatureCurve(start_c=10.0, equilibrium_c=30.0, tau_s=400.0)))
 # refraction is a few thousandths of a pixel on the 640x480 thermal camera: test it on the UltraCam
@@ -58,11 +61,20 @@ def predicted_sigma():
     return out
 
 
+#: GNSS time lags of real cameras: 0.05-0.5 s (NOTES; the real seneca flight: 0.34 s). A lag of 8-14 of its own
+#: sigma here (3-5 ms, 0.2-0.3 m along the track at 60 m/s) is a boresight pitch of 0.02 deg or an along-track lever
+#: arm as well, told apart only by the strips' 15 % different ground speeds: the diagnosis reports them as a group it
+#: cannot separate (tested below), so the lag hidden to be named is drawn among real lags, 8-14 times 4 ms
+LAG_SCALE_S = 0.004
+
+
 def draw(name, sigma, rng):
-    """A magnitude of 8-14 of the effect's own sigma per component, random signs (detectable: >= 5 sigma)."""
+    """A magnitude of 8-14 of the effect's own sigma per component, random signs (detectable: >= 5 sigma); a GNSS
+    lag 8-14 times :data:`LAG_SCALE_S`."""
     if CATALOGUE[name].switch:
         return "on", np.array([1.0])
-    vals = rng.uniform(8.0, 14.0, len(sigma)) * sigma * rng.choice([-1.0, 1.0], len(sigma))
+    scale = np.maximum(sigma, LAG_SCALE_S) if name == "gnss_time_offset" else sigma
+    vals = rng.uniform(8.0, 14.0, len(sigma)) * scale * rng.choice([-1.0, 1.0], len(sigma))
     if name == "lever_arm":
         vals[1:] = 0.0  # along-track = GNSS time offset, vertical = GNSS height bias (not separable)
     return tuple(vals), vals
@@ -120,6 +132,19 @@ def test_no_false_alarms_on_effect_free_flights():
     # the family-wise rate is 1 % per round; allow one alarm in ten flights (>= 90 % clean here,
     # the 20-seed sweep in benchmarks/diagnose_bench.py measures the rate itself)
     assert len(alarms) <= 1, f"false alarms (seed: named): {alarms}"
+
+
+def test_a_lag_the_block_cannot_tell_from_a_boresight_is_a_group_and_nothing_is_applied(predicted_sigma):
+    """A 4 ms lag moves each exposure 0.25 m along its track: a forward tilt of the camera (boresight) and an
+    along-track lever arm do the same to a flat block flown at nearly one speed. Reported as a group, none named."""
+    seed = 17
+    lag = 10 * predicted_sigma[SPEC.name]["gnss_time_offset"][0]
+    _, d = run(SPEC, seed, {"gnss_time_offset": (lag,)})
+    assert not d.effects, f"seed {seed}: hid a {lag:.4f} s lag, named {d.summary()}"
+    group = next((p for p in d.pairs if "gnss_time_offset" in p["effects"]), None)
+    assert group is not None and "boresight" in group["effects"], f"seed {seed}: {d.pairs}"
+    assert abs(group["estimates"]["gnss_time_offset"]["value"][0] - lag) < 4 * predicted_sigma[SPEC.name][
+        "gnss_time_offset"][0], f"seed {seed}: {group}"
 
 
 def test_two_effects_at_once(predicted_sigma):
@@ -297,11 +322,15 @@ def test_an_io_error_within_the_certificates_sigma_is_not_named():
     cfg = DiagnoseConfig(reference_temperature=SPEC.sensors.reference_temperature_c, twins=0)
     base = fit_baseline(sim.images, sim.observations, camera, adjust_config(SPEC), sim.gcps, sim.gcp_observations)
     blind = diagnose_baseline(base, cfg)
-    assert [e.name for e in blind.effects][:1] == ["radial_k3"], f"seed {seed}: {blind.summary()}"
+    # held exact, the IO error is a significant k3 signal (its 0.3 px at the corners predicts held-out images too
+    # little to be named, but the statistic sees it)
+    k3 = next(e for e in blind.hypotheses if e.name == "radial_k3" and e.round == 1)
+    assert k3.significant, f"seed {seed}: {k3}"
     io = IOUncertainty(("k3",), np.array([[k3_sigma**2]]))
     aware = diagnose_baseline(base, cfg, io)
     assert not aware.effects, f"seed {seed}: {aware.summary()}"
     k3 = next(e for e in aware.hypotheses if e.name == "radial_k3" and e.round == 1)
+    assert not k3.significant, f"seed {seed}: {k3}"
     assert abs(k3.estimate[0] + k3_sigma) < 3 * k3.sigma[0] and k3.sigma[0] >= 0.9 * k3_sigma, (
         f"seed {seed}: {k3.estimate} +- {k3.sigma}")
 

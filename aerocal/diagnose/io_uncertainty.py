@@ -43,6 +43,15 @@ class IOUncertainty:
         """Indices of ``names`` in :data:`aerocal.camera.PARAM_NAMES`."""
         return [PARAM_NAMES.index(n) for n in self.names]
 
+    def without(self, names) -> IOUncertainty | None:
+        """The marginal uncertainty of the parameters other than ``names`` (e.g. those a diagnosis frees), or None
+        when none is left."""
+        keep = [k for k, n in enumerate(self.names) if n not in set(names)]
+        if not keep:
+            return None
+        cov = np.asarray(self.covariance, dtype=float)[np.ix_(keep, keep)]
+        return IOUncertainty(tuple(self.names[k] for k in keep), cov)
+
     @classmethod
     def from_certificate(cls, cert) -> IOUncertainty | None:
         """The estimated IO of ``cert`` (:class:`aerocal.certificate.Certificate`) with its covariance from

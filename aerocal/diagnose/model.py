@@ -128,11 +128,8 @@ def linearise(base: Baseline, state: State | None = None) -> Linear:
     problem = Problem(base.block, base.config, 0.0)
     _, _, _, r, Jc, Jp, Hpp = problem.residuals(state, jac=True)
     b = base.block
-    i, j = b.obs_image, b.obs_point
-    pr = project(state.io, state.slopes, np.zeros(len(i)), state.R[i], state.C[i], state.X[j])
-    pc = np.einsum("mab,mb->ma", state.R[i], state.X[j] - state.C[i])
-    duv_dpc = np.einsum("mab,mcb->mac", pr.d_point, state.R[i])  # d_point = duv_dpc R
-    M, N, G = len(i), b.n_images, len(b.control_ids)
+    xn, pc, duv_dpc = observation_geometry(b, state)
+    M, N, G = len(b.obs_image), b.n_images, len(b.control_ids)
     groups = {"image": slice(0, 2 * M)}
     row = 2 * M
     if base.config.gnss_sigma_m is not None:
@@ -143,7 +140,25 @@ def linearise(base: Baseline, state: State | None = None) -> Linear:
         row += 3 * N
     if G:
         groups["control"] = slice(row, row + 3 * G)
-    return Linear(r, Jc, Jp, Hpp, groups, pc[:, :2] / pc[:, 2:], pc, duv_dpc)
+    return Linear(r, Jc, Jp, Hpp, groups, xn, pc, duv_dpc)
+
+
+def observation_geometry(block: Block, state: State) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the signatures of the hypotheses need of every image measurement of ``block`` at ``state``: the
+    undistorted normalised coordinates ``xn`` (M, 2) and camera-frame position ``pc`` (M, 3, metres) of its
+    adjusted point, and d(pixels)/d(camera-frame point) ``duv_dpc`` (M, 2, 3)."""
+    i, j = block.obs_image, block.obs_point
+    return point_geometry(state.io, state.slopes, state.R, state.C, i, state.X[j])
+
+
+def point_geometry(io: np.ndarray, slopes: np.ndarray, R: np.ndarray, C: np.ndarray, image: np.ndarray,
+                   X: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`observation_geometry` of points ``X`` (M, 3, local metres) seen in images ``image`` (indices into
+    ``R`` and ``C``)."""
+    pr = project(io, slopes, np.zeros(len(image)), R[image], C[image], X)
+    pc = np.einsum("mab,mb->ma", R[image], X - C[image])
+    duv_dpc = np.einsum("mab,mcb->mac", pr.d_point, R[image])  # d_point = duv_dpc R
+    return pc[:, :2] / pc[:, 2:], pc, duv_dpc
 
 
 @dataclass
