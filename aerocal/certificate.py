@@ -143,6 +143,35 @@ class ParameterSignificance:
 
 
 @dataclass(frozen=True)
+class CameraTerm:
+    """A camera term a flight's diagnosis found and confirmed on data the fit did not use (the document's
+    ``effects`` entry): its ``values`` and ``sigmas`` in ``units`` (:mod:`aerocal.effects`), how it is ``applied``
+    ("model": through ``model.params`` or the thermal model, which hold it; "measurements": the block adjustment
+    corrects the measurements for it at the adjusted geometry, as for a rolling-shutter readout), the ``flights``
+    whose diagnoses support it and the ``evidence`` in words."""
+
+    values: tuple[float, ...]
+    sigmas: tuple[float, ...]
+    units: str
+    applied: str
+    flights: tuple[str, ...]
+    evidence: str
+    reference_temperature: float | None = None  # degC, of a term that depends on the temperature
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "values", tuple(float(v) for v in self.values))
+        object.__setattr__(self, "sigmas", tuple(float(v) for v in self.sigmas))
+        object.__setattr__(self, "flights", tuple(str(f) for f in self.flights))
+
+    def to_dict(self) -> dict:
+        out = {"values": list(self.values), "sigmas": list(self.sigmas), "units": self.units,
+               "applied": self.applied, "flights": list(self.flights), "evidence": self.evidence}
+        if self.reference_temperature is not None:
+            out["reference_temperature"] = self.reference_temperature
+        return out
+
+
+@dataclass(frozen=True)
 class Correlation:
     """Correlation matrix of the estimated parameters: ``matrix[i][j]`` correlates ``names[i]`` and
     ``names[j]``. Names are IO parameter names (:data:`aerocal.camera.PARAM_NAMES`) and, where the
@@ -391,6 +420,8 @@ class Certificate:
     version: int | None = None
     supersedes: str | None = None
     review: Review | None = None
+    #: camera terms found by flights' diagnoses (:class:`CameraTerm`), by catalogue name; the document's ``effects``
+    terms: Mapping[str, CameraTerm] = field(default_factory=FrozenMap)
 
     @property
     def status(self) -> str:
@@ -402,6 +433,7 @@ class Certificate:
         object.__setattr__(self, "sigmas", _freeze_map(self.sigmas))
         object.__setattr__(self, "estimated", _freeze_seq(self.estimated))
         object.__setattr__(self, "significance", _freeze_map(self.significance))
+        object.__setattr__(self, "terms", _freeze_map(self.terms))
         # Validate (and normalise: numpy scalars and numbers to float, containers to immutable)
         # through the document.
         for name, value in _fields_of(validate_document(_plain(self.to_dict()))).items():
@@ -443,6 +475,8 @@ class Certificate:
             "quality": self.quality.to_dict(),
             "provenance": self.provenance.to_dict(),
             **({"review": self.review.to_dict()} if self.review is not None else {}),
+            **({"effects": {n: (t.to_dict() if isinstance(t, CameraTerm) else t) for n, t in self.terms.items()}}
+               if self.terms else {}),
         }
 
     @classmethod
@@ -686,6 +720,8 @@ def _fields_of(d: CertificateDocument) -> dict[str, Any]:
         "supersedes": d.supersedes,
         "review": None if review is None else Review(review.status, tuple(review.problems), tuple(review.checks),
                                                      tuple(review.notes)),
+        "terms": FrozenMap({n: CameraTerm(tuple(t.values), tuple(t.sigmas), t.units, t.applied, tuple(t.flights),
+                                          t.evidence, t.reference_temperature) for n, t in (d.effects or {}).items()}),
     }
 
 def _significance_dict(s: ParameterSignificance) -> dict:

@@ -456,6 +456,38 @@ class ReviewSection(_Section):
         return self
 
 
+#: camera terms a diagnosis can certify (:mod:`aerocal.diagnose.extension`): the catalogue's interior effects
+CAMERA_TERMS = ("rolling_shutter", "affinity_skew", "radial_k3", "thermal_focal", "thermal_principal_point",
+                "thermal_rotation")
+#: how a certified term reaches the measurements: through the camera model (``model.params`` b1, b2, k3; the
+#: thermal model's slopes), or as a correction of the measurements at the adjusted geometry (a readout, a thermal
+#: rotation: no Brown parameter holds them)
+TERM_APPLIED = ("model", "measurements")
+
+
+class EffectTermSection(_Section):
+    """One entry of ``effects``: a camera term found by a flight's diagnosis and confirmed on data the fit did not
+    use. ``values`` and ``sigmas`` in ``units`` (the catalogue's, :mod:`aerocal.effects`), how it is ``applied``,
+    the ``flights`` whose diagnoses support it, and the ``evidence`` in words (held-out gain, check points)."""
+
+    values: _array(_number(), minimum=1)
+    sigmas: _array(_Sigma, minimum=1)
+    units: _text()
+    applied: Annotated[Literal[TERM_APPLIED], Expect(" or ".join(f'"{x}"' for x in TERM_APPLIED),  # type: ignore[valid-type]
+                                                     "write how the term reaches the measurements")]
+    flights: _array(_text(), minimum=1)
+    evidence: _text()
+    reference_temperature: _number("a finite number or null", "write the temperature (degC) a thermal term is "
+                                   "relative to, or null for a term that does not depend on temperature") | None = None
+
+    @model_validator(mode="after")
+    def _same_length(self) -> EffectTermSection:
+        if len(self.sigmas) != len(self.values):
+            raise _refuse("sigmas", f"{len(self.values)} numbers (one per value)", self.sigmas,
+                          "give one sigma per value")
+        return self
+
+
 class CameraSection(_Section):
     """``camera``: make, model, serial number and lens (``"unknown"`` where not recorded)."""
 
@@ -492,6 +524,9 @@ class CertificateDocument(_Section):
     quality: QualitySection
     provenance: ProvenanceSection
     review: ReviewSection | None = None
+    effects: dict[Annotated[Literal[CAMERA_TERMS],  # type: ignore[valid-type]
+                            Expect(f"one of {', '.join(CAMERA_TERMS)}", "name a camera term of aerocal.effects")],
+                  EffectTermSection] | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> CertificateDocument:

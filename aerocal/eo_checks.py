@@ -34,12 +34,16 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
-from aerocal.adjust import AdjustConfig, AdjustmentError
+from aerocal.adjust import AdjustConfig, AdjustmentError, select_images
 from aerocal.camera import Camera
+from aerocal.diagnose.attitude import AttitudeOffset, mean_rotation_covariance, offset_statistics
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+from aerocal.diagnose.extension import turn_recorded_attitudes
 from aerocal.diagnose.hypotheses import velocities
 from aerocal.diagnose.io_uncertainty import IOUncertainty
-from aerocal.diagnose.model import image_strips, image_times_s
+from aerocal.diagnose.model import fit_baseline, image_strips, image_times_s
+from aerocal.geometry import small_rotation
+from aerocal.subset import central_images
 
 #: control GCPs the offset needs in the block (a translation of the datum is determined by three points)
 MIN_CONTROL = 3
@@ -63,6 +67,8 @@ class GnssCorrection:
     notes: list[str] = field(default_factory=list)
     time_offset_s: float | None = None  # the GNSS time lag removed (seconds), None when none was
     time_sigma_s: float | None = None
+    # the evidence of each correction made on data the fit did not use, in words (by name: gnss_bias, gnss_time_offset)
+    evidence: dict[str, str] = field(default_factory=dict)
 
 
 def shift_gnss(images: pa.Table, offset: np.ndarray) -> pa.Table:
@@ -157,6 +163,75 @@ def _correct_gnss_offset(images: pa.Table, observations: pa.Table, camera: Camer
     return out
 
 
+@dataclass
+class AttitudeCorrection:
+    """The recorded attitudes as corrected (``images``), the offset removed (degrees about the camera axes x, y, z;
+    ``None`` when none was), the check itself (:class:`aerocal.diagnose.attitude.AttitudeOffset`, None where it
+    could not be made) and what was decided, in words."""
+
+    images: pa.Table
+    offset_deg: list[float] | None = None
+    check: AttitudeOffset | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+def correct_attitude_offset(images: pa.Table, observations: pa.Table, camera: Camera, config: AdjustConfig,
+                            gcps: pa.Table | None, gcp_observations: pa.Table | None,
+                            max_images: int | None = None, block: str | None = None) -> AttitudeCorrection:
+    """Measure how the recorded attitudes are turned from the orientation the images and the recorded positions
+    (and control points) give without them, and remove the offset from the records where it is beyond its sigma
+    about an axis and predicts the images it was not estimated on (:mod:`aerocal.diagnose.attitude`), as a
+    boresight. Only where ``config`` observes the attitudes: otherwise they do not reach the block, and the
+    diagnosis reports their offset. ``max_images``: measure on that many images nearest the block centre (the
+    correction applies to every image); ``block``: which block this is, in words, added to every note."""
+    out = AttitudeCorrection(images)
+    if config.attitude_sigma_deg is None or config.gnss_sigma_m is None:
+        return out
+    cfg = dataclasses.replace(config, attitude_sigma_deg=None, free=(), thermal=(), adaptive=False, tie_thinning=None)
+    sub_images, sub_obs, sub_gobs = images, observations, gcp_observations
+    if max_images is not None and images.num_rows > max_images:
+        keep = central_images(images, max_images)
+        sub_images, sub_obs = select_images(images, keep), select_images(observations, keep)
+        sub_gobs = select_images(gcp_observations, keep) if gcp_observations is not None else None
+    where = f" (tested on {block})" if block else ""
+    try:
+        base = fit_baseline(sub_images, sub_obs, camera, cfg, gcps, sub_gobs)
+    except (AdjustmentError, np.linalg.LinAlgError, ValueError) as exc:
+        out.notes.append(f"recorded attitudes not checked: the block could not be adjusted without them ({exc})"
+                         + where)
+        return out
+    check = offset_statistics(base.state.R, base.block.R_rec,
+                              mean_rotation_covariance(base.solution, base.block.n_images))
+    out.check = check
+    if check is None:
+        return out
+    if not check.significant:
+        out.notes.append(f"recorded attitudes: {check.text()}, against the orientation the images and positions give "
+                         f"without them: no offset; used as recorded{where}")
+        return out
+    offset = check.applied()
+    out.images = turn_recorded_attitudes(images, small_rotation(np.radians(offset)))
+    out.offset_deg = [float(v) for v in offset]
+    out.notes.append(f"recorded attitudes: {check.text()}, against the orientation the images and positions give "
+                     f"without them: an offset about the camera's {', '.join(check.axes)} axis (a gimbal's yaw for the "
+                     f"camera's, a mounting tilt, another angle convention), removed from every recorded attitude as a "
+                     f"boresight before the adjustment{where}")
+    return out
+
+
+def held_out_text(effect) -> str:
+    """The evidence on data the fit did not use of a named effect (:class:`aerocal.diagnose.engine.NamedEffect`),
+    in words."""
+    parts = []
+    held, check = effect.held_out or {}, effect.check_points or {}
+    if held.get("gain") is not None:
+        parts.append(f"held-out gain {100 * held['gain']:+.2f} +- {100 * (held.get('sigma') or 0):.2f} % on "
+                     f"{held.get('n_images')} images ({held.get('units')})")
+    if check.get("gain") is not None:
+        parts.append(f"check points {100 * check['gain']:+.1f} +- {100 * (check.get('sigma') or 0):.1f} %")
+    return "; ".join(parts) or "named by the diagnosis"
+
+
 def _unnamed(check: dict, units: str) -> str:
     """Why a recorded-EO term is not removed, from its check (estimated alone, in ``units``)."""
     if "estimate" not in check or check.get("status") in ("not determined", "beyond physical size", "not testable"):
@@ -192,6 +267,7 @@ def _offset(out: GnssCorrection, effect, check: dict, n_control: int) -> None:
                      "recorded positions before the adjustment")
     out.images = shift_gnss(out.images, offset)
     out.offset_m, out.sigma_m = [float(v) for v in offset], [float(v) for v in sig]
+    out.evidence["gnss_bias"] = held_out_text(effect)
 
 
 def _time_lag(out: GnssCorrection, effect, check: dict, rivals: list) -> None:
@@ -213,5 +289,6 @@ def _time_lag(out: GnssCorrection, effect, check: dict, rivals: list) -> None:
         return
     out.images = shift_gnss_in_time(out.images, lag)
     out.time_offset_s, out.time_sigma_s = lag, sig
+    out.evidence["gnss_time_offset"] = held_out_text(effect)
     out.notes.append(f"{text}: removed from the recorded positions (each moved back along its track by its velocity "
                      "x the lag) before the adjustment")
