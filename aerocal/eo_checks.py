@@ -188,11 +188,7 @@ def correct_attitude_offset(images: pa.Table, observations: pa.Table, camera: Ca
     if config.attitude_sigma_deg is None or config.gnss_sigma_m is None:
         return out
     cfg = dataclasses.replace(config, attitude_sigma_deg=None, free=(), thermal=(), adaptive=False, tie_thinning=None)
-    sub_images, sub_obs, sub_gobs = images, observations, gcp_observations
-    if max_images is not None and images.num_rows > max_images:
-        keep = central_images(images, max_images)
-        sub_images, sub_obs = select_images(images, keep), select_images(observations, keep)
-        sub_gobs = select_images(gcp_observations, keep) if gcp_observations is not None else None
+    sub_images, sub_obs, sub_gobs = _central(images, observations, gcp_observations, max_images)
     where = f" (tested on {block})" if block else ""
     try:
         base = fit_baseline(sub_images, sub_obs, camera, cfg, gcps, sub_gobs)
@@ -217,6 +213,103 @@ def correct_attitude_offset(images: pa.Table, observations: pa.Table, camera: Ca
                      f"camera's, a mounting tilt, another angle convention), removed from every recorded attitude as a "
                      f"boresight before the adjustment{where}")
     return out
+
+
+#: the chi-square (in the better block's sigma0 squared) by which the records corrected one way must fit worse than
+#: corrected the other way for a GNSS error and an attitude offset to be told apart: 3 sigma of one degree of freedom
+SEPARATES_CHI2 = 9.0
+
+
+def correct_recorded_eo(images: pa.Table, observations: pa.Table, camera: Camera, config: AdjustConfig,
+                        gcps: pa.Table | None, gcp_observations: pa.Table | None, max_images: int | None = None,
+                        io: IOUncertainty | None = None,
+                        block: str | None = None) -> tuple[AttitudeCorrection, GnssCorrection]:
+    """The recorded attitudes (:func:`correct_attitude_offset`) and positions (:func:`correct_gnss_offset`)
+    checked together; the GNSS correction's ``images`` carry both corrections.
+
+    Each check looks at the block through the other's records: an attitude offset, observed, turns the block the
+    GNSS tests see, and a GNSS error turns the orientation the attitudes are checked against (a 0.05 s lag, 3 m
+    along the track, tilts the cameras of conte-calibration by 0.2 deg about their x axis, the same in every
+    strip since the camera turns with the heading: it passed as a boresight, and the lag then as a GNSS offset).
+    So where either check corrects something the records are checked in both orders (attitudes first, positions
+    first); when the two orders decide alike the first is kept, otherwise the block is adjusted on the records
+    corrected each way and the one that fits better by :data:`SEPARATES_CHI2` wins (the lag's shift grows with
+    the ground speed, which differs between strips in a wind; a boresight's tilt does not). A block that fits
+    both alike cannot tell the two causes apart: the records are used as they are, and the diagnosis reports
+    them as a group."""
+    check = (observations, camera, config, gcps, gcp_observations, max_images)
+
+    def positions_first(eo: GnssCorrection) -> tuple[AttitudeCorrection, GnssCorrection]:
+        positioned = eo.images
+        for c in ("roll", "pitch", "yaw"):  # the corrected positions with the attitudes as recorded
+            positioned = positioned.set_column(positioned.schema.get_field_index(c), c, images.column(c))
+        att = correct_attitude_offset(positioned, *check, block)
+        return att, dataclasses.replace(eo, images=att.images)
+
+    att = correct_attitude_offset(images, *check, block)
+    eo = correct_gnss_offset(att.images, *check, io, block)
+    corrected_gnss = eo.offset_m is not None or eo.time_offset_s is not None
+    if att.offset_deg is None and not corrected_gnss:
+        return att, eo
+    # the other order: without an attitude correction the GNSS tests saw the records as they are
+    other = positions_first(eo if att.offset_deg is None else correct_gnss_offset(images, *check, io, block))
+    if _decisions(att, eo) == _decisions(*other):
+        return att, eo
+    fits, dofs = zip(*[_records_chi2(e.images, *check) for _, e in ((att, eo), other)], strict=True)
+    orders = ("attitudes first", "positions first")
+    said = [f"{orders[k]}: {'; '.join(a.notes + e.notes)} (chi2 {fits[k]:.1f})"
+            for k, (a, e) in enumerate(((att, eo), other))]
+    better = int(np.argmin(fits))
+    scale = min(fits) / max(min(dofs), 1)  # the better block's sigma0 squared
+    if abs(fits[0] - fits[1]) < SEPARATES_CHI2 * max(scale, 1e-12):
+        # what both orders found: an attitude offset about the same axis, of the same sign
+        a = np.asarray(att.offset_deg or [0.0] * 3, dtype=float)
+        b = np.asarray(other[0].offset_deg or [0.0] * 3, dtype=float)
+        common = np.where((a != 0) & (np.sign(a) == np.sign(b)), a, 0.0)
+        note = ("recorded attitudes and positions: corrected in either order the block fits alike, so an attitude "
+                "offset and a GNSS error are not told apart here; "
+                + (f"the offset about the camera's {', '.join('xyz'[k] for k in np.flatnonzero(common))} axis "
+                   f"both found ({', '.join(f'{v:+.3g}' for v in common)} deg) removed from the recorded attitudes, "
+                   "the rest used as recorded" if common.any() else "records used as they are")
+                + " (" + " | ".join(said) + ")")
+        if not common.any():
+            return AttitudeCorrection(images, check=att.check, notes=[note]), GnssCorrection(images)
+        turned = turn_recorded_attitudes(images, small_rotation(np.radians(common)))
+        return (AttitudeCorrection(turned, [float(v) for v in common], att.check, [note]),
+                GnssCorrection(turned))
+    chosen = (att, eo) if better == 0 else other
+    chosen[0].notes.insert(0, f"recorded attitudes and positions checked in both orders; {orders[better]} fits the "
+                              f"block better by chi2 {abs(fits[0] - fits[1]):.1f} (the other: "
+                              f"{said[1 - better]})")
+    return chosen
+
+
+def _decisions(att: AttitudeCorrection, eo: GnssCorrection) -> tuple[bool, bool, bool]:
+    """Which recorded-EO corrections were made: an attitude offset, a GNSS offset, a GNSS time lag."""
+    return att.offset_deg is not None, eo.offset_m is not None, eo.time_offset_s is not None
+
+
+def _central(images: pa.Table, observations: pa.Table, gcp_observations: pa.Table | None,
+             max_images: int | None) -> tuple[pa.Table, pa.Table, pa.Table | None]:
+    """The ``max_images`` images nearest the block's centre, with their measurements (all where None)."""
+    if max_images is None or images.num_rows <= max_images:
+        return images, observations, gcp_observations
+    keep = central_images(images, max_images)
+    return (select_images(images, keep), select_images(observations, keep),
+            select_images(gcp_observations, keep) if gcp_observations is not None else None)
+
+
+def _records_chi2(images, observations, camera, config, gcps, gcp_observations,
+                  max_images) -> tuple[float, int]:
+    """Chi-square and degrees of freedom of the block (its central ``max_images``) adjusted on ``images``' records
+    with ``config``."""
+    sub_images, sub_obs, sub_gobs = _central(images, observations, gcp_observations, max_images)
+    cfg = dataclasses.replace(config, free=(), thermal=(), adaptive=False, tie_thinning=None)
+    try:
+        sol = fit_baseline(sub_images, sub_obs, camera, cfg, gcps, sub_gobs).solution
+    except (AdjustmentError, np.linalg.LinAlgError, ValueError):
+        return float("inf"), 1
+    return 2.0 * float(sol.cost), int(sol.dof)
 
 
 def held_out_text(effect) -> str:
