@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 from prefect import flow
 
+from aerocal.effects import CATALOGUE
 from aerocal.pipeline import ProcessConfig
-from aerocal.simulate import simulate_flight, write_flight
+from aerocal.simulate import get_preset, simulate_flight, write_flight
 from aerocal.simulate.rendered_frames import render_flight_images
 from aerocal.simulate.simulator import spec_summary
 from flows.environment import demo_environment
@@ -34,15 +35,24 @@ from flows.process import FlowInputError, process_flight
 class DemoConfig:
     """The demo flight: ``preset`` (conte-calibration, the 44-image thermal calibration block), ``seed``
     (7), ``max_images`` (None: all frames), ``effects`` (hidden: the microbolometer reads its rows out
-    over 10 ms while the aircraft flies 60 m/s, ``rolling_shutter``: a 1.2 px stretch of the image's
-    along-track axis, which a Brown model self-calibrating f, cx, cy, k1, k2, p1, p2 does not hold),
-    ``frames`` rendered for the orthomosaic (8, the ones nearest the block centre)."""
+    over 10 ms while the aircraft flies 60 m/s through the air, ``rolling_shutter``: a 1.2 px stretch of the
+    image's along-track axis, which a Brown model self-calibrating f, cx, cy, k1, k2, p1, p2 does not hold),
+    ``wind_m_s`` (east, north; (9, 4): the aircraft is faster over the ground one way than the other and crabs on
+    the transversal strip, as real flights do, which tells a readout from an affinity of the pixel grid), ``frames``
+    rendered for the orthomosaic (8, the ones nearest the block centre)."""
 
     preset: str = "conte-calibration"
     seed: int = 7
     max_images: int | None = None
     effects: tuple[tuple[str, tuple[float, ...]], ...] = (("rolling_shutter", (0.010,)),)
+    wind_m_s: tuple[float, float] = (9.0, 4.0)
     frames: int = 8
+
+    @property
+    def hidden(self) -> str:
+        """The hidden effects in words, e.g. ``rolling_shutter = 0.01 s``."""
+        return ", ".join(f"{name} = {', '.join(f'{v:g}' for v in values)} {CATALOGUE[name].units}"
+                         for name, values in self.effects) or "none"
 
 
 def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
@@ -53,9 +63,9 @@ def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
                 f"{folder} exists and is not a demo flight; remove it or choose another output"
             )
         shutil.rmtree(folder)  # the demo's own previous flight
-    sim = simulate_flight(
-        config.preset, seed=config.seed, effects=dict(config.effects), max_images=config.max_images
-    )
+    spec = get_preset(config.preset)
+    spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=tuple(config.wind_m_s)))
+    sim = simulate_flight(spec, seed=config.seed, effects=dict(config.effects), max_images=config.max_images)
     write_flight(sim, folder, mode="observations")
     if config.frames:
         xy = np.column_stack([sim.images.column("gnss_x").to_numpy(), sim.images.column("gnss_y").to_numpy()])
@@ -91,5 +101,6 @@ def demo(
         artifact_root or env["artifact_root"],
     )
     summary["simulated"] = simulated
+    summary["hidden"] = config.hidden
     summary["flight_dir"] = str(flight)
     return summary

@@ -266,7 +266,8 @@ def _block_row(sim, run) -> dict:
     tid = pts.column("track_id").to_numpy()
     e = np.asarray(run.json("adjustment")["check_errors_m"], dtype=float).reshape(-1, 3)
     n = np.linalg.norm(e[np.isfinite(e).all(axis=1)][:, :2], axis=1)
-    diag = run.json("diagnosis")
+    # what the diagnosis named: before the block was extended by it, when it was
+    diag = run.json("diagnosis_before_extension" if "diagnosis_before_extension" in run.outputs else "diagnosis")
     return {"dod": float(np.mean(pts.column("Z").to_numpy() - sim.tie.points[tid, 2])),
             "cp_mean": float(np.mean(n)), "cp_std": float(np.std(n)), "diagnosis": run.summary.get("diagnosis"),
             "effects": {e["name"]: [float(np.ravel(e["magnitude"])[0]), float(np.ravel(e["sigma"])[0])]

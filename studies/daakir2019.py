@@ -246,8 +246,10 @@ BLOCKS = {"as flown": (False, False), "relative": (True, False), "relative, nois
 def product_config(thermal: tuple[str, ...] | None = None, correction: bool = True,
                    relative: bool = False) -> ProcessConfig:
     """The product's configuration: ``ProcessConfig()`` unless the calibration's thermal slopes (``thermal``),
-    the block's thermal correction (``correction``) or a relative orientation (``relative``) are asked for."""
-    config = ProcessConfig()
+    the block's thermal correction (``correction``) or a relative orientation (``relative``) are asked for. The
+    diagnosis's extension of the block is off: the study compares what each certificate's own correction does
+    (with the focal-only certificate the extension adds the principal point's drift the diagnosis finds)."""
+    config = ProcessConfig(extend=False)
     if thermal is not None:
         cal = config.calibration
         config.calibration = dataclasses.replace(cal, adjust=dataclasses.replace(cal.adjust, thermal=tuple(thermal)))

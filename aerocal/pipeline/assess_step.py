@@ -37,14 +37,18 @@ def assessment(adj: dict, residuals: np.ndarray, observations, images) -> dict[s
     return out
 
 
-def assess_step(runner: Runner, ingest: StepResult, observations: str, adjusted: StepResult) -> StepResult:
-    """Output ``assessment`` (:func:`assessment`)."""
+def assess_step(runner: Runner, ingest: StepResult, observations: str, adjusted: StepResult,
+                name: str = "assess") -> StepResult:
+    """Output ``assessment`` (:func:`assessment`) of the adjustment ``adjusted`` (on the data it used, where it
+    says: ``block_images``, ``block_observations``)."""
     inputs = {"images": ingest["images"], "observations": observations, "adjustment": adjusted["adjustment"],
               "residuals": adjusted["residuals"]}
+    if "block_images" in adjusted.outputs:
+        inputs.update(images=adjusted["block_images"], observations=adjusted["block_observations"])
 
     def compute(inp: StepInputs) -> dict:
         doc = assessment(inp.json("adjustment"), inp.array("residuals"), inp.table("observations"),
                          inp.table("images"))
         return {"assessment": JsonOutput(doc, "assessment")}
 
-    return runner.run("assess", inputs, None, compute)
+    return runner.run(name, inputs, None, compute)

@@ -12,13 +12,14 @@ from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
 
 
 def calibrate_step(runner: Runner, ingest: StepResult, observations: str, config: CalibrationConfig | None = None,
-                   adjust_config: AdjustConfig | None = None) -> StepResult:
+                   adjust_config: AdjustConfig | None = None, name: str = "calibrate") -> StepResult:
     """Self-calibrate the flight and build the certificate document.
 
     Outputs: ``certificate`` (the document; its ``review`` says accepted or rejected), ``calibration``
     (:meth:`aerocal.calibration.Calibration.summary`: the block and why, predicted sigmas, parameters held at
     nominal, held-out tests, the review, the parameter pairs correlated beyond 0.9). ``adjust_config``
-    overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas).
+    overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas). ``name``: the step's name in the run
+    (a re-calibration of the camera once the diagnosis named a camera term is another step of the same run).
     """
     config = config or CalibrationConfig()
     acfg = adjust_config or config.adjust
@@ -41,4 +42,4 @@ def calibrate_step(runner: Runner, ingest: StepResult, observations: str, config
             "_extra": JsonOutput({"certificate_id": cert.id, "review": cal.review.status}, "extra"),
         }
 
-    return runner.run("calibrate", inputs, {"config": config, "adjust": acfg}, compute)
+    return runner.run(name, inputs, {"config": config, "adjust": acfg}, compute)

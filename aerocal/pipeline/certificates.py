@@ -20,11 +20,14 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numpy as np
+
 from aerocal.camera import Camera
 from aerocal.camera_identity import CameraIdentity
 from aerocal.certificate import Certificate, ParameterSignificance, Provenance
 from aerocal.certificate_selection import NoCertificateError, choose_certificate
 from aerocal.decision import NOMINAL_PARAMETERS, Review, nominal_sigma, review_camera
+from aerocal.diagnose.extension import ModelTerm, extend_certificate
 
 
 @dataclass(frozen=True)
@@ -145,6 +148,57 @@ def issue_calibration(store: CertificateStore, document: dict, cam_doc: dict, ru
         reason += f", stored as REJECTED ({problems}): the block uses the nominal camera instead"
         use = nominal_certificate(cam_doc, run_id, f"this flight's calibration {stored.id} was rejected")
     return stored.id, use, reason
+
+
+def extended_certificate(document: dict, terms: dict, flight: dict) -> dict:
+    """The document of ``document``'s certificate (a calibration of this flight, made on its measurements with
+    the named image terms removed) with the camera terms of ``terms`` (the extension step's ``terms`` document)
+    added (:func:`aerocal.diagnose.extension.extend_certificate`)."""
+    camera = tuple(ModelTerm.from_dict(t) for t in terms["terms"] if t["name"] in terms["camera_terms"])
+    cert = extend_certificate(Certificate.from_dict(document), camera, flight.get("name") or "unnamed flight",
+                              terms.get("reference_temperature"))
+    return cert.to_dict()
+
+
+def issue_extension(store: CertificateStore, document: dict, cam_doc: dict, run_id: str, previous: str,
+                    terms: dict) -> tuple[str, dict, str]:
+    """Issue the certificate extended by the flight's camera terms as the camera's next version and say which
+    document the extended block uses: ``(certificate id, document, reason)``; ``previous`` is why the block used
+    the certificate it had. Rejected (the review of a re-calibration failed), it is stored as such and the block
+    uses the nominal camera, as :func:`issue_calibration` does."""
+    stored = store.issue(document)
+    reason = (f"version {stored.version} of camera {stored.camera_label}, extended by this flight's diagnosis with "
+              f"{', '.join(terms['camera_terms'])} (before: {previous})")
+    use = stored.document
+    if stored.status != "accepted":
+        problems = "; ".join((use.get("review") or {}).get("problems") or [])
+        reason += f", stored as REJECTED ({problems}): the block uses the nominal camera instead"
+        use = nominal_certificate(cam_doc, run_id, f"the extended certificate {stored.id} was rejected")
+    return stored.id, use, reason
+
+
+def term_agreement(store: CertificateStore, cam_doc: dict, flight: dict, terms: dict) -> list[str]:
+    """How the camera terms this flight found compare with the same terms in the certificate the store holds for
+    the camera (the one that applies to this flight; none: nothing to compare): per term, agreement within 2 of the
+    combined sigma, or the difference in sigmas, with the flights each came from."""
+    try:
+        document, _ = store.choose(identity_of(cam_doc), flight["date"], flight.get("temperature_range"))
+    except (NoCertificateError, ValueError):
+        return []
+    stored = Certificate.from_dict(document)
+    out = []
+    for t in terms["terms"]:
+        old = stored.terms.get(t["name"])
+        if t["name"] not in terms["camera_terms"] or old is None:
+            continue
+        a, b = np.asarray(t["values"], float), np.asarray(old.values, float)
+        s = np.sqrt(np.asarray(t["sigmas"], float) ** 2 + np.asarray(old.sigmas, float) ** 2)
+        z = float(np.max(np.abs(a - b) / np.maximum(s, 1e-300)))
+        verdict = "agrees with" if z <= 2.0 else f"differs by {z:.1f} sigma from"
+        out.append(f"{t['name']} {', '.join(f'{v:.4g}' for v in a)} {t['units']} on this flight {verdict} "
+                   f"{', '.join(f'{v:.4g}' for v in b)} +- {', '.join(f'{v:.2g}' for v in old.sigmas)} of certificate "
+                   f"{stored.id} (flights {', '.join(old.flights)})" + (f", within {z:.1f} sigma" if z <= 2.0 else ""))
+    return out
 
 
 def new_run_id() -> str:

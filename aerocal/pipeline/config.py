@@ -157,6 +157,10 @@ class ProcessConfig:
       seconds (33 s against 10 s there, same machine, idle).
     * ``diagnose``: :class:`aerocal.diagnose.engine.DiagnoseConfig` (``None``: its defaults, the reference
       temperature from the certificate's thermal model).
+    * ``extend``: the effects the diagnosis names become the block's model (default True): the block is adjusted
+      again with them and every product comes from the extended block; the camera terms (readout, affinity, k3,
+      thermal slopes) go into a new version of the camera's certificate, made by calibrating the camera again on
+      this flight where it was calibrated here (:mod:`aerocal.pipeline.extend_step`). False: named, not applied.
     """
 
     ingest: IngestStepConfig = field(default_factory=IngestStepConfig)
@@ -172,6 +176,7 @@ class ProcessConfig:
     use_flight_sigmas: bool = True
     matched_robust_loss: str = "cauchy"
     matched_tie_thinning: ThinningConfig | None = field(default_factory=ThinningConfig)
+    extend: bool = True
 
     def to_json(self) -> dict:
         """The configuration as plain JSON (what a run records)."""

@@ -10,6 +10,7 @@ import dataclasses
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, corrected_to_t0, scale_tie_sigma, screened_rows
+from aerocal.camera import PARAM_NAMES
 from aerocal.certificate import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
@@ -18,9 +19,13 @@ from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
 
 def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
                   config: DiagnoseConfig | None = None, adjust_config: AdjustConfig | None = None,
-                  adjusted: StepResult | None = None, thermal_correction: bool = False) -> StepResult:
+                  adjusted: StepResult | None = None, thermal_correction: bool = False,
+                  calibrated_on_flight: bool = False, name: str = "diagnose") -> StepResult:
     """Output ``diagnosis``: the hypotheses tested, the effects named with magnitude and evidence, the gain on
-    check points, the recorded-EO checks, the twin, and a one-line verdict (``summary``).
+    check points, the recorded-EO checks, the twin, and a one-line verdict (``summary``). With the block
+    adjustment's result (``adjusted``) the block is diagnosed on the data that adjustment used: its recorded
+    positions as it corrected them (a GNSS lag removed) and its measurements as the certificate's camera terms
+    corrected them, so that what is named is what the block's own model leaves.
 
     With the block adjustment's result (``adjusted``), the observations its blunder screening rejected (weight
     0 in its ``obs_weight``) are left out and the diagnosis adjusts by least squares at once, instead of
@@ -30,11 +35,22 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
     ``thermal_correction``: the block adjustment corrected the measurements with the certificate's linear thermal
     model; the diagnosis does too. Without it, a Daakir corridor processed with a certificate holding the
     principal point's slopes, its correction applied, still had that drift named (-0.084 / +0.272 px/degC).
+
+    ``calibrated_on_flight``: the certificate was made by this flight's self-calibration. Its IO is then no
+    independent knowledge: the calibration fitted it to these images, absorbing part of any effect they hold (a
+    readout's stretch along the track in the focal length, an affinity in f), and an effect tested against it
+    held fixed is tested against a camera bent towards it. The parameters the calibration estimated are then
+    estimated again with every hypothesis (the self-calibration extended by it); those it held at their nominal
+    values stay fixed with their tolerances.
     """
     inputs = {k: ingest[k] for k in ("images", "gcps", "gcp_observations")}
     inputs.update(observations=observations, certificate=certificate)
     if adjusted is not None and "obs_weight" in adjusted.outputs:
         inputs.update({k: adjusted[k] for k in ("obs_weight", "residuals", "adjustment", "poses", "points")})
+    if adjusted is not None and "block_images" in adjusted.outputs:
+        # the block's own data: its recorded positions and measurements as its adjustment corrected them
+        inputs.update(images=adjusted["block_images"], observations=adjusted["block_observations"],
+                      gcp_observations=adjusted["block_gcp_observations"])
     acfg = adjust_config or AdjustConfig()
 
     def compute(inp: StepInputs) -> dict:
@@ -45,7 +61,8 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
         images = inp.table("images")
         obs = corrected_to_t0(images, inp.table("observations"), cert.camera, thermal)
         gobs = corrected_to_t0(images, inp.table("gcp_observations"), cert.camera, thermal)
-        run_cfg = dataclasses.replace(acfg, free=(), thermal=(), adaptive=False)
+        free = tuple(n for n in cert.estimated if n in PARAM_NAMES) if calibrated_on_flight else ()
+        run_cfg = dataclasses.replace(acfg, free=free, thermal=(), adaptive=False)
         screening = None
         if inp.has("obs_weight"):
             weight = inp.array("obs_weight")
@@ -69,5 +86,6 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
         doc["screening"] = screening
         return {"diagnosis": JsonOutput(doc, "diagnosis")}
 
-    return runner.run("diagnose", inputs, {"diagnose": config or DiagnoseConfig(), "adjust": acfg,
-                                           "thermal_correction": bool(thermal_correction)}, compute)
+    return runner.run(name, inputs, {"diagnose": config or DiagnoseConfig(), "adjust": acfg,
+                                           "thermal_correction": bool(thermal_correction),
+                                           "calibrated_on_flight": bool(calibrated_on_flight)}, compute)

@@ -14,6 +14,7 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.certificate import Certificate
+from aerocal.diagnose.extension import frame_terms
 from aerocal.dsm import DsmConfig, dsm_from_points, write_dsm
 from aerocal.ingest.flir import common_camera_info, raw_to_celsius
 from aerocal.io import file_sha256
@@ -96,7 +97,9 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
                                                       images.column("temperature_c").to_pylist(), strict=True)
                      if v is not None}
             sel = poses.filter(np.isin(poses.column("image_id").to_numpy(), list(paths)))
-            frames = frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal)
+            motion, turn = frame_terms(cert, images, poses)  # the certificate's readout and thermal rotation
+            frames = frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal, motion,
+                                       turn)
             serial = len(frames) <= config.serial_max_frames
             with dask_client(dask_address, config.dask_workers, serial) as client:
                 res = build_mosaic(frames, paths, dsm, work / "orthomosaic.tif", config.mosaic or MosaicConfig(),

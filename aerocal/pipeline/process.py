@@ -28,9 +28,12 @@ from aerocal.pipeline.certificates import (
     CertificateStore,
     MemoryCertificates,
     choose_stored,
+    extended_certificate,
     identity_of,
     issue_calibration,
+    issue_extension,
     nominal_certificate,
+    term_agreement,
 )
 from aerocal.pipeline.config import (
     CERTIFICATE_MODES,
@@ -43,6 +46,8 @@ from aerocal.pipeline.config import (
 from aerocal.pipeline.control_step import control_step
 from aerocal.pipeline.dataset import FlightDataset, FlightInputError, dataset_of
 from aerocal.pipeline.diagnose_step import diagnose_step
+from aerocal.pipeline.extend_step import extend_step, extension_record, model_terms
+from aerocal.pipeline.findings import run_findings
 from aerocal.pipeline.ingest_step import ingest_step
 from aerocal.pipeline.match_step import match_step
 from aerocal.pipeline.mosaic_step import mosaic_step
@@ -62,6 +67,8 @@ EXPORTS = {
     "calibration_certificate": "calibration_certificate.json",
     "calibration": "calibration.json",
     "diagnosis": "diagnosis.json",
+    "diagnosis_before_extension": "diagnosis_before_extension.json",
+    "extension": "extension.json",
     "assessment": "assessment.json",
     "adjustment": "adjustment.json",
     "ground_control": "ground_control.json",
@@ -219,17 +226,59 @@ def process(
     record.certificate(None if certificate == NOMINAL else cert_id, reason)
     cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
 
+    extension: dict[str, Any] | None = None
     if not calibrate_only:
+        calibrated_here = "calibrate" in steps
         adj = steps["adjust"] = adjust_step(runner, ing, observations, cert_ref, config.block, adjustments.block,
                                             dask_address)
-        mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, dask_address)
         ass = steps["assess"] = assess_step(runner, ing, observations, adj)
         dia = steps["diagnose"] = diagnose_step(runner, ing, observations, cert_ref, config.diagnose,
-                                                adjustments.block, adj, config.block.thermal_correction)
+                                                adjustments.block, adj, config.block.thermal_correction,
+                                                calibrated_on_flight=calibrated_here)
+        before = {"adjust": adj, "assess": ass, "diagnose": dia, "certificate_id": cert_id}
+        if config.extend and model_terms(runner.inputs({"d": dia["diagnosis"]}).json("d")):
+            # the loop: what the diagnosis named becomes the block's model, and the camera's in its certificate
+            ext = steps["extend"] = extend_step(runner, ing, observations, cert_ref, dia, adj)
+            terms = runner.inputs({"t": ext["terms"]}).json("t")
+            ext_ing = ing.with_outputs(images=ext["images"], gcp_observations=ext["gcp_observations"])
+            agreement: list[str] = []
+            if terms["camera_terms"]:
+                agreement = term_agreement(store, cam_doc, flight_doc, terms)
+                if calibrated_here:  # the camera calibrated again on the measurements without the named terms
+                    cal_ing = ext_ing.with_outputs(gcp_observations=ext["calibration_gcp_observations"])
+                    recal = steps["recalibrate"] = calibrate_step(runner, cal_ing, ext["calibration_observations"],
+                                                                  config.calibration, adjustments.calibration,
+                                                                  name="recalibrate")
+                    outputs["calibration"] = recal["calibration"]
+                    made = runner.inputs({"c": recal["certificate"]}).json("c")
+                    extended_doc = extended_certificate(made, terms, flight_doc)
+                else:
+                    extended_doc = runner.inputs({"c": ext["certificate"]}).json("c")
+                cert_id, document, reason = issue_extension(store, extended_doc, cam_doc, runner.run_id, reason,
+                                                            terms)
+                record.certificate(cert_id, reason)
+                cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
+            adj = steps["adjust_extended"] = adjust_step(runner, ext_ing, ext["observations"], cert_ref, config.block,
+                                                         adjustments.block, dask_address, geometry=adj,
+                                                         name="adjust_extended")
+            ass = steps["assess_extended"] = assess_step(runner, ext_ing, ext["observations"], adj,
+                                                         name="assess_extended")
+            dia = steps["diagnose_extended"] = diagnose_step(runner, ext_ing, ext["observations"], cert_ref,
+                                                             config.diagnose, adjustments.block, adj,
+                                                             config.block.thermal_correction,
+                                                             calibrated_on_flight=calibrated_here,
+                                                             name="diagnose_extended")
+            extension = extension_record(runner, before, {"adjust": adj, "assess": ass, "diagnose": dia,
+                                                          "certificate_id": cert_id}, terms)
+            extension["agreement"] = agreement
+            outputs["extension"] = runner.put(JsonOutput(extension, "extension"))
+            outputs["diagnosis_before_extension"] = before["diagnose"]["diagnosis"]
+        mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, dask_address)
         seconds = {name: res.seconds for name, res in steps.items() if not res.skipped}
-        rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report, seconds)
+        rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report, seconds,
+                                            outputs.get("extension"))
         for res in (adj, mos, ass, dia, rep):
-            outputs.update(res.outputs)
+            outputs.update({k: v for k, v in res.outputs.items() if not k.startswith("block_")})
 
     summary: dict[str, Any] = {
         "run_id": runner.run_id,
@@ -249,10 +298,18 @@ def process(
     if "diagnosis" in outputs:
         docs = runner.inputs({k: outputs[k] for k in ("diagnosis", "assessment", "adjustment")})
         diag, assess, adjustment = docs.json("diagnosis"), docs.json("assessment"), docs.json("adjustment")
+        if extension is not None:
+            summary["model_extension"] = extension
+        first = runner.inputs({"a": before["adjust"]["adjustment"]}).json("a")
+        calibration = (runner.inputs({"c": steps["calibrate"]["certificate"]}).json("c")
+                       if "calibrate" in steps else None)
+        summary["findings"] = [f.to_dict() for f in run_findings(calibration, first, extension)]
         summary.update({
-            "diagnosis": diag.get("summary"),
+            "diagnosis": extension["named"] if extension is not None else diag.get("summary"),
+            "diagnosis_after_extension": diag.get("summary") if extension is not None else None,
             "recorded_eo": diag.get("recorded_eo"),
-            "recorded_eo_corrections": (adjustment.get("recorded_eo_corrections") or {}).get("notes"),
+            # what the first adjustment removed from the records (the extended one tests them again, corrected)
+            "recorded_eo_corrections": (first.get("recorded_eo_corrections") or {}).get("notes"),
             "twin": (diag.get("twin") or {}).get("summary"),
             "accuracy": assess.get("check_points"),
             "adjustment_converged": bool(adjustment.get("converged", True)),

@@ -20,13 +20,14 @@ from aerocal.report.html import REPORT_NAME, SUMMARY_NAME
 
 def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: StepResult, mosaic: StepResult,
                 assessment: StepResult, diagnosis: StepResult, config: ReportStepConfig | None = None,
-                step_seconds: Mapping[str, float] | None = None) -> StepResult:
+                step_seconds: Mapping[str, float] | None = None, extension: str | None = None) -> StepResult:
     """Outputs ``report`` (self-contained HTML) and ``report_summary`` (its numbers as JSON).
 
     Inputs beyond the step outputs: the flight folder's reference DSM, when it exists, is kept by the runner
     (kind ``reference-dsm``) and keys the step by its content; without one the report says that the DSM was
     not compared. ``step_seconds`` (step name -> wall time, s) are shown in the report; they do not key the
-    step.
+    step. ``extension``: the record of the block's extension by its diagnosis
+    (:func:`aerocal.pipeline.extend_step.extension_record`), shown as the block before and after.
     """
     config = config or ReportStepConfig()
     inputs = {
@@ -42,6 +43,8 @@ def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: 
         "diagnosis": diagnosis["diagnosis"],
         "gcps": ingest["gcps"],
     }
+    if extension is not None:
+        inputs["extension"] = extension
     for name, result in (("control_screening", ingest), ("orthomosaic", mosaic)):
         if name in result.outputs:
             inputs[name] = result[name]
@@ -60,6 +63,7 @@ def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: 
             inp.path("reference_dsm") if inp.has("reference_dsm") else None,
             inp.path("orthomosaic") if inp.has("orthomosaic") else None,
             config.title, config.extra, config.measured_within_m, seconds or None, REFERENCE_DSM.as_posix(),
+            inp.json("extension") if inp.has("extension") else None,
         )
         return {
             "report": FileOutput(work / REPORT_NAME, "report", temporary=True),

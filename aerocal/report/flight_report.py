@@ -85,6 +85,7 @@ def write_flight_report(
     measured_within_m: float = MEASURED_WITHIN_M,
     step_seconds: Mapping[str, float] | None = None,
     reference_dsm_name: str = "reference/dsm.tif",
+    extension: Mapping | None = None,
 ) -> dict:
     """Write ``out_dir/report.html`` and ``out_dir/summary.json`` for a processed flight; return the summary
     document (what ``summary.json`` holds).
@@ -96,7 +97,10 @@ def write_flight_report(
     JSON documents; ``reference_dsm``: a reference surface GeoTIFF (heights in metres, the flight's CRS) or
     ``None``; ``orthomosaic``: the orthomosaic GeoTIFF or ``None``; ``title`` (default "Flight report:
     <name>"), ``extra`` key figures added to the summary, ``measured_within_m``: DSM cells this close to a
-    tie point count as measured; ``step_seconds``: step name -> wall time (s), shown when given.
+    tie point count as measured; ``step_seconds``: step name -> wall time (s), shown when given;
+    ``extension``: the record of the block's extension by its diagnosis
+    (:func:`aerocal.pipeline.extend_step.extension_record`): the terms applied and the block before and after
+    (``adjustment``, ``assessment`` and ``diagnosis`` are then the extended block's).
     """
     out_dir = Path(out_dir)
     cert = certificate
@@ -145,6 +149,8 @@ def write_flight_report(
     if "dem_difference" in figures:
         dem = figures["dem_difference"].numbers
         summary["dsm_minus_reference_m"] = {k: dem[k] for k in ("n", "mean_m", "median_m", "nmad_m", "rmse_m")}
+    if extension is not None:
+        summary["model_extension"] = extension.get("named")
     summary.update(extra or {})
 
     table = CertificateTable.from_values(
@@ -178,6 +184,7 @@ def write_flight_report(
         "screening": _screening_view(control_screening),
         "surface": _surface_rows(mosaic, dsm_grid),
         "diagnosis": _diagnosis_view(diagnosis),
+        "extension": wording.extension_view(extension) if extension is not None else None,
         "steps": wording.step_rows(step_seconds) if step_seconds else [],
     }
     out_dir.mkdir(parents=True, exist_ok=True)

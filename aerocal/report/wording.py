@@ -277,6 +277,15 @@ def effect_sentence(effect: Mapping) -> str:
     if p is not None and math.isfinite(float(p)):
         text += ", p-value below 1e-6" if float(p) < 1e-6 else f", p-value {number(p, 2)}"
     text += "."
+    held = effect.get("held_out") or {}
+    if held.get("gain") is not None:
+        text += (f" On images the fit did not use it reduces the misfit by {number(100 * held['gain'], 3)} +- "
+                 f"{number(100 * (held.get('sigma') or 0.0), 2)} % ({held.get('n_images')} held-out images, "
+                 f"{held.get('units')}).")
+    check = effect.get("check_points") or {}
+    if check.get("gain") is not None:
+        spread = number(100 * (check.get("sigma") or 0.0), 2)
+        text += f" On the check points: {number(100 * check['gain'], 3)} +- {spread} % of their squared error."
     alts = effect.get("alternatives") or []
     if alts:
         text += (" The block cannot tell it apart from " + ", ".join(humanise(a)[0].lower() for a in alts)
@@ -297,6 +306,14 @@ def diagnosis_sentences(diagnosis: Mapping) -> list[str]:
                    "not hold " + ("was" if len(effects) == 1 else "were") + " found in the residuals"
                    + (f" ({tested} candidate effects tested):" if tested else ":"))
         out.extend(effect_sentence(e) for e in effects)
+    for pair in diagnosis.get("pairs") or []:
+        names = [humanise(n)[0].lower() for n in pair["effects"]]
+        names = [f"{'an' if n[:1] in 'aeiou' else 'a'} {n}" for n in names]
+        listed = ", ".join(names[:-1]) + f" and {names[-1]}"
+        out.append(f"{listed[0].upper()}{listed[1:]} explain the residuals alike and this block cannot tell them "
+                   f"apart ({pair.get('conditional')}): "
+                   f"{'neither' if len(names) == 2 else 'none'} is named nor applied. "
+                   f"{sentence(pair.get('separated_by'))}")
     s0 = diagnosis.get("sigma0") or {}
     before, after = s0.get("before"), s0.get("after")
     if effects and before is not None and after is not None:
@@ -313,6 +330,32 @@ def diagnosis_sentences(diagnosis: Mapping) -> list[str]:
                    "(formal statistics are optimistic on real matches).")
     out.extend(sentence(name_effects(n)) for n in diagnosis.get("notes") or [])
     return out
+
+
+def extension_view(extension: Mapping) -> dict:
+    """The block's extension by its diagnosis (:func:`aerocal.pipeline.extend_step.extension_record`) for the
+    report: a lead sentence, the terms (name, size, evidence) and the block before and after, row by row."""
+    terms = [(humanise(t["name"])[0], ", ".join(plus_minus(v, sg, 4) for v, sg in zip(t["values"], t["sigmas"],
+                                                                                    strict=True)) + f" {t['units']}",
+              t.get("evidence") or "") for t in extension.get("terms") or []]
+    b, a = extension.get("before") or {}, extension.get("after") or {}
+    rows = [("Certificate", str(b.get("certificate_id") or MISSING), str(a.get("certificate_id") or MISSING)),
+            ("Sigma naught", number(b.get("sigma0"), 4), number(a.get("sigma0"), 4))]
+    cb, ca = b.get("check_points") or {}, a.get("check_points") or {}
+    def check(c: Mapping, axis: str) -> str:
+        return f"{number((c.get('rmse_m') or {}).get(axis), 3)} ({number((c.get('rho') or {}).get(axis), 3)})"
+
+    for axis in ("E", "N", "U"):
+        if (cb.get("rmse_m") or {}).get(axis) is not None:
+            rows.append((f"Check points {axis}: RMSE m (rho)", check(cb, axis), check(ca, axis)))
+    rows.append(("The twin", str(b.get("twin") or MISSING), str(a.get("twin") or MISSING)))
+    rows.append(("Diagnosis", str(b.get("diagnosis") or MISSING), str(a.get("diagnosis") or MISSING)))
+    camera = extension.get("camera_terms") or []
+    lead = ("The diagnosis named what follows, each with a gain on data the fit did not use; the block was adjusted "
+            "again with them and every product of this report comes from the extended block")
+    lead += (f"; {', '.join(humanise(n)[0].lower() for n in camera)} belong to the camera and went into its "
+             f"certificate {a.get('certificate_id')}." if camera else ".")
+    return {"lead": lead, "terms": terms, "rows": rows}
 
 
 def name_effects(text: str) -> str:

@@ -94,8 +94,19 @@ def print_run(summary: dict[str, Any]) -> None:
     if acc.get("rho"):
         rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
         console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
+    findings = summary.get("findings") or []
+    if findings:
+        console.print("found and applied:", highlight=False)
+        for f in findings:
+            console.print(f"  {finding_text(f)}", markup=False, highlight=False)
     if summary.get("diagnosis"):
-        console.print(f"diagnosis: {summary['diagnosis']}")
+        console.print(f"diagnosis: {summary['diagnosis']}", markup=False, highlight=False)
+    extension = summary.get("model_extension")
+    if extension:
+        for line in extension_lines(extension):
+            console.print(f"  {line}", markup=False, highlight=False)
+        console.print(f"diagnosis of the extended block: {summary.get('diagnosis_after_extension')}", markup=False,
+                      highlight=False)
     if summary.get("recorded_eo"):
         # lazy: aerocal.report loads matplotlib, rasterio and Jinja2 (about 1 s); --help must not pay them
         from aerocal.report.wording import recorded_eo_text
@@ -107,6 +118,33 @@ def print_run(summary: dict[str, Any]) -> None:
         console.print(f"twin (what the simulation gets wrong): {summary['twin']}")
     for name, path in summary.get("files", {}).items():
         console.print(f"{name:>13}: {path}")
+
+
+def finding_text(finding: dict[str, Any]) -> str:
+    """A finding of the run (:class:`aerocal.pipeline.findings.Finding` as JSON) in one line."""
+    values = ", ".join(f"{v:.4g}" for v in finding["values"])
+    sigmas = ", ".join("?" if v is None else f"{v:.2g}" for v in finding["sigmas"])
+    return (f"{finding['name']} = {values} +- {sigmas} {finding['units']} (by the {finding['found_by']}; "
+            f"{finding['applied']}; {finding['evidence']})")
+
+
+def extension_lines(extension: dict[str, Any]) -> list[str]:
+    """The block before and after its extension by the diagnosis, a line per figure that changed."""
+    b, a = extension.get("before") or {}, extension.get("after") or {}
+    lines = []
+    if b.get("sigma0") is not None and a.get("sigma0") is not None:
+        lines.append(f"sigma0 {b['sigma0']:.4g} -> {a['sigma0']:.4g}")
+    cb, ca = b.get("check_points") or {}, a.get("check_points") or {}
+    if cb.get("rmse_m") and ca.get("rmse_m"):
+        rmse = ", ".join(f"{k} {cb['rmse_m'][k]:.3g} -> {ca['rmse_m'][k]:.3g}" for k in cb["rmse_m"]
+                         if cb["rmse_m"][k] is not None and ca["rmse_m"].get(k) is not None)
+        lines.append(f"check points RMSE (m): {rmse}")
+    if b.get("twin") != a.get("twin"):
+        lines.append(f"twin: {a.get('twin')}")
+    if b.get("certificate_id") != a.get("certificate_id"):
+        lines.append(f"certificate {b.get('certificate_id')} -> {a.get('certificate_id')}")
+    lines.extend(extension.get("agreement") or [])
+    return lines
 
 
 def print_problems(result: Any, out: Console, warnings: bool = True, limit: int = 50) -> None:

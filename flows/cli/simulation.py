@@ -8,13 +8,16 @@ only after :func:`flows.environment.demo_environment` has put Prefect's home und
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 from pathlib import Path
 
 import typer
 
 from flows.cli.console import console, print_key_values, progress, run_status
 from flows.cli.errors import BAD_INPUT, fail, user_errors
+from flows.cli.flights import extension_lines, finding_text
 from flows.environment import demo_environment
 
 
@@ -42,6 +45,10 @@ def simulate(
     source: Path | None = typer.Option(
         None, "--source", help="Image folder of a measured preset (seneca); default ../shared/data/seneca/images."
     ),
+    wind: str | None = typer.Option(
+        None, "--wind", help="Wind EAST,NORTH in m/s, e.g. 9,4: the preset's speed is then the airspeed, strips "
+        "against the wind are slower over the ground and the aircraft crabs into a cross wind.",
+    ),
 ) -> None:
     """Simulate a flight and write its flight folder.
 
@@ -59,6 +66,8 @@ def simulate(
 
     with user_errors():
         spec = get_preset(preset, source)
+        if wind is not None:
+            spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=wind_vector(wind)))
         if mode not in MODES:
             raise SimulationError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
         effects = dict(parse_effect(e) for e in effect)
@@ -75,14 +84,29 @@ def simulate(
         print_key_values(f"simulated {preset} (seed {seed})", summary)
 
 
+def wind_vector(text: str) -> tuple[float, float]:
+    """``--wind EAST,NORTH`` (m/s) as a pair of finite numbers; a clear error otherwise."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 2 or not all(math.isfinite(v) for v in values):
+        fail(f"--wind {text!r}: give the wind as EAST,NORTH in m/s, e.g. --wind 9,4", BAD_INPUT)
+    return values  # type: ignore[return-value]
+
+
 def demo(
     out: Path = typer.Option(Path("demo-output"), "--out", help="Folder for everything the demo writes."),
     seed: int = typer.Option(7, help="Random seed of the simulated flight."),
 ) -> None:
     """Simulate a thermal flight and process it end to end.
 
-    The flight has one hidden effect (thermal_focal); processing self-calibrates and stores the
-    certificate, adjusts, mosaics, assesses, diagnoses and writes an HTML report, in about a minute.
+    The flight has one hidden effect (a 10 ms rolling-shutter readout), which processing is not told:
+    it self-calibrates and stores the certificate, adjusts, assesses and diagnoses the block, and where the
+    diagnosis names an effect that predicts images the fit did not use, adjusts the block again with it and
+    writes it into a new version of the camera's certificate; then mosaics and writes an HTML report, in about
+    two minutes.
     Everything goes under --out (SQLite database, artifacts, Prefect's home) unless AEROCAL_DATABASE_URL or
     AEROCAL_ARTIFACT_ROOT are set.
 
@@ -96,7 +120,8 @@ def demo(
 
         with run_status("simulating and processing the demo flight (about a minute)"):
             summary = demo_flow(out, DemoConfig(seed=seed))
-    print_key_values("demo: simulated thermal flight (one hidden effect: thermal_focal)", summary["simulated"])
+    print_key_values(f"demo: simulated thermal flight (hidden, and not told to processing: {summary['hidden']})",
+                     summary["simulated"])
     steps = ", ".join(f"{k} {v['status']}" for k, v in summary["steps"].items())
     console.print(f"steps: {steps}")
     console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
@@ -104,7 +129,15 @@ def demo(
     if acc.get("rho"):
         rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
         console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
-    console.print(f"[bold]diagnosis:[/bold] {summary.get('diagnosis')}")
+    for f in summary.get("findings") or []:
+        console.print(f"found and applied: {finding_text(f)}", markup=False, highlight=False)
+    console.print(f"[bold]diagnosis:[/bold] {summary.get('diagnosis')}", highlight=False)
+    extension = summary.get("model_extension")
+    if extension:
+        for line in extension_lines(extension):
+            console.print(f"  {line}", markup=False, highlight=False)
+        console.print(f"diagnosis of the extended block: {summary.get('diagnosis_after_extension')}", markup=False,
+                      highlight=False)
     console.print(f"flight folder: {summary['flight_dir']}")
     for name, path in summary["files"].items():
         console.print(f"{name:>13}: {path}")
