@@ -469,3 +469,15 @@ def test_templates_ship_in_the_package():
     assert all(any(fnmatch.fnmatch(f"templates/{n}", p) for p in patterns) for n in names), (names, patterns)
     deps = [d.split(">")[0].split("=")[0].strip().lower() for d in pyproject["project"]["dependencies"]]
     assert "jinja2" in deps
+
+
+def test_effects_the_block_cannot_tell_apart_are_one_sentence_naming_each_and_applying_none():
+    from aerocal.report.wording import diagnosis_sentences
+
+    group = {"effects": ["rolling_shutter", "affinity_skew", "boresight"], "conditional": "each within 2 sigma of "
+             "zero given the others", "separated_by": "strips flown at different ground speeds"}
+    text = " ".join(diagnosis_sentences({"effects": [], "hypotheses": [], "pairs": [group]}))
+    assert re.search(r"A rolling.*, an? affin.* and a boresight.* cannot tell them apart", text, re.I), text
+    assert "none is named nor applied" in text and "Strips flown at different ground speeds." in text, text
+    pair = dict(group, effects=["rolling_shutter", "affinity_skew"])
+    assert "neither is named nor applied" in " ".join(diagnosis_sentences({"effects": [], "pairs": [pair]}))

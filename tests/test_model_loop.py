@@ -1,0 +1,220 @@
+"""The loop in the product: an effect hidden in a simulated flight is found by the pipeline a user runs, applied to
+the block and to the camera's certificate, and confirmed on data the fit did not use.
+
+Every flight is processed by :func:`aerocal.pipeline.process` (what ``aerocal process`` runs, without the
+platform's storage) with the camera the product would have: its own self-calibration, or a certificate made on
+another simulated flight of the same camera. Never the truth: the simulated camera and effects are used only to
+judge the answer. Each case asserts what a user checks in the run's summary: the effect found (by the
+self-calibration, the recorded-EO check or the diagnosis), its size within 25 % along the truth, its gain on data the
+fit did not use, and, where the diagnosis found it, the block adjusted again with it and nothing named again.
+
+The flights fly in a wind, as real ones do (the real seneca flight: 5-8 m/s over the ground one way, 11-15 m/s the
+other): at one ground speed a readout is an affinity and a lag a lever arm, which the diagnosis reports as groups it
+cannot separate (tests/test_diagnose.py). Seeds are printed in every assertion.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from aerocal.pipeline import ProcessConfig, process
+from aerocal.pipeline.certificates import MemoryCertificates
+from aerocal.simulate import PRESETS, simulate_flight
+from aerocal.simulate.sensors import TemperatureCurve
+from aerocal.simulate.simulator import as_dataset
+
+WIND = (9.0, 4.0)  # m/s east, north: ground speeds 51-69 m/s at the presets' 60 m/s airspeed
+
+
+def conte(warming: bool = True):
+    """conte-calibration in a wind, the camera warming from 10 to ~23 degC (thermal effects observable)."""
+    spec = PRESETS["conte-calibration"]
+    spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=WIND))
+    if warming:
+        spec = spec.replace(sensors=dataclasses.replace(
+            spec.sensors, temperature=TemperatureCurve(start_c=10.0, equilibrium_c=30.0, tau_s=400.0)))
+    return spec
+
+
+def mitishita():
+    return PRESETS["mitishita-block"]
+
+
+def refraction_block():
+    """The UltraCam block with dense, precise tie points and 20 GCPs: refraction is 0.36 px at its corners."""
+    m = PRESETS["mitishita-block"]
+    return m.replace(n_gcp=20, n_check=10, points_per_image=1000, sensors=dataclasses.replace(m.sensors,
+                                                                                              tie_sigma_px=0.3))
+
+
+def run(spec, seed: int, effects: dict, store: MemoryCertificates | None = None, max_images: int | None = None,
+        name: str | None = None):
+    sim = simulate_flight(spec, seed=seed, effects=effects, max_images=max_images)
+    store = store if store is not None else MemoryCertificates()
+    return process(as_dataset(sim, name=name), ProcessConfig(), certificates=store), store
+
+
+def found(summary: dict, name: str) -> dict | None:
+    return next((f for f in summary.get("findings") or [] if f["name"] == name), None)
+
+
+def along(estimate, truth) -> float:
+    """The relative error of ``estimate`` along the direction of ``truth``."""
+    truth = np.asarray(truth, dtype=float)
+    u = truth / np.linalg.norm(truth)
+    return abs(float(np.asarray(estimate, dtype=float) @ u) - np.linalg.norm(truth)) / np.linalg.norm(truth)
+
+
+def daakir():
+    return PRESETS["daakir-uav"]
+
+
+#: (effect, magnitude, flight, seed, who finds it, max images); each found with the product's own calibration. A
+#: focal drift of 0.15 px/degC over the 13 degC of the warming block (2 px of f) is at the limit of the held-out
+#: tests' power there: kept by the calibration on one seed, a signal without held-out gain on another; 0.3 px/degC
+#: (0.018 % of f per degC, a non-athermalised germanium lens's) is not
+SELF_CALIBRATED = [
+    ("rolling_shutter", (0.006,), conte, 301, "diagnosis", None),
+    ("affinity_skew", (-3.0, 1.0), conte, 302, "diagnosis", None),
+    ("thermal_principal_point", (0.08, -0.06), conte, 303, "diagnosis", None),
+    ("thermal_rotation", (0.05,), conte, 304, "diagnosis", None),
+    ("thermal_focal", (0.3,), conte, 305, "self-calibration", None),
+    ("gnss_time_offset", (0.05,), conte, 306, "recorded-EO check", None),
+    ("gnss_bias", (0.4, -0.3, 0.0), conte, 307, "recorded-EO check", None),
+    ("lever_arm", (-0.05, 0.0, 0.0), daakir, 309, "diagnosis", 40),
+]
+
+#: (effect, magnitude, flight, seed, who finds it); found on a flight that uses the certificate an effect-free
+#: flight of the same camera made (seed + 100): what a self-calibration on the same images would absorb (a boresight
+#: about the camera's x and y axes is a principal point offset; refraction at one flying height is f and k1)
+WITH_CERTIFICATE = [
+    ("boresight", (0.03, -0.025, 0.0), lambda: conte(warming=False), 308, "recorded-EO check"),
+    ("refraction", "on", refraction_block, 311, "diagnosis"),
+]
+
+
+def _check_found(fr, store, name, value, by, seed) -> None:
+    s = fr.summary
+    f = found(s, name)
+    assert f is not None, f"seed {seed}: hid {name}={value}; found {s.get('findings')}; diagnosis {s['diagnosis']}"
+    assert f["found_by"] == by, f"seed {seed}: {f}"
+    err = along(f["values"], value)
+    assert err < 0.25, f"seed {seed}: hid {name}={value}, found {f['values']} +- {f['sigmas']} ({err:.0%} off)"
+    assert "gain +" in f["evidence"] or f["found_by"] == "self-calibration", f"seed {seed}: {f}"
+    if by == "diagnosis":
+        # the block was adjusted again with it, and its diagnosis does not name it again
+        ext = s["model_extension"]
+        assert name in [t["name"] for t in ext["terms"]], f"seed {seed}: {ext}"
+        assert name not in (s["diagnosis_after_extension"] or ""), f"seed {seed}: {s['diagnosis_after_extension']}"
+        assert "adjust_extended" in s["steps"] and s["steps"]["adjust_extended"]["status"] == "computed"
+        if name in ("rolling_shutter", "affinity_skew", "thermal_principal_point", "thermal_rotation", "radial_k3"):
+            # a camera term: the camera's next certificate carries it, with the flight that found it
+            cert = fr.json("certificate")
+            assert name in (cert.get("effects") or {}), f"seed {seed}: {cert.get('effects')}"
+            assert store.documents[-1]["id"] == cert["id"] and cert["version"] == len(store.documents)
+
+
+@pytest.mark.parametrize("name,value,flight,seed,by,max_images", SELF_CALIBRATED,
+                         ids=[c[0] for c in SELF_CALIBRATED])
+def test_a_hidden_effect_is_found_applied_and_predicts_held_out_data(name, value, flight, seed, by, max_images):
+    fr, store = run(flight(), seed, {name: value}, max_images=max_images)
+    _check_found(fr, store, name, value, by, seed)
+
+
+@pytest.mark.parametrize("name,value,flight,seed,by", WITH_CERTIFICATE, ids=[c[0] for c in WITH_CERTIFICATE])
+def test_an_effect_a_self_calibration_absorbs_is_found_with_a_certificate_from_another_flight(name, value, flight,
+                                                                                              seed, by):
+    _, store = run(flight(), seed + 100, {}, name="calibration flight")
+    fr, store = run(flight(), seed, {name: value}, store, name="survey")
+    assert fr.summary["certificate_id"] == store.documents[0]["id"] or "extended" in fr.summary["certificate_reason"]
+    notes = " ".join(fr.summary.get("recorded_eo_corrections") or [])
+    if name == "boresight" and "not told apart" in notes:
+        # a tilt about the camera's x axis (across the track) moves the image as a GNSS lag moves the camera along
+        # it; where the block fits both alike, what both readings agree on is removed and nothing else
+        f = found(fr.summary, name)
+        assert f is not None and f["values"][0] == 0.0, f"seed {seed}: {f}; {notes}"
+        assert abs(f["values"][1] - value[1]) < 0.25 * abs(value[1]), f"seed {seed}: {f}"
+        assert not found(fr.summary, "gnss_time_offset"), f"seed {seed}: {fr.summary['findings']}"
+        return
+    _check_found(fr, store, name, (1.0,) if value == "on" else value, by, seed)
+
+
+def test_a_third_radial_term_is_held_by_the_self_calibrations_lens_model():
+    """A radial term in r^6 (k3 = 20, 1.5 px at the image corner) is part of the Brown model the camera is
+    calibrated with. On this block k3 and k2 correlate beyond 0.95, so the self-calibration keeps k1 and k2 and
+    drops k3 (and says so); the lens profile it certifies is the true one within 25 % of the r^6 term over the
+    whole image, and the diagnosis has nothing left to name."""
+    seed = 310
+    spec = conte(warming=False)
+    fr, _ = run(spec, seed, {"radial_k3": (20.0,)})
+    cert = fr.json("certificate")
+    p, t = cert["model"]["params"], spec.camera_true
+    r = np.linspace(0.0, np.hypot(t.width / 2, t.height / 2) / t.f, 50)  # normalised radius to the corner
+
+    def radial_px(f, k1, k2, k3):
+        return f * r * (k1 * r**2 + k2 * r**4 + k3 * r**6)
+
+    truth = radial_px(t.f, t.k1, t.k2, t.k3 + 20.0)
+    term = np.abs(radial_px(t.f, 0.0, 0.0, 20.0)).max()
+    miss = np.abs(radial_px(p["f"], p["k1"], p["k2"], p.get("k3", 0.0)) - truth).max()
+    assert miss < 0.25 * term, f"seed {seed}: the certified profile misses the true one by {miss:.2f} px " \
+                               f"(the k3 term: {term:.2f} px); {p}"
+    if "k3" not in cert["estimated"]:
+        assert "corr(k2, k3)" in (cert["significance"]["k3"]["dropped"] or ""), cert["significance"]["k3"]
+    assert not fr.summary.get("findings"), f"seed {seed}: {fr.summary['findings']}"
+
+
+def test_a_camera_term_from_one_flight_is_applied_on_the_next_which_names_nothing_for_it():
+    """The readout found on a first flight goes into the camera's certificate; a second flight of the camera uses
+    it, corrects its measurements for it and its diagnosis names nothing for it. Without the readout the second
+    flight's own diagnosis would (the first flight shows that it can)."""
+    seed = 311
+    first, store = run(conte(warming=False), seed, {"rolling_shutter": (0.010,)}, name="first")
+    assert found(first.summary, "rolling_shutter"), f"seed {seed}: {first.summary['diagnosis']}"
+    second, _ = run(conte(warming=False), seed + 1, {"rolling_shutter": (0.010,)}, store, name="second")
+    s = second.summary
+    assert s["certificate_id"] == store.documents[-1]["id"], f"seed {seed}: {s['certificate_reason']}"
+    assert second.json("adjustment")["camera_terms"], "the readout of the certificate is applied"
+    assert not s.get("findings"), f"seed {seed + 1}: found {s.get('findings')} with the readout applied"
+    rs = next(h for h in second.json("diagnosis")["hypotheses"] if h["name"] == "rolling_shutter" and h["round"] == 1)
+    assert abs(rs["estimate"][0]) < 3 * rs["sigma"][0], f"seed {seed + 1}: residual readout {rs}"
+
+
+@pytest.mark.parametrize("seed", range(320, 328))
+def test_an_effect_free_flight_names_nothing_and_is_not_extended(seed):
+    fr, store = run(conte(warming=seed % 2 == 0), seed, {})
+    s = fr.summary
+    assert not s.get("findings"), f"seed {seed}: found {s['findings']} on an effect-free flight"
+    assert "model_extension" not in s and len(store.documents) == 1, f"seed {seed}: {s['diagnosis']}"
+
+
+def test_a_recorded_yaw_offset_is_found_within_half_a_degree_and_removed():
+    """The recorded attitudes turned by 4 deg about the camera axis (a gimbal's yaw recorded for the camera's): the
+    block observes them, so the offset is measured against the orientation the images and the recorded positions
+    give without them, removed from the records before the adjustment, and the diagnosis finds nothing left. (On a
+    small drone block with consumer GNSS the same check knows the yaw to about a degree only: the rendered XT2
+    survey's 160 m block, 1.5 m GNSS, 4.45 +- 1.0 deg.)"""
+    seed = 331
+    fr, _ = run(conte(warming=False), seed, {"boresight": (0.0, 0.0, 4.0)})
+    f = found(fr.summary, "boresight")
+    assert f is not None and f["found_by"] == "recorded-EO check", f"seed {seed}: {fr.summary.get('findings')}"
+    assert abs(f["values"][2] - 4.0) < 0.5 and abs(f["values"][0]) < 0.5 and abs(f["values"][1]) < 0.5, f
+    check = fr.json("diagnosis")["recorded_eo"]["attitude_offset"]
+    assert check["status"] == "consistent with the adjusted attitudes", f"seed {seed}: {check}"
+
+
+def test_a_gnss_offset_too_few_control_points_test_is_measured_on_the_check_points():
+    """mitishita-block has one control point and 29 check points: the offset of the block against its check points
+    is measured by leave-one-out and reported, not applied (the check points stay independent)."""
+    seed = 332
+    fr, _ = run(mitishita(), seed, {"gnss_bias": (0.4, -0.3, 0.0)})
+    d = fr.json("diagnosis_before_extension") if "diagnosis_before_extension" in fr.outputs else fr.json("diagnosis")
+    check = d["recorded_eo"]["gnss_bias_check_points"]
+    assert check["n_check_points"] >= 20, f"seed {seed}: {check}"
+    # the single control point holds the block back against most of the offset; what is left shows on the check
+    # points, in the offset's direction, with a gain on each check point predicted from the others
+    assert "an offset of the block" in check["status"] and "not applied" in check["status"], f"seed {seed}: {check}"
+    assert np.sign(check["estimate"][0]) == 1 and np.sign(check["estimate"][1]) == -1, f"seed {seed}: {check}"
