@@ -22,6 +22,7 @@ from prefect.runtime import flow_run
 
 from aerocal.io import write_json_atomic
 from aerocal.pipeline import FlightInputError, ProcessConfig, process
+from aerocal.pipeline.interrupts import was_interrupted
 from flows.environment import resolve_storage
 from storage.provenance import provenance
 from storage.runs import finish_run, start_run
@@ -77,7 +78,7 @@ def _run_flow(
                       recorder=RunRecorder(ctx, {**record, "dask": dask_address}),
                       dask_address=dask_address, calibrate_only=calibrate_only)
     except BaseException as exc:
-        status = "cancelled" if isinstance(exc, KeyboardInterrupt) else "failed"
+        status = "cancelled" if isinstance(exc, KeyboardInterrupt) or was_interrupted() else "failed"
         with ctx.database.session() as session:
             finish_run(session, ctx.run_id, status, error=f"{type(exc).__name__}: {exc}")
             session.commit()

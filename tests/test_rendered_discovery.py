@@ -111,7 +111,7 @@ def test_rendered_flights_find_the_hidden_effect_apply_it_and_name_nothing_else(
     for seed, name, value, by in [*HIDDEN, WITH_CERTIFICATE]:
         run = rendered[(seed, name)]
         f = _found(run, name)
-        assert f is not None and f["found_by"] == by, f"{PRESET} seed {seed}: hid {name} {value}, found " \
+        assert f is not None and f["found_by"].startswith(by), f"{PRESET} seed {seed}: hid {name} {value}, found " \
                                                       f"{run['findings']}; diagnosis {run['diagnosis']}"
         truth = np.asarray(value, dtype=float)
         u = truth / np.linalg.norm(truth)
@@ -122,7 +122,10 @@ def test_rendered_flights_find_the_hidden_effect_apply_it_and_name_nothing_else(
     # the readout went into the camera's certificate, whose next version the extended block used
     rs = rendered[(25, "rolling_shutter")]
     assert "rolling_shutter" in rs["model_extension"]["camera_terms"], rs["model_extension"]
-    assert rs["diagnosis_after_extension"] == "no systematic effect found", rs["diagnosis_after_extension"]
+    after = rs["diagnosis_after_extension"]
+    # nothing named again (the twin's statistics of a rendered block may still differ: matching is not the
+    # twin's Gaussian noise, as on the effect-free flights)
+    assert after == "no systematic effect found" or after.startswith("no effect of the catalogue named"), after
 
 
 @pytest.mark.slow

@@ -20,7 +20,9 @@ from dataclasses import asdict, dataclass
 from aerocal.effects import CATALOGUE
 
 #: where a finding was made
-FOUND_BY = ("self-calibration", "recorded-EO check", "diagnosis")
+FOUND_BY = ("self-calibration", "recorded-EO check", "diagnosis", "recorded-EO check and diagnosis")
+#: effects both the recorded-EO check and the diagnosis find, whose two parts add up (small angles, a lag, a shift)
+_ADDITIVE = ("gnss_time_offset", "gnss_bias", "boresight")
 
 
 @dataclass(frozen=True)
@@ -127,5 +129,21 @@ def run_findings(calibration_certificate: dict | None, adjustment: dict | None,
     extension."""
     out = calibration_findings(calibration_certificate) if calibration_certificate else []
     out += recorded_eo_findings(adjustment or {})
-    out += extension_findings(extension) if extension else []
+    for f in extension_findings(extension) if extension else []:
+        first = next((k for k, g in enumerate(out) if g.name == f.name and f.name in _ADDITIVE), None)
+        if first is None:
+            out.append(f)
+        else:
+            out[first] = _together(out[first], f)
     return out
+
+
+def _together(eo: Finding, diagnosed: Finding) -> Finding:
+    """One effect removed from the records by the recorded-EO check and what the diagnosis found of it beyond that
+    (a linearised test's shortfall on a large lag, a boresight component the check held back): their sum, with the
+    diagnosis' sigmas (the remainder's, given the first part)."""
+    values = tuple(a + b for a, b in zip(eo.values, diagnosed.values, strict=True))
+    rest = ", ".join(f"{v:.4g}" for v in diagnosed.values)
+    return Finding(eo.name, values, diagnosed.sigmas, eo.units, "recorded-EO check and diagnosis",
+                   f"{eo.applied}; the rest ({rest} {eo.units}) named by the diagnosis and {diagnosed.applied}",
+                   f"{eo.evidence}; the rest: {diagnosed.evidence}")

@@ -48,6 +48,12 @@ def interrupts_noted() -> Iterator[None]:
     sys.unraisablehook = quiet_lost_interrupt
     try:
         yield
+    except Exception as exc:
+        # Ctrl-C landing inside a library's own bookkeeping can come out as that library's error (Prefect's
+        # "Task run is not set", 0.1 s into a run on a loaded machine): still the user's interrupt
+        if _INTERRUPTED.is_set():
+            raise KeyboardInterrupt from exc
+        raise
     finally:
         signal.signal(signal.SIGINT, previous)
         sys.unraisablehook = previous_hook
@@ -60,3 +66,9 @@ def check_interrupted() -> None:
         raise KeyboardInterrupt
 
 
+
+
+def was_interrupted() -> bool:
+    """Whether Ctrl-C arrived (:func:`interrupt_handler`) in the current :func:`interrupts_noted` block: an error
+    raised after it is the interrupt's doing."""
+    return _INTERRUPTED.is_set()

@@ -1,0 +1,29 @@
+"""Session set-up shared by every test module."""
+
+import os
+
+
+def pytest_configure(config):
+    """The CLI's consoles (:mod:`flows.cli.console`) fix a COLUMNS they find when they are made, and later follow
+    the terminal's width otherwise. Made here, outside any test's environment, they follow each test's COLUMNS;
+    made inside a test that invokes the CLI at 60 columns, every later table of that process would be folded to
+    60 (two test files in one process of ``pytest -n 2``)."""
+    columns = os.environ.pop("COLUMNS", None)
+    try:
+        import flows.cli.console  # noqa: F401
+    finally:
+        if columns is not None:
+            os.environ["COLUMNS"] = columns
+
+
+#: the longest test files (minutes each), started first: the last file a process starts is then a short one, and
+#: the two processes of ``make test`` finish together
+FIRST = ("test_rendered_discovery.py", "test_seneca_process.py", "test_study_daakir2019.py",
+         "test_study_conte2018.py", "test_flir_flight.py", "test_model_loop.py", "test_demo.py")
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Run the files of :data:`FIRST` first, in that order; the others keep theirs (the same order in every
+    process, as pytest-xdist requires)."""
+    rank = {name: k for k, name in enumerate(FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(FIRST)))
