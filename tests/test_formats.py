@@ -8,6 +8,7 @@ file is also read back with the tool itself and projected with its own functions
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -19,7 +20,7 @@ import pycolmap
 import pytest
 
 from aerocal.camera import Camera
-from aerocal.certificate import CameraIdentity, Certificate, Quality
+from aerocal.certificate import CameraIdentity, CameraTerm, Certificate, Quality
 from aerocal.formats import (
     FormatError,
     export_certificate,
@@ -193,6 +194,30 @@ def test_metashape_parameters_follow_metashape_projection(tmp_path):
     u = w * 0.5 + p["cx"] + xd * (p["f"] + p["b1"]) + yd * p["b2"]
     vv = h * 0.5 + p["cy"] + yd * p["f"]
     assert np.abs(np.column_stack([u, vv]) - camera.project(rays)).max() < TOL_PX
+
+
+def test_metashape_export_of_a_readout_sets_the_sensors_rolling_shutter_flag(tmp_path):
+    """A certificate whose camera terms hold a readout goes to Metashape as a cameras XML sensor with its
+    rolling-shutter flag on (the one Metashape field for it) and the readout in a comment; read back, it is the
+    same camera. Without a readout the standalone calibration file is written, its flag absent."""
+    camera = distorted_camera(b2=0.3).replace(pixel_size_mm=0.017)
+    readout = CameraTerm((0.0301,), (0.0006,), "s", "measurements", ("flight 1", "flight 2"), "held-out +14 %")
+    cert = dataclasses.replace(certificate_of(camera), terms={"rolling_shutter": readout})
+    path = export_certificate(cert, "metashape", tmp_path / "cameras.xml")
+    import defusedxml.ElementTree as DET
+
+    root = DET.parse(str(path), forbid_dtd=True).getroot()
+    sensor = root.find("chunk/sensors/sensor")
+    props = {p.get("name"): p.get("value") for p in sensor.iter("property")}
+    assert root.tag == "document" and props["rolling_shutter"] == "true" and float(props["pixel_width"]) == 0.017
+    assert "rolling_shutter 0.0301 s" in path.read_text()
+    back = import_certificate(path).camera
+    assert np.abs(back.project(grid_rays(camera)) - camera.project(grid_rays(camera))).max() < TOL_PX
+    assert back.pixel_size_mm == 0.017
+    plain = export_certificate(certificate_of(camera), "metashape", tmp_path / "calibration.xml")
+    assert DET.parse(str(plain), forbid_dtd=True).getroot().tag == "calibration"
+    flag_off = export_certificate(certificate_of(camera), "metashape", tmp_path / "sensor.xml", form="sensor")
+    assert 'name="rolling_shutter" value="false"' in flag_off.read_text()
 
 
 # ----------------------------------------------------------------------------- files written by the tools

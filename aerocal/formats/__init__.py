@@ -36,7 +36,7 @@ FORMATS: tuple[str, ...] = ("certificate", "opencv", "colmap", "opensfm", "metas
 #: Keyword options each format accepts on export / import (beyond ``identity`` on import).
 EXPORT_OPTIONS: dict[str, tuple[str, ...]] = {
     "certificate": (), "opencv": ("drop_skew",), "colmap": ("camera_id", "drop_skew"),
-    "opensfm": ("key", "drop_skew"), "metashape": (),
+    "opensfm": ("key", "drop_skew"), "metashape": ("form",),
 }
 IMPORT_OPTIONS: dict[str, tuple[str, ...]] = {
     "certificate": (), "opencv": (), "colmap": ("camera_id",), "opensfm": ("key",), "metashape": ("sensor",),
@@ -65,7 +65,8 @@ def export_certificate(doc_or_cert: Certificate | Mapping[str, Any], fmt: str, p
     """Write a certificate (object or JSON document, validated) in format ``fmt`` to ``path``, atomically.
 
     ``options`` by format: opencv ``drop_skew``; colmap ``camera_id``, ``drop_skew``; opensfm ``key``,
-    ``drop_skew``. Formats without skew refuse a non-zero ``b2`` unless ``drop_skew=True``.
+    ``drop_skew``; metashape ``form`` (:func:`aerocal.formats.metashape.write_metashape_xml`).
+    Formats without skew refuse a non-zero ``b2`` unless ``drop_skew=True``.
     Returns the path written.
     """
     _check_format(fmt)
@@ -86,7 +87,7 @@ def export_certificate(doc_or_cert: Certificate | Mapping[str, Any], fmt: str, p
         return colmap.write_colmap_cameras(cert, path, **options)
     if fmt == "opensfm":
         return opensfm.write_opensfm_cameras(cert, path, **options)
-    return metashape.write_metashape_xml(cert, path)
+    return metashape.write_metashape_xml(cert, path, **options)
 
 
 def import_certificate(path: str | Path, fmt: str | None = None, *, identity: CameraIdentity | None = None,

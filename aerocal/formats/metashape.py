@@ -12,7 +12,13 @@ The exporter writes a standalone calibration file (``Tools > Camera Calibration 
       <k1/> <k2/> <k3/> <p1/> <p2/> <date/>
     </calibration>
 
-The importer reads that file, and the ``<sensor>`` elements of a Metashape cameras XML (``File >
+A certificate whose camera terms hold a rolling-shutter readout is written instead as a cameras XML
+(``File > Import > Import Cameras``) with one ``<sensor>``: the only Metashape file with a rolling-shutter
+flag (``<property name="rolling_shutter" value="true"/>``), which turns on Metashape's rolling-shutter
+compensation for the sensor. Metashape estimates that compensation per image; it has no field for a readout
+time, so the certificate's readout is written in a comment. ``form`` chooses either file explicitly.
+
+The importer reads both files, and the ``<sensor>`` elements of a Metashape cameras XML (``File >
 Export > Export Cameras``): the adjusted calibration, the ``pixel_width`` property (mm) and the
 ``<covariance>`` block (parameter names and their covariance), from which it fills sigmas and the
 correlation matrix. k4 and p3/p4 must be zero (the Brown model has none).
@@ -38,13 +44,55 @@ from aerocal.io import write_text_atomic
 UNSUPPORTED_PARAMS = ("k4", "p3", "p4")
 
 
-def write_metashape_xml(cert: Certificate, path: str | Path) -> Path:
-    """Write ``cert``'s camera as a Metashape calibration XML, atomically.
+#: the two files :func:`write_metashape_xml` writes: a standalone calibration, or a cameras XML with one sensor
+FORMS = ("calibration", "sensor")
 
-    The format cannot hold: sigmas, correlations, significance, the thermal model, conditions,
-    provenance and the pixel size. It holds every Brown parameter including b1 and b2, and the issue
-    time as ``<date>``.
+
+def write_metashape_xml(cert: Certificate, path: str | Path, form: str | None = None) -> Path:
+    """Write ``cert``'s camera as a Metashape XML, atomically: ``form`` "calibration" (the standalone calibration
+    file) or "sensor" (a cameras XML with one ``<sensor>``, its pixel size and rolling-shutter flag); ``None``
+    chooses "sensor" when the certificate holds a rolling-shutter readout among its camera terms, else
+    "calibration".
+
+    Neither file can hold: sigmas, correlations, significance, the thermal model, conditions, provenance, and
+    the values of camera terms the block applies to its measurements (a readout, a thermal rotation); those are
+    named in a comment. Both hold every Brown parameter including b1 and b2, and the issue time as ``<date>``.
+    Raises ``ValueError`` for an unknown ``form``.
     """
+    readout = cert.terms.get("rolling_shutter")
+    form = form or ("sensor" if readout is not None else "calibration")
+    if form not in FORMS:
+        raise ValueError(f"Metashape form {form!r}: valid {', '.join(FORMS)}")
+    calib = _calibration_element(cert)
+    comment = f"aerocal certificate {cert.id} for camera {_comment_safe(cert.identity.key)}"
+    held = [f"{name} {', '.join(f'{v:.6g}' for v in t.values)} {t.units} (+- "
+            f"{', '.join(f'{v:.2g}' for v in t.sigmas)}, applied to the {t.applied})"
+            for name, t in cert.terms.items() if t.applied == "measurements"]
+    if held:
+        comment += "; camera terms Metashape has no field for: " + "; ".join(_comment_safe(h) for h in held)
+    if form == "calibration":
+        root = calib
+    else:
+        cam = cert.camera
+        root = ET.Element("document", {"version": "1.5.0"})
+        sensors = ET.SubElement(ET.SubElement(root, "chunk", {"label": "aerocal"}), "sensors", {"next_id": "1"})
+        sensor = ET.SubElement(sensors, "sensor", {"id": "0", "label": cert.identity.key, "type": "frame"})
+        ET.SubElement(sensor, "resolution", {"width": str(cam.width), "height": str(cam.height)})
+        if cam.pixel_size_mm:
+            for name in ("pixel_width", "pixel_height"):
+                ET.SubElement(sensor, "property", {"name": name, "value": repr(float(cam.pixel_size_mm))})
+        ET.SubElement(sensor, "property", {"name": "rolling_shutter",
+                                           "value": "true" if readout is not None else "false"})
+        ET.SubElement(calib, "resolution", {"width": str(cam.width), "height": str(cam.height)})
+        sensor.append(calib)
+    ET.indent(root)
+    text = ('<?xml version="1.0" encoding="UTF-8"?>\n' f"<!-- {comment} -->\n"
+            + ET.tostring(root, encoding="unicode") + "\n")
+    return write_text_atomic(path, text)
+
+
+def _calibration_element(cert: Certificate) -> ET.Element:
+    """The ``<calibration>`` element of ``cert``'s camera (Metashape's principal point: from the image centre)."""
     cam = cert.camera
     root = ET.Element("calibration", {"class": "adjusted", "type": "frame"})
     values = {
@@ -65,11 +113,7 @@ def write_metashape_xml(cert: Certificate, path: str | Path) -> Path:
     }
     for tag, text in values.items():
         ET.SubElement(root, tag).text = text
-    ET.indent(root)
-    text = ('<?xml version="1.0" encoding="UTF-8"?>\n'
-            f"<!-- aerocal certificate {cert.id} for camera {_comment_safe(cert.identity.key)} -->\n"
-            + ET.tostring(root, encoding="unicode") + "\n")
-    return write_text_atomic(path, text)
+    return root
 
 
 def _comment_safe(text: str) -> str:

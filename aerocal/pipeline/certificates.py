@@ -142,12 +142,18 @@ def issue_calibration(store: CertificateStore, document: dict, cam_doc: dict, ru
     reason = ("made by this flight's self-calibration" + (f" (run {computed_by}), issued before"
                                                            if stored.issued_before else "")
               + f"; version {stored.version} of camera {stored.camera_label}")
-    use = stored.document
-    if stored.status != "accepted":
-        problems = "; ".join((use.get("review") or {}).get("problems") or [])
-        reason += f", stored as REJECTED ({problems}): the block uses the nominal camera instead"
-        use = nominal_certificate(cam_doc, run_id, f"this flight's calibration {stored.id} was rejected")
-    return stored.id, use, reason
+    return _used(stored, cam_doc, run_id, reason, f"this flight's calibration {stored.id} was rejected")
+
+
+def _used(stored: Issued, cam_doc: dict, run_id: str, reason: str, rejected: str) -> tuple[str, dict, str]:
+    """``(certificate id, document the block uses, reason)`` for a certificate just issued: its own document when
+    the store accepted it; else the nominal camera (:func:`nominal_certificate`, with ``rejected`` as its reason)
+    and the review's problems added to ``reason``."""
+    if stored.status == "accepted":
+        return stored.id, stored.document, reason
+    problems = "; ".join((stored.document.get("review") or {}).get("problems") or [])
+    reason += f", stored as REJECTED ({problems}): the block uses the nominal camera instead"
+    return stored.id, nominal_certificate(cam_doc, run_id, rejected), reason
 
 
 def extended_certificate(document: dict, terms: dict, flight: dict) -> dict:
@@ -169,12 +175,7 @@ def issue_extension(store: CertificateStore, document: dict, cam_doc: dict, run_
     stored = store.issue(document)
     reason = (f"version {stored.version} of camera {stored.camera_label}, extended by this flight's diagnosis with "
               f"{', '.join(terms['camera_terms'])} (before: {previous})")
-    use = stored.document
-    if stored.status != "accepted":
-        problems = "; ".join((use.get("review") or {}).get("problems") or [])
-        reason += f", stored as REJECTED ({problems}): the block uses the nominal camera instead"
-        use = nominal_certificate(cam_doc, run_id, f"the extended certificate {stored.id} was rejected")
-    return stored.id, use, reason
+    return _used(stored, cam_doc, run_id, reason, f"the extended certificate {stored.id} was rejected")
 
 
 def term_agreement(store: CertificateStore, cam_doc: dict, flight: dict, terms: dict) -> list[str]:

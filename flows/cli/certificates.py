@@ -207,6 +207,9 @@ def certificates_export(
         else:
             _formats_module().export_certificate(doc, fmt.value, out)
     console.print(f"certificate {cert.id} (v{cert.version}, {cert.camera.label}) -> {out} ({fmt.value})")
+    if fmt.value == "metashape" and "rolling_shutter" in (doc.get("effects") or {}):
+        console.print("  a Metashape cameras XML (File > Import > Import Cameras): its sensor's rolling-shutter "
+                      "flag is on; the readout is in a comment (Metashape has no field for it)")
 
 
 def _formats_module():  # -> the aerocal.formats module

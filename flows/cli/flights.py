@@ -90,6 +90,23 @@ def print_run(summary: dict[str, Any]) -> None:
     if summary.get("adjustment_converged") is False:
         console.print(f"[yellow]the block adjustment did not converge[/yellow] ({summary.get('adjustment_iterations')} "
                       "iterations): its sigma0, residuals, products and diagnosis describe an unfinished solution")
+    print_loop(summary)
+    if summary.get("recorded_eo"):
+        # lazy: aerocal.report loads matplotlib, rasterio and Jinja2 (about 1 s); --help must not pay them
+        from aerocal.report.wording import recorded_eo_text
+
+        console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
+    if summary.get("recorded_eo_corrections"):
+        console.print("recorded positions in the block adjustment: " + "; ".join(summary["recorded_eo_corrections"]))
+    if summary.get("twin"):
+        console.print(f"twin (what the simulation gets wrong): {summary['twin']}")
+    for name, path in summary.get("files", {}).items():
+        console.print(f"{name:>13}: {path}")
+
+
+def print_loop(summary: dict[str, Any]) -> None:
+    """What a run found and how its block changed, as ``aerocal process`` and ``aerocal demo`` print it: the check
+    points' accuracy, the findings applied, the diagnosis, and the block before and after its extension."""
     acc = summary.get("accuracy") or {}
     if acc.get("rho"):
         rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
@@ -107,17 +124,6 @@ def print_run(summary: dict[str, Any]) -> None:
             console.print(f"  {line}", markup=False, highlight=False)
         console.print(f"diagnosis of the extended block: {summary.get('diagnosis_after_extension')}", markup=False,
                       highlight=False)
-    if summary.get("recorded_eo"):
-        # lazy: aerocal.report loads matplotlib, rasterio and Jinja2 (about 1 s); --help must not pay them
-        from aerocal.report.wording import recorded_eo_text
-
-        console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
-    if summary.get("recorded_eo_corrections"):
-        console.print("recorded positions in the block adjustment: " + "; ".join(summary["recorded_eo_corrections"]))
-    if summary.get("twin"):
-        console.print(f"twin (what the simulation gets wrong): {summary['twin']}")
-    for name, path in summary.get("files", {}).items():
-        console.print(f"{name:>13}: {path}")
 
 
 def finding_text(finding: dict[str, Any]) -> str:

@@ -17,7 +17,7 @@ import typer
 
 from flows.cli.console import console, print_key_values, progress, run_status
 from flows.cli.errors import BAD_INPUT, fail, user_errors
-from flows.cli.flights import extension_lines, finding_text
+from flows.cli.flights import print_loop
 from flows.environment import demo_environment
 
 
@@ -125,19 +125,7 @@ def demo(
     steps = ", ".join(f"{k} {v['status']}" for k, v in summary["steps"].items())
     console.print(f"steps: {steps}")
     console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
-    acc = summary.get("accuracy") or {}
-    if acc.get("rho"):
-        rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
-        console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
-    for f in summary.get("findings") or []:
-        console.print(f"found and applied: {finding_text(f)}", markup=False, highlight=False)
-    console.print(f"[bold]diagnosis:[/bold] {summary.get('diagnosis')}", highlight=False)
-    extension = summary.get("model_extension")
-    if extension:
-        for line in extension_lines(extension):
-            console.print(f"  {line}", markup=False, highlight=False)
-        console.print(f"diagnosis of the extended block: {summary.get('diagnosis_after_extension')}", markup=False,
-                      highlight=False)
+    print_loop(summary)
     console.print(f"flight folder: {summary['flight_dir']}")
     for name, path in summary["files"].items():
         console.print(f"{name:>13}: {path}")
