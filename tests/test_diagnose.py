@@ -408,3 +408,23 @@ def test_a_recorded_eo_check_is_not_determined_when_its_calibrated_sigma_is_too_
     rows = [row for row in recorded_eo_rows(clean) if row[1] != "not estimated"]
     assert len(rows) == 2 and all(row[2].endswith("(tested on the whole 166-image block, IO held fixed)")
                                   for row in rows), rows
+
+
+def test_a_frame_ingest_left_out_of_its_strip_moves_at_its_strips_velocity_and_a_turn_does_not():
+    """Two strips flown at 7.4 and 2.4 m/s, each with its first frame in no strip (-1), and a frame in the 20 s turn
+    between them: the first frames move as their strips do (a readout's signature needs it), the turn frame, with no
+    neighbour as close as its strips' intervals, gets zero rather than the chord across the turn."""
+    fast = np.arange(8) * 1.2
+    turn = fast[-1] + 10.0
+    slow = fast[-1] + 20.0 + np.arange(8) * 3.6
+    t = np.concatenate([fast, [turn], slow])
+    C = np.zeros((len(t), 3))
+    C[:8, 0] = 7.4 * fast
+    C[8] = (7.4 * fast[-1] + 20.0, 15.0, 0.0)
+    C[9:, 0] = 7.4 * fast[-1] - 2.4 * (slow - slow[0])
+    C[9:, 1] = 30.0
+    strip = np.array([-1] + [0] * 7 + [-1] + [-1] + [1] * 7)
+    V = hyp.velocities(C, t, strip)
+    np.testing.assert_allclose(V[:8], np.tile([7.4, 0.0, 0.0], (8, 1)), atol=1e-9)
+    np.testing.assert_allclose(V[9:], np.tile([-2.4, 0.0, 0.0], (8, 1)), atol=1e-9)
+    assert not V[8].any()

@@ -68,13 +68,33 @@ def sub_context(ctx: Context, keep: np.ndarray) -> Context:
     return dataclasses.replace(ctx, dT=ctx.dT[keep], velocity=ctx.velocity[keep], refraction_k=ctx.refraction_k[keep])
 
 
-def velocities(C: np.ndarray, t: np.ndarray, strip: np.ndarray, max_gap_s: float = 30.0) -> np.ndarray:
-    """Velocity (m/s) of each station from its neighbours in time within the same strip."""
+def velocities(C: np.ndarray, t: np.ndarray, strip: np.ndarray, max_gap_s: float = 30.0,
+               unassigned_gap: float = 1.5) -> np.ndarray:
+    """Velocity (m/s) of each station (``C``, metres; ``t``, seconds) from its neighbours in time within the same
+    strip (``strip``, -1 for none) at most ``max_gap_s`` apart. A frame with no neighbour in a strip of its own (the
+    first frame of a strip ingest left out of it, its course from noisy GNSS not yet settled) takes its neighbours in
+    time at most ``unassigned_gap`` times the neighbour's strip's median exposure interval apart (the flight's, for
+    a neighbour in no strip), whatever their strip: the aircraft has not turned between them. Frames without either
+    (a hover, a turn) get zero. Without this, the first frame of a rendered XT2 survey got zero velocity and no
+    readout signature while its pixels carried 2.8 px of it, and an affinity was named for the readout."""
+    t = np.asarray(t, dtype=float)
     order = np.argsort(t, kind="stable")
+    ts, ss = t[order], np.asarray(strip)[order]
+    steps = np.diff(ts)
+
+    def interval(same: np.ndarray) -> float:
+        ok = same & (steps > 0)
+        return float(np.median(steps[ok])) if ok.any() else 0.0
+
+    flight = interval(np.ones(len(steps), dtype=bool))
+    per_strip = {int(k): interval((ss[1:] == k) & (ss[:-1] == k)) or flight for k in np.unique(ss[ss >= 0])}
     V = np.zeros_like(C)
     for a, i in enumerate(order):
-        nb = [order[b] for b in (a - 1, a + 1) if 0 <= b < len(order)]
-        nb = [j for j in nb if strip[j] == strip[i] and 0 < abs(t[j] - t[i]) < max_gap_s]
+        near = [order[b] for b in (a - 1, a + 1) if 0 <= b < len(order)]
+        nb = [j for j in near if strip[i] >= 0 and strip[j] == strip[i] and 0 < abs(t[j] - t[i]) < max_gap_s]
+        if not nb:
+            nb = [j for j in near
+                  if 0 < abs(t[j] - t[i]) <= unassigned_gap * per_strip.get(int(strip[j]), flight)]
         if len(nb) == 2:
             V[i] = (C[nb[1]] - C[nb[0]]) / (t[nb[1]] - t[nb[0]])
         elif len(nb) == 1:
