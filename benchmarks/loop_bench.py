@@ -18,7 +18,6 @@ certificate versions, and the time of each run.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import tempfile
 import time
 from pathlib import Path
@@ -52,8 +51,7 @@ def _rows(summary: dict) -> list[str]:
 
 
 def city() -> None:
-    spec = PRESETS["conte-city"]
-    spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=(9.0, 4.0)))
+    spec = PRESETS["conte-city"].flown((9.0, 4.0))
     sim = simulate_flight(spec, seed=3, effects={"rolling_shutter": (0.010,)})
     t0 = time.perf_counter()
     run = process(as_dataset(sim), ProcessConfig())
@@ -85,8 +83,7 @@ def xt2() -> None:
     from aerocal.simulate import write_flight
 
     work = Path(tempfile.mkdtemp(prefix="aerocal-loop-xt2-"))
-    spec = PRESETS["xt2-survey"]
-    spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=(2.5, 1.0)))
+    spec = PRESETS["xt2-survey"].flown((2.5, 1.0))
     hidden = {"rolling_shutter": (0.030,), "gnss_time_offset": (0.3,)}
     lines = ["rendered xt2-survey in a wind (2.5, 1) m/s, frames as recorded, no GCPs; each pair of flights shares "
              "one certificate store (the second reuses what the first wrote)", "",

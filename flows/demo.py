@@ -63,8 +63,7 @@ def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
                 f"{folder} exists and is not a demo flight; remove it or choose another output"
             )
         shutil.rmtree(folder)  # the demo's own previous flight
-    spec = get_preset(config.preset)
-    spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=tuple(config.wind_m_s)))
+    spec = get_preset(config.preset).flown(config.wind_m_s)
     sim = simulate_flight(spec, seed=config.seed, effects=dict(config.effects), max_images=config.max_images)
     write_flight(sim, folder, mode="observations")
     if config.frames:

@@ -32,12 +32,8 @@ WIND = (9.0, 4.0)  # m/s east, north: ground speeds 51-69 m/s at the presets' 60
 
 def conte(warming: bool = True):
     """conte-calibration in a wind, the camera warming from 10 to ~23 degC (thermal effects observable)."""
-    spec = PRESETS["conte-calibration"]
-    spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=WIND))
-    if warming:
-        spec = spec.replace(sensors=dataclasses.replace(
-            spec.sensors, temperature=TemperatureCurve(start_c=10.0, equilibrium_c=30.0, tau_s=400.0)))
-    return spec
+    return PRESETS["conte-calibration"].flown(
+        WIND, TemperatureCurve(start_c=10.0, equilibrium_c=30.0, tau_s=400.0) if warming else None)
 
 
 def mitishita():
@@ -228,9 +224,7 @@ def test_a_readout_is_told_from_an_affinity_where_ingest_left_a_strips_first_fra
     shear, so its signature must still be modelled: with none, an affinity explained the block better and was named
     (-1.41, 3.53 px, told apart from the readout), and the readout left after it was 3.3 ms."""
     seed = 340
-    spec = PRESETS["xt2-survey"]
-    spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=(2.5, 1.0)))
-    sim = simulate_flight(spec, seed=seed, effects={"rolling_shutter": (0.030,)})
+    sim = simulate_flight(PRESETS["xt2-survey"].flown((2.5, 1.0)), seed=seed, effects={"rolling_shutter": (0.030,)})
     strip = sim.images.column("strip").to_numpy().copy()
     firsts = np.flatnonzero(np.r_[True, strip[1:] != strip[:-1]] & (strip >= 0))
     strip[firsts] = -1

@@ -58,6 +58,17 @@ class FlightSpec:
     def replace(self, **kw) -> FlightSpec:
         return dataclasses.replace(self, **kw)
 
+    def flown(self, wind_m_s: tuple[float, float] | None = None,
+              temperature: TemperatureCurve | None = None) -> FlightSpec:
+        """This flight in a wind (east, north; m/s: the aircraft crabs and its ground speed changes with the
+        heading) and/or with another sensor temperature curve (a camera warming or cooling in flight)."""
+        spec = self
+        if wind_m_s is not None:
+            spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=tuple(float(w) for w in wind_m_s)))
+        if temperature is not None:
+            spec = spec.replace(sensors=dataclasses.replace(spec.sensors, temperature=temperature))
+        return spec
+
 
 def _conte_camera(true: bool) -> Camera:
     nominal = Camera.from_mm(640, 480, focal_mm=39.2, pixel_size_um=23.5)

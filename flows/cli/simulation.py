@@ -8,7 +8,6 @@ only after :func:`flows.environment.demo_environment` has put Prefect's home und
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from pathlib import Path
@@ -67,7 +66,7 @@ def simulate(
     with user_errors():
         spec = get_preset(preset, source)
         if wind is not None:
-            spec = spec.replace(plan=dataclasses.replace(spec.plan, wind_m_s=wind_vector(wind)))
+            spec = spec.flown(wind_vector(wind))
         if mode not in MODES:
             raise SimulationError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
         effects = dict(parse_effect(e) for e in effect)
