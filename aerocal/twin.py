@@ -647,9 +647,19 @@ def _size_extension(base: Baseline, ext: Extension, real: dict, mean: dict, n_tw
     # the size per unit of the target (the image-plane field's size is a multiple of the measured field)
     unit = 1.0 / max(measured.field_rms_px, 1e-12) if ext.name == "image-plane field" and measured else 1.0
     size, stats, injected, seen = excess * unit, [], [], []
+    seen_size = size
     for round_no in range(EXTENSION_ROUNDS):
-        stats = [block_statistics(make_twin(base, seed + 100 * round_no + t, {**background, ext.name: size},
-                                            measured)) for t in range(n_twins)]
+        try:
+            made = [block_statistics(make_twin(base, seed + 100 * round_no + t, {**background, ext.name: size},
+                                               measured)) for t in range(n_twins)]
+        except (ValueError, np.linalg.LinAlgError):  # an AdjustmentError is a ValueError
+            if not stats:
+                raise
+            # a size grown beyond what a block can be made with (a rendered conte-calibration block's twins were
+            # adjusted to a negative focal length): the last size that could be made stands
+            size = seen_size
+            break
+        stats, seen_size = made, size
         got = float(np.nanmean([t[k] for t in stats]))
         if round_no == EXTENSION_ROUNDS - 1 or abs(got - real[k]) <= SIZING_TOLERANCE * abs(gap):
             break

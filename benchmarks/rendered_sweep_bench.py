@@ -58,15 +58,26 @@ def spec(warming: bool):
 
 
 def flight(work: Path, seed: int, effects: dict, warming: bool, n: int, store: MemoryCertificates):
+    """The run's summary and its time; a run that fails is a finding: its summary says so (``failed``)."""
     sim = simulate_flight(spec(warming), seed=seed, effects=effects, max_images=n)
     folder = work / f"{seed}-{'-'.join(effects) or 'none'}"
     write_flight(sim, folder, mode="images")
     t0 = time.perf_counter()
-    run = process(folder, ProcessConfig(), certificates=store)
-    return run.summary, time.perf_counter() - t0
+    try:
+        summary = process(folder, ProcessConfig(), certificates=store).summary
+    except Exception as exc:  # every failure of a run is what this benchmark reports
+        summary = {"failed": f"{type(exc).__name__}: {exc}"}
+    return summary, time.perf_counter() - t0
+
+
+def _row(line: str) -> str:
+    print(line, flush=True)  # as it comes: a sweep stopped midway keeps what it measured
+    return line
 
 
 def _findings(summary: dict) -> str:
+    if "failed" in summary:
+        return f"the run failed ({summary['failed']})"
     return "; ".join(f"{f['name']} {', '.join(f'{v:.4g}' for v in f['values'])} ({f['found_by']})"
                      for f in summary.get("findings") or []) or "nothing"
 
@@ -90,8 +101,8 @@ def effects(work: Path) -> None:
         others = [g["name"] for g in s.get("findings") or [] if g["name"] != name]
         hit = err is not None and err < 0.25 and not others
         hits += hit
-        lines.append(f"| {name} {', '.join(str(v) for v in value)} (seed {seed}) | {_findings(s)} | "
-                     f"{'-' if err is None else f'{err:.0%}'} | {', '.join(others) or '-'} | {took:.0f} s |")
+        lines.append(_row(f"| {name} {', '.join(str(v) for v in value)} (seed {seed}) | {_findings(s)} | "
+                          f"{'-' if err is None else f'{err:.0%}'} | {', '.join(others) or '-'} | {took:.0f} s |"))
     lines += ["", f"- found within 25 % with nothing else named: {hits} of {len(SWEEP)}",
               f"- peak memory {peak_rss_mb():.0f} MB"]
     record("Every catalogue effect hidden in rendered conte-calibration frames (16, wind 9,4)", lines)
@@ -102,9 +113,9 @@ def nulls(work: Path, n: int) -> None:
     named = 0
     for seed in list(NULL_SEEDS)[:n]:
         s, took = flight(work, seed, {}, seed % 2 == 0, N_EFFECT_FREE, MemoryCertificates())
-        named += bool(s.get("findings"))
-        lines.append(f"| {seed} | {_findings(s)} | {took:.0f} s |")
-    lines += ["", f"- effect-free flights that named something: {named} of {n}",
+        named += bool(s.get("findings")) or "failed" in s
+        lines.append(_row(f"| {seed} | {_findings(s)} | {took:.0f} s |"))
+    lines += ["", f"- effect-free flights that named something (or failed): {named} of {n}",
               f"- peak memory {peak_rss_mb():.0f} MB"]
     record(f"Effect-free rendered conte-calibration flights ({N_EFFECT_FREE} frames, wind 9,4)", lines)
 
@@ -115,10 +126,10 @@ def main() -> None:
     parser.add_argument("--skip-effects", action="store_true")
     args = parser.parse_args()
     work = Path(tempfile.mkdtemp(prefix="aerocal-rendered-sweep-"))
-    if not args.skip_effects:
-        effects(work)
     if args.nulls:
         nulls(work, args.nulls)
+    if not args.skip_effects:
+        effects(work)
 
 
 if __name__ == "__main__":

@@ -428,3 +428,23 @@ def test_a_frame_ingest_left_out_of_its_strip_moves_at_its_strips_velocity_and_a
     np.testing.assert_allclose(V[:8], np.tile([7.4, 0.0, 0.0], (8, 1)), atol=1e-9)
     np.testing.assert_allclose(V[9:], np.tile([-2.4, 0.0, 0.0], (8, 1)), atol=1e-9)
     assert not V[8].any()
+
+
+def test_a_twin_that_cannot_be_made_is_said_and_the_diagnosis_goes_on(monkeypatch):
+    """The twin compares the block with its simulation; it names nothing the diagnosis applies. A twin whose
+    sizing grew a term beyond what a block can be made with (a rendered conte-calibration flight's twins were
+    adjusted to a negative focal length, and the run stopped) is said in the diagnosis, which still names the
+    hidden effect."""
+    from aerocal.diagnose import engine
+
+    def cannot(*args, **kwargs):
+        raise ValueError("focal length must be a positive number of pixels, got -195.8")
+
+    monkeypatch.setattr(engine, "compare_twins", cannot)
+    seed = 101
+    sim = simulate_flight(SPEC, seed=seed, effects={"rolling_shutter": (0.006,)})
+    base = fit_baseline(sim.images, sim.observations, SPEC.camera_true, adjust_config(SPEC), sim.gcps,
+                        sim.gcp_observations)
+    d = diagnose_baseline(base, DiagnoseConfig(reference_temperature=SPEC.sensors.reference_temperature_c, twins=3))
+    assert d.twin["summary"].startswith("the twin could not be made on this block (ValueError: focal length")
+    assert [e.name for e in d.effects] == ["rolling_shutter"], f"seed {seed}: {d.summary()}"
