@@ -377,8 +377,9 @@ def overdispersion(base: Baseline, draws: int, seed: int = 0, group: str = "imag
       lag, bias or lever arm; a boresight), whose statistics come from how the records disagree with the
       orientation the images give: the records' own noise against their assumed sigma, and the images'
       correlated errors where they determine the positions as well as the records do (RTK). The image
-      measurements' excess says nothing of the first: an as-recorded drone block with consumer GNSS assumed at
-      2 m (1.5 m in truth) had a 0.3 s lag (z 4.6) held below the naming threshold by the images' phi of 2.8.
+      measurements' excess says nothing of the first: on an as-recorded drone block with consumer GNSS assumed
+      at 2 m (1.5 m in truth) the images' phi of 2.8 turned a 0.3 s lag's z of 4.6 into 2.8, under the
+      recorded-EO check's 3.
 
     Returns median / 0.455 and the draws' statistics (1 when the median is within its sampling scatter of a
     chi-square's, or the block has no such group). All draws share one reduced system, so this costs about one
