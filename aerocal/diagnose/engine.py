@@ -385,37 +385,49 @@ def overdispersion(base: Baseline, draws: int, seed: int = 0, group: str = "imag
     chi-square's, or the block has no such group). All draws share one reduced system, so this costs about one
     scoring round.
     """
+    return overdispersions(base, draws, seed, (group,))[group]
+
+
+def overdispersions(base: Baseline, draws: int, seed: int = 0,
+                    groups: tuple[str, ...] = ("image",)) -> dict[str, tuple[float, np.ndarray]]:
+    """:func:`overdispersion` of several groups from one linearisation and one reduced system (what costs)."""
+    out: dict[str, tuple[float, np.ndarray]] = {g: (1.0, np.zeros(0)) for g in groups}
     if draws <= 0:
-        return 1.0, np.zeros(0)
+        return out
     lin = linearise(base)
-    rng = np.random.default_rng(seed)
     b = base.block
-    E = np.zeros((len(lin.r), draws))
-    if group == "image":
-        Jf = base.camera.param_jacobian(lin.xn)[:, :, 0] / b.obs_sigma[:, None]  # d(whitened)/d f
-        cov = rng.normal(0.0, 1.0, (b.n_images, draws))
-        M = len(b.obs_image)
-        E[: 2 * M] = (Jf[:, :, None] * cov[b.obs_image][:, None, :]).reshape(2 * M, draws)
-    else:
-        rows = lin.groups.get(group)
-        if rows is None:
-            return 1.0, np.zeros(0)
-        E[rows] = rng.normal(0.0, 1.0, (rows.stop - rows.start, draws))  # whitened rows: sigma units
+    present = [g for g in groups if g == "image" or lin.groups.get(g) is not None]
+    if not present:
+        return out
+    E = np.zeros((len(lin.r), draws * len(present)))
+    for j, group in enumerate(present):
+        cols = slice(j * draws, (j + 1) * draws)
+        rng = np.random.default_rng(seed)  # each group's draws as it alone would get them
+        if group == "image":
+            Jf = base.camera.param_jacobian(lin.xn)[:, :, 0] / b.obs_sigma[:, None]  # d(whitened)/d f
+            cov = rng.normal(0.0, 1.0, (b.n_images, draws))
+            M = len(b.obs_image)
+            E[: 2 * M, cols] = (Jf[:, :, None] * cov[b.obs_image][:, None, :]).reshape(2 * M, draws)
+        else:
+            rows = lin.groups[group]
+            E[rows, cols] = rng.normal(0.0, 1.0, (rows.stop - rows.start, draws))  # whitened rows: sigma units
     red = reduce(lin, E)
     nc = red.n_camera
-    cond = Conditional(red, np.arange(nc), nc + np.arange(draws))
+    cond = Conditional(red, np.arange(nc), nc + np.arange(E.shape[1]))
     s02 = max(base.solution.sigma0, 1e-12) ** 2
-    out = []
-    for k in range(draws):
+    stat = []
+    for k in range(E.shape[1]):
         info, grad = cond(np.array([nc + k]))
-        out.append(float(grad[0] ** 2 / max(info[0, 0], 1e-300)) / s02)
-    null = np.asarray(out)
+        stat.append(float(grad[0] ** 2 / max(info[0, 0], 1e-300)) / s02)
     med = float(stats.chi2.median(1))
     # the median of n chi-square(1) draws scatters with sd 1 / (2 f(med) sqrt(n)): only a median above its
     # one-sided 95 % bound is evidence of overdispersion (else a well-modelled block would lose power)
     bound = med + 1.645 / (2.0 * float(stats.chi2.pdf(med, 1)) * np.sqrt(draws))
-    phi = float(np.median(null)) / med
-    return (phi if np.median(null) > bound else 1.0), null
+    for j, group in enumerate(present):
+        null = np.asarray(stat[j * draws:(j + 1) * draws])
+        phi = float(np.median(null)) / med
+        out[group] = ((phi if np.median(null) > bound else 1.0), null)
+    return out
 
 
 #: the observations each recorded-EO hypothesis acts on, whose own overdispersion calibrates its statistic
@@ -440,9 +452,9 @@ class Overdispersion:
 def measured_overdispersion(base: Baseline, names: list[str], draws: int, seed: int = 0) -> Overdispersion:
     """:class:`Overdispersion` of ``base``: the image group's always, the records' groups where one of ``names``
     acts on them."""
-    groups = {RECORDS_GROUP[n] for n in names if n in RECORDS_GROUP}
-    return Overdispersion(overdispersion(base, draws, seed)[0],
-                          *(overdispersion(base, draws, seed, g)[0] if g in groups else 1.0 for g in ("gnss", "imu")))
+    groups = ("image", *sorted({RECORDS_GROUP[n] for n in names if n in RECORDS_GROUP}))
+    phis = overdispersions(base, draws, seed, groups)
+    return Overdispersion(*(phis[g][0] if g in phis else 1.0 for g in ("image", "gnss", "imu")))
 
 
 def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], iterations: int,
