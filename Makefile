@@ -21,7 +21,7 @@ demo: $(STAMP)
 # the tests in two processes (the machine's two cores), a test file's tests in one of them: a module's fixtures
 # (a Prefect server, the flights of a rendered test) are made once. Files in the order tests/conftest.py gives them
 # (the longest first): pytest-xdist otherwise reorders them by their number of tests, which started the rendered
-# flights (2 tests, 9 minutes) 21 minutes into the run
+# flights (2 tests, 15 minutes) 21 minutes into the run
 test: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=25
