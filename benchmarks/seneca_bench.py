@@ -70,12 +70,6 @@ from benchmarks.common import peak_rss_mb, record
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT.parent / "shared" / "data" / "seneca" / "images"
 OUTPUT = Path(__file__).resolve().parent / "output"
-#: width of the 1/2.3" CMOS of the PowerShot ELPH 300 HS, mm (maker's data; not in the EXIF)
-SENSOR_WIDTH_MM = 6.17
-#: consumer single-frequency GNSS (horizontal, vertical) and autopilot attitude (camera x, y, z), as in
-#: studies/seneca.py
-GNSS_SIGMA_M = (2.5, 5.0)
-IMU_SIGMA_DEG = (5.0, 5.0, 10.0)
 QUICK_STRIPS = (0, 2, 4)
 #: SIFT keypoints per image (the default is 8000). Exact matching costs grow with the product of the two
 #: images' keypoints: on seneca pairs (linear stretch, one core) 0.59 s per pair at 8000 and 0.09 s at 4000
@@ -94,48 +88,28 @@ def children_peak_mb() -> float:
 
 
 def build_flight(work: Path, quick: bool = False) -> tuple[Path, dict]:
-    """The flight folder under ``work`` (image links, camera.json, flight.json) and what was left out."""
-    res = ingest_folder(IMAGES)
-    im, extra = res.images, res.extra
-    w, h = im.column("width").to_numpy(), im.column("height").to_numpy()
-    sizes, counts = np.unique(np.column_stack([w, h]), axis=0, return_counts=True)
-    width, height = (int(v) for v in sizes[np.argmax(counts)])
-    keep = (w == width) & (h == height)
-    names = np.asarray(im.column("name").to_pylist())
-    other_size = [f"{n} ({a}x{b})" for n, a, b in zip(names[~keep], w[~keep], h[~keep], strict=True)]
+    """The flight folder ``work/seneca`` as a user hands it to ``aerocal process``: links to the seneca images
+    and nothing else (the images of :data:`QUICK_STRIPS` only when ``quick``). The nominal camera, the flying
+    height and the GNSS sigmas are what ingest reads from the images (EXIF FocalPlaneXResolution, senseFly
+    Height, consumer-grade GNSS); returned with what was left out: ``(folder, facts)``."""
+    names = sorted(p.name for p in IMAGES.iterdir() if p.suffix.lower() == ".jpg")
     if quick:
-        strip = np.array([-1 if s is None else s for s in im.column("strip").to_pylist()])
-        keep &= np.isin(strip, QUICK_STRIPS)
-
-    by_id = {r["image_id"]: r for r in extra.to_pylist()}
-    ids = im.column("image_id").to_numpy()
-    focal_mm = float(np.median([by_id[i]["exif_focal_length_mm"] for i in ids[keep]]))
-    camera = Camera.from_mm(width, height, focal_mm=focal_mm, pixel_size_um=SENSOR_WIDTH_MM / width * 1000.0)
-    make, model, serial, lens = (im.column("camera_id")[int(np.flatnonzero(keep)[0])].as_py().split("|") + [""] * 4)[:4]
-    if not serial:  # the camera records none; it is built into the airframe whose serial the XMP holds
-        frames = {by_id[i]["sensefly_frame_serial"] for i in ids[keep]} - {None}
-        serial = f"senseFly frame {frames.pop()}" if len(frames) == 1 else ""
-    z = im.column("gnss_z").to_numpy()[keep]
-    above_takeoff = np.array([by_id[i]["sensefly_height_above_takeoff_m"] for i in ids[keep]], dtype=float)
-    ground = float(np.nanmedian(z - above_takeoff))
-
+        whole = ingest_folder(IMAGES).images
+        strip = np.array([-1 if s is None else s for s in whole.column("strip").to_pylist()])
+        names = sorted(np.asarray(whole.column("name").to_pylist())[np.isin(strip, QUICK_STRIPS)].tolist())
     folder = work / "seneca"
-    shutil.rmtree(folder, ignore_errors=True)  # links and two JSON files of an unfinished run
+    shutil.rmtree(folder, ignore_errors=True)  # links of an unfinished run
     (folder / "images").mkdir(parents=True)
-    for path, name in zip(np.asarray(im.column("path").to_pylist())[keep], names[keep], strict=True):
-        os.symlink(path, folder / "images" / name)
-    (folder / "camera.json").write_text(json.dumps({
-        "identity": {"make": make, "model": model, "serial": serial, "lens": lens},
-        "camera": camera.to_dict(),
-    }, indent=1))
-    (folder / "flight.json").write_text(json.dumps({
-        "description": "seneca: senseFly Swinglet CAM over farm fields, camera cooling from 37 to 23 degC",
-        "height_agl_m": float(np.nanmean(z)) - ground,
-        "gnss_sigma_m": list(GNSS_SIGMA_M),
-        "imu_sigma_deg": list(IMU_SIGMA_DEG),
-    }, indent=1))
-    return folder, {"left_out": other_size, "images": int(keep.sum()), "camera": camera,
-                    "ground_m": ground, "height_agl_m": float(np.nanmean(z)) - ground}
+    for name in names:
+        os.symlink(IMAGES / name, folder / "images" / name)
+    res = ingest_folder(folder)
+    if res.blocking or res.camera is None or res.height_agl_m is None:
+        raise SystemExit(f"{folder}: ingest says processing would stop: {[str(p) for p in res.blocking]}")
+    left_out = [f"{p.file.rsplit('/', 1)[-1]} ({p.message.split(':', 1)[1].split(',')[0].strip()})"
+                for p in res.problems if p.field == "width" and p.message.startswith("left out")]
+    return folder, {"left_out": left_out, "images": res.images.num_rows, "camera": res.camera,
+                    "camera_source": res.camera_source, "height_agl_m": res.height_agl_m,
+                    "height_source": res.flight_facts.get("height_agl_m", ""), "gnss_sigma_m": res.gnss_sigma_m}
 
 
 def _stats(values: np.ndarray) -> str:
@@ -345,9 +319,9 @@ def main(argv: list[str] | None = None) -> None:
             f"of a Canon PowerShot ELPH 300 HS, temperature {np.nanmin(temps):.0f}-{np.nanmax(temps):.0f} degC"
             + (f", strips {QUICK_STRIPS} only" if args.quick else "")
             + f"; left out (another size): {', '.join(built['left_out']) or 'none'}; no GCPs",
-            f"- nominal camera (camera.json): f {built['camera'].f:.1f} px (EXIF 4.3 mm / 3.43 um), principal "
-            f"point at the centre; flight.json: height_agl_m {built['height_agl_m']:.1f} m (take-off ground "
-            f"{built['ground_m']:.1f} m ellipsoidal), GNSS sigma {GNSS_SIGMA_M} m, IMU sigma {IMU_SIGMA_DEG} deg",
+            f"- nothing hand-written: nominal camera f {built['camera'].f:.1f} px ({built['camera_source']}); "
+            f"flying height {built['height_agl_m']:.1f} m ({built['height_source']}); GNSS sigma "
+            f"{built['gnss_sigma_m']} m, attitude not used",
             f"- `aerocal.pipeline.process`, default configuration but SIFT capped at {MAX_FEATURES} keypoints per "
             "image, certificate `none` (self-calibration), local Dask cluster of 2 workers, full-size images",
             "",

@@ -3,7 +3,8 @@
 Data: ``../shared/data/seneca/images``, the nadir JPEGs of a senseFly Swinglet CAM (Canon PowerShot ELPH 300
 HS, 1800x1350, rolling shutter) ~70 m above farm fields; GNSS and autopilot attitude in the senseFly XMP,
 the camera's temperature in the Canon maker notes. The flight folder is the one of
-:func:`benchmarks.seneca_bench.build_flight` (image links, the nominal camera, consumer GNSS/IMU sigmas).
+:func:`benchmarks.seneca_bench.build_flight` (image links only: ingest reads the nominal camera, the flying height
+and consumer-grade GNSS sigmas from the images themselves).
 
 The study is a thin caller of the product: it runs :func:`aerocal.pipeline.process` (the code of
 ``aerocal process FLIGHT --certificate none``, here without Prefect or a database) and writes what the run

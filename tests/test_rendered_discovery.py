@@ -132,8 +132,9 @@ def test_rendered_flights_find_the_hidden_effect_apply_it_and_name_nothing_else(
 @pytest.mark.timeout(1500)
 def test_a_rendered_flat_block_without_gcps_keeps_the_nominal_focal_length(rendered, prefect_api, tmp_path):
     """The frames of an effect-free flight, as a survey with consumer GNSS/IMU and no ground control would
-    hand them over (no GCP files; flight.json declares 3/5 m and 2/2/5 deg): the self-calibration does not
-    free a focal length the flat, GCP-free block cannot determine, keeps the nominal one and says why."""
+    hand them over (no GCP files; flight.json declares 3/5 m and 2/2/5 deg and no flying height): the flying
+    height is measured from the block's tie points and the report says so; the self-calibration does not free a
+    focal length the flat, GCP-free block cannot determine, keeps the nominal one and says why."""
     source = Path(rendered[(EFFECT_FREE[0], None)]["folder"])
     flight = tmp_path / "flight"
     shutil.copytree(source / "flight", flight, symlinks=True)
@@ -141,6 +142,7 @@ def test_a_rendered_flat_block_without_gcps_keeps_the_nominal_focal_length(rende
         (flight / name).unlink()
     meta = json.loads((flight / "flight.json").read_text())
     meta.update(gnss_sigma_m=[3.0, 5.0], imu_sigma_deg=[2.0, 2.0, 5.0])
+    declared = meta.pop("height_agl_m")
     (flight / "flight.json").write_text(json.dumps(meta, indent=1))
     env = {**os.environ, "PREFECT_API_URL": prefect_api, "COLUMNS": "250"}
     _run(["process", "flight", "--certificate", "none", "--out", "run", "--database-url",
@@ -148,6 +150,13 @@ def test_a_rendered_flat_block_without_gcps_keeps_the_nominal_focal_length(rende
     from aerocal.certificate import Certificate
 
     cert = Certificate.from_json((tmp_path / "run" / "calibration_certificate.json").read_text())
+    # the flying height from the block's tie points, within 5 % of the one the simulation flew, and said so
+    # (in the run's summary and in its report)
+    source = json.loads((tmp_path / "run" / "run.json").read_text())["flight_facts"]["height_agl_m"]
+    assert "from the block's tie points" in source, source
+    assert float(source.split(" m ")[0]) == pytest.approx(declared, rel=0.05), source
+    assert "from the block&#39;s tie points" in (tmp_path / "run" / "report.html").read_text() or \
+        "from the block's tie points" in (tmp_path / "run" / "report.html").read_text()
     nominal = json.loads((flight / "camera.json").read_text())["camera"]["f"]
     assert "f" not in cert.estimated and cert.camera.f == nominal, f"seed {EFFECT_FREE[0]}: {cert.render_text()}"
     assert "f not determined by this block" in cert.significance["f"].dropped, cert.significance

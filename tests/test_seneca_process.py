@@ -1,8 +1,9 @@
 """The real seneca flight through `aerocal process`, as a user runs it: real data is the judge.
 
 Data: ``../shared/data/seneca`` (senseFly Swinglet CAM, Canon ELPH 300 HS, camera cooling from 37 to 23 degC,
-consumer GNSS, no GCPs). Three of its strips (29 images, the benchmark's quick set) are processed with
-self-calibration. On these real matches the formal statistics are far too optimistic (the pure-noise
+consumer GNSS, no GCPs). Three of its strips (29 images, the benchmark's quick set), linked into a folder with
+nothing written by hand, are processed with self-calibration: the nominal camera, the flying height and the GNSS
+sigmas are what the images say. On these real matches the formal statistics are far too optimistic (the pure-noise
 hypotheses' statistics are ~200x a chi-square's), so what the product may certify is decided by the
 calibrated sigmas and the held-out test, not the formal t:
 
@@ -50,6 +51,12 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
                                       "--artifacts", str(tmp_path / "art")], env={"COLUMNS": "250"})
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "run.json").read_text())
+    # nothing hand-written: the nominal camera from EXIF FocalLength over FocalPlaneXResolution's pixel pitch,
+    # within 1 % of what a user writes from the sensor's data sheet (4.3 mm over a 6.17 mm wide 1/2.3-inch
+    # sensor of 1800 stored pixels), the flying height from the senseFly XMP Height
+    facts = summary["flight_facts"]
+    assert "FocalPlaneXResolution" in facts["camera"] and "senseFly XMP Height" in facts["height_agl_m"], facts
+    assert info["camera"].f == pytest.approx(4.3 / (6.17 / 1800), rel=0.01), facts["camera"]
     cert = Certificate.from_json((out / "calibration_certificate.json").read_text())
     calibration = json.loads((out / "calibration.json").read_text())
     text = cert.render_text()

@@ -14,15 +14,31 @@ Focal length, in order: the image's EXIF FocalLength when it agrees with the cam
 or within 10 % of the fixed lens); else the FLIR FFF field of view (``f = (w / 2) / tan(fov / 2)``);
 else the fixed lens. A camera with interchangeable lenses and neither of the first two is not guessed.
 
+A camera not in the catalogue (a visible or compact camera) is built from what its files say, in order:
+
+1. EXIF FocalLength over the pixel pitch of EXIF FocalPlaneXResolution (scaled by ingest to the width the
+   image is stored at, :mod:`aerocal.ingest.metadata`): the camera's own statement of its sensor;
+2. EXIF FocalLengthIn35mmFilm over the 36 mm long side of 35 mm film, ``f = f35 / 36 * max(w, h)`` (the
+   convention OpenSfM and OpenDroneMap use; makers that scale by the diagonal give 4 % less on a 4:3
+   sensor, within the nominal tolerance of :func:`aerocal.decision.nominal_sigma`);
+3. EXIF FocalLength over the pixel pitch of the sensor-width table ``data/sensor_widths.csv``.
+
+The catalogue comes first for the cameras it holds: its pitch is the maker's, where a thermal camera's
+35-mm equivalent is rounded to whole millimetres (a DJI H20T records 58 mm: 1031 px where its 13.5 mm lens
+on 12 um pixels is 1125 px).
+
 Principal point at the frame centre: ``cx = width / 2``, ``cy = height / 2`` in pixels from the top-left
 corner of the top-left pixel (:class:`aerocal.camera.Camera`'s convention).
 """
 
 from __future__ import annotations
 
+import csv
+import functools
 import math
 import re
 from dataclasses import dataclass
+from importlib import resources
 
 from aerocal.camera import Camera
 
@@ -115,15 +131,17 @@ def nominal_camera(
     height: int,
     exif_focal_mm: float | None = None,
     field_of_view_deg: float | None = None,
+    pixel_pitch_mm: float | None = None,
+    focal_35mm: float | None = None,
 ) -> NominalCamera:
-    """The nominal camera of one camera as its images describe it (module docstring for the rules)."""
+    """The nominal camera of one camera as its images describe it (module docstring for the rules).
+
+    ``exif_focal_mm``: EXIF FocalLength (mm); ``field_of_view_deg``: the FLIR FFF horizontal field of view;
+    ``pixel_pitch_mm``: the pitch of the stored pixels from FocalPlaneXResolution (mm); ``focal_35mm``: EXIF
+    FocalLengthIn35mmFilm (mm). Returns the camera (``None`` with the reason where the images do not tell)."""
     entry = lookup(make, model, width, height)
-    what = f"{make or '?'} {model or '?'} ({width}x{height})"
     if entry is None:
-        return NominalCamera(
-            None, None, "",
-            f"camera {what} is not in aerocal's camera catalogue, and the images do not give the pixel pitch",
-        )
+        return _from_exif(make, model, width, height, exif_focal_mm, pixel_pitch_mm, focal_35mm)
     pitch_mm = entry.pixel_pitch_um / 1000.0
     focal_mm, source = None, ""
     if exif_focal_mm and math.isfinite(exif_focal_mm) and exif_focal_mm > 0:
@@ -148,3 +166,62 @@ def nominal_camera(
         f"frame centre, no distortion, {entry.readout} readout"
     )
     return NominalCamera(camera, entry, source, reason)
+
+
+@dataclass(frozen=True)
+class SensorWidth:
+    """A row of ``data/sensor_widths.csv``: the long side of a camera's sensor (mm) and its format."""
+
+    make: str
+    model: str
+    width_mm: float
+    format: str
+
+
+@functools.cache
+def sensor_widths() -> tuple[SensorWidth, ...]:
+    """The sensor-width table (``aerocal/ingest/data/sensor_widths.csv``; its header says where it comes from)."""
+    text = resources.files("aerocal.ingest").joinpath("data/sensor_widths.csv").read_text(encoding="utf-8")
+    rows = csv.DictReader(line for line in text.splitlines() if not line.startswith("#"))
+    return tuple(SensorWidth(r["make"], r["model"], float(r["sensor_width_mm"]), r["format"]) for r in rows)
+
+
+def sensor_width(make: str | None, model: str | None) -> SensorWidth | None:
+    """The table's row of this make and model (compared without case, spaces, '-', '_' and '/'), or ``None``."""
+    m, mk = _norm(model), _norm(make)
+    return next((row for row in sensor_widths() if _norm(row.model) == m and _norm(row.make) in mk), None)
+
+
+def _valid(value: float | None) -> bool:
+    return value is not None and math.isfinite(value) and value > 0
+
+
+def _from_exif(make: str | None, model: str | None, width: int, height: int, focal_mm: float | None,
+               pitch_mm: float | None, focal_35mm: float | None) -> NominalCamera:
+    """The nominal camera of a camera the catalogue does not hold, from its EXIF (module docstring)."""
+    what = f"{make or '?'} {model or '?'} ({width}x{height})"
+    long_side = max(width, height)
+    row = sensor_width(make, model)
+    if _valid(focal_mm) and _valid(pitch_mm):
+        f_px, source = focal_mm / pitch_mm, (f"EXIF FocalLength {focal_mm:g} mm over the pixel pitch "
+                                             f"{pitch_mm * 1000:.4g} um of EXIF FocalPlaneXResolution at the "
+                                             f"stored width {width} px")
+    elif _valid(focal_35mm):
+        f_px, source = focal_35mm / 36.0 * long_side, (f"EXIF FocalLengthIn35mmFilm {focal_35mm:g} mm over the "
+                                                       "36 mm long side of 35 mm film")
+        pitch_mm = focal_mm / f_px if _valid(focal_mm) else None
+    elif _valid(focal_mm) and row is not None:
+        pitch_mm = row.width_mm / long_side
+        f_px, source = focal_mm / pitch_mm, (f"EXIF FocalLength {focal_mm:g} mm over the pixel pitch "
+                                             f"{pitch_mm * 1000:.4g} um of a {row.width_mm:g} mm wide "
+                                             f"{row.format} sensor (aerocal's sensor-width table)")
+    else:
+        missing = "no focal length (EXIF FocalLength)" if not _valid(focal_mm) else \
+            "no pixel pitch (EXIF FocalPlaneXResolution), no 35 mm equivalent (FocalLengthIn35mmFilm)"
+        return NominalCamera(None, None, "", f"camera {what} is not in aerocal's camera catalogue or sensor-width "
+                             f"table, and the images record {missing}")
+    camera = Camera(width=width, height=height, f=float(f_px), cx=width / 2.0, cy=height / 2.0,
+                    pixel_size_mm=pitch_mm if _valid(pitch_mm) else None)
+    reason = (f"nominal camera of the {what} from its images: f {f_px:.1f} px from {source}, principal point "
+              "at the frame centre, no distortion, readout unknown")
+    return NominalCamera(camera, None, source, reason)

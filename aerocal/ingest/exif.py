@@ -17,9 +17,10 @@ skipped the one entry), and it does not read big-endian BigTIFF.
 This module only interprets the values. A value of the wrong kind (a latitude stored as text, a make stored
 as a number) is not guessed at: the field is left empty and a note says which tag held what.
 
-Tags (EXIF 2.32, CIPA DC-008; Pillow's :mod:`PIL.ExifTags` names them): Make, Model, Orientation and
-XMLPacket (700) in IFD0; DateTimeOriginal, SubsecTimeOriginal, OffsetTimeOriginal, FocalLength,
-AmbientTemperature (0x9400), BodySerialNumber, LensModel and MakerNote in the EXIF IFD (also accepted in
+Tags (EXIF 2.32, CIPA DC-008; Pillow's :mod:`PIL.ExifTags` names them): Make, Model, Orientation and XMLPacket
+(700) in IFD0; DateTimeOriginal, SubsecTimeOriginal, OffsetTimeOriginal, FocalLength, FocalLengthIn35mmFilm,
+FocalPlaneXResolution with FocalPlaneResolutionUnit and ExifImageWidth (the pixel pitch at the width the camera
+recorded), AmbientTemperature (0x9400), BodySerialNumber, LensModel and MakerNote in the EXIF IFD (also accepted in
 IFD0, where some writers put them); GPSLatitude(Ref), GPSLongitude(Ref), GPSAltitude(Ref), GPSTimeStamp and
 GPSDateStamp in the GPS IFD. Altitude in EXIF GPS is referenced to sea level (EXIF 2.32, GPSAltitudeRef).
 """
@@ -67,6 +68,10 @@ class ExifData:
     gps_alt: float | None = None  # above sea level per EXIF
     gps_utc: dt.datetime | None = None  # GPSDateStamp + GPSTimeStamp (UTC)
     focal_length_mm: float | None = None
+    focal_length_35mm: float | None = None  # FocalLengthIn35mmFilm (mm)
+    #: the sensor's pixel pitch in mm at the width ``exif_image_width`` (FocalPlaneXResolution and its unit)
+    focal_plane_pitch_mm: float | None = None
+    exif_image_width: int | None = None  # ExifImageWidth (PixelXDimension): the width the pitch refers to
     ambient_temperature_c: float | None = None
     maker_note: bytes | None = None
     xmp_packet: bytes | None = None
@@ -261,9 +266,17 @@ EXIF_TAGS = (
     Base.SubsecTimeOriginal,
     Base.OffsetTimeOriginal,
     Base.FocalLength,
+    Base.FocalLengthIn35mmFilm,
+    Base.FocalPlaneXResolution,
+    Base.FocalPlaneResolutionUnit,
+    Base.ExifImageWidth,
     Base.AmbientTemperature,
     Base.MakerNote,
 )
+
+#: FocalPlaneResolutionUnit -> millimetres per unit (EXIF 2.32: 2 inch, 3 centimetre; 1 "no unit" is read as
+#: inch, as most writers that set it mean, and 4 mm / 5 um as some writers use beyond the standard)
+FOCAL_PLANE_UNIT_MM = {1: 25.4, 2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
 
 
 def read_exif(ifd0: dict[int, Any], block: bytes) -> ExifData:
@@ -304,6 +317,7 @@ def read_exif(ifd0: dict[int, Any], block: bytes) -> ExifData:
     focal = number_values(merged.get(Base.FocalLength))
     if focal and math.isfinite(focal[0]) and focal[0] > 0:
         out.focal_length_mm = focal[0]
+    _read_focal_plane(merged, out)
     ambient = number_values(merged.get(Base.AmbientTemperature))
     if ambient and math.isfinite(ambient[0]):
         out.ambient_temperature_c = ambient[0]
@@ -318,6 +332,33 @@ def read_exif(ifd0: dict[int, Any], block: bytes) -> ExifData:
         out.notes.append(("XMLPacket", f"holds {_kind(xmp)}, expected the XMP packet's bytes; ignored"))
     _read_gps(gps, out)
     return out
+
+
+def _read_focal_plane(merged: dict[int, Any], out: ExifData) -> None:
+    """FocalLengthIn35mmFilm, and the pixel pitch from FocalPlaneXResolution (pixels per unit) at ExifImageWidth."""
+    f35 = number_values(merged.get(Base.FocalLengthIn35mmFilm))
+    if f35 and math.isfinite(f35[0]) and f35[0] > 0:
+        out.focal_length_35mm = f35[0]
+    resolution = number_values(merged.get(Base.FocalPlaneXResolution))
+    if not resolution:
+        return
+    unit = int_values(merged.get(Base.FocalPlaneResolutionUnit))
+    per_unit = FOCAL_PLANE_UNIT_MM.get(unit[0] if unit else 2)
+    if per_unit is None:
+        out.notes.append(("FocalPlaneResolutionUnit", f"value {unit[0]} is not a unit of EXIF 2.32; the pixel pitch "
+                          "is not taken from FocalPlaneXResolution"))
+        return
+    if not (math.isfinite(resolution[0]) and resolution[0] > 0):
+        out.notes.append(("FocalPlaneXResolution", f"value {resolution[0]} is not a positive number; ignored"))
+        return
+    pitch_mm = per_unit / resolution[0]
+    if not 1e-4 <= pitch_mm <= 0.1:  # 0.1 um .. 100 um: beyond, the field holds something else
+        out.notes.append(("FocalPlaneXResolution", f"gives a pixel pitch of {pitch_mm * 1000:.4g} um, outside "
+                          "0.1-100 um; ignored"))
+        return
+    out.focal_plane_pitch_mm = pitch_mm
+    width = int_values(merged.get(Base.ExifImageWidth))
+    out.exif_image_width = width[0] if width and width[0] > 0 else None
 
 
 def _read_gps(gps: dict[int, Any], out: ExifData) -> None:

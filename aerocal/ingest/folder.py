@@ -293,7 +293,6 @@ def ingest_folder(
     if gcp_paths:
         sources["gcp"] = ";".join(str(p) for p in gcp_paths)
 
-    camera_ids = _camera_ids(metas, identity, camera, camera_json, problems)
     facts: dict[str, str] = {}
     if camera is not None:
         camera_source = f"{camera_json}"
@@ -303,6 +302,8 @@ def ingest_folder(
     else:
         camera, camera_source = infer_camera(metas)
         facts["camera"] = camera_source
+    metas = _leave_out_other_sizes(metas, camera, problems, skipped)
+    camera_ids = _camera_ids(metas, identity, camera, camera_json, problems)
     identity = certificate_identity(metas, identity, camera)
     height = plan.get("height_agl_m")
     facts["height_agl_m"] = f"{FLIGHT_JSON_NAME} height_agl_m"
@@ -475,6 +476,32 @@ def _apply_eo(eo: EoFile, metas: list[ImageMetadata], problems: ProblemLog, skip
             "or move those images out of the flight",
             "image",
         )
+
+
+def _leave_out_other_sizes(
+    metas: list[ImageMetadata], camera: Camera | None, problems: ProblemLog, skipped: list[str]
+) -> list[ImageMetadata]:
+    """The images whose frame has the nominal camera's size; the others are left out with a warning each
+    (added to ``skipped``): a frame of another size is another camera or a resized copy, and one camera model
+    cannot hold both. When no image has the camera's size, all are kept (the camera is then wrong, and
+    :func:`~aerocal.ingest.readiness.check_processable` says so)."""
+    if camera is None:
+        return metas
+    size = (camera.width, camera.height)
+    keep = [m for m in metas if (m.width, m.height) == size]
+    if not keep or len(keep) == len(metas):
+        return metas
+    for m in metas:
+        if (m.width, m.height) != size:
+            problems.warning(
+                m.path,
+                f"left out: its frame is {m.width}x{m.height}, not the {size[0]}x{size[1]} of the flight's nominal "
+                f"camera ({len(keep)} images); another camera or a resized copy cannot share that camera's "
+                "model. Fix: process it in a folder of its own, or restore the original frame",
+                "width",
+            )
+            skipped.append(m.name)
+    return keep
 
 
 def _camera_ids(

@@ -9,8 +9,9 @@ and processing can use it; each returns ``None`` (with the reason) where the ima
   serial number is identified by make, model, lens and frame size: its serial part is
   ``"no-serial WxH"`` (:data:`aerocal.camera_identity.NO_SERIAL`), and such a certificate may be
   shared by several bodies of that model (the certificate store says so).
-* :func:`infer_height_agl`: the flying height above ground from DJI's XMP ``RelativeAltitude`` (height
-  above the take-off point: above ground where the take-off point is at the ground level of the area).
+* :func:`infer_height_agl`: the flying height above ground from DJI's XMP ``RelativeAltitude`` or senseFly's
+  ``Height`` (height above the take-off point: above ground where the take-off point is at the ground level
+  of the area).
 * :func:`infer_gnss_sigma`: the GNSS standard deviations from DJI's RTK fields, or consumer grade for a
   DJI position without RTK.
 """
@@ -27,8 +28,8 @@ from aerocal.camera_identity import CameraIdentity
 from aerocal.ingest.camera_catalogue import nominal_camera
 from aerocal.ingest.metadata import ImageMetadata
 
-#: GNSS standard deviations (horizontal, vertical; metres) of a DJI position without RTK: the makers
-#: state ~1.5 m horizontal hovering accuracy; AbsoluteAltitude mixes GNSS and barometer (several metres)
+#: GNSS standard deviations (horizontal, vertical; metres) of a drone position without RTK: the makers
+#: state ~1.5 m horizontal hovering accuracy; the altitude mixes GNSS and barometer (several metres)
 CONSUMER_GNSS_SIGMA_M = (2.0, 5.0)
 #: smallest RTK sigma taken from the images (RtkStd* of 0.01 m would claim more than the block holds)
 MIN_RTK_SIGMA_M = 0.02
@@ -55,16 +56,14 @@ def infer_camera(metas: list[ImageMetadata]) -> tuple[Camera | None, str]:
         return None, "no image was ingested"
     make, model, w, h = _dominant(metas)
     same = [m for m in metas if (m.make, m.model, m.width, m.height) == (make, model, w, h)]
-    focal = [float(m.extra["exif_focal_length_mm"]) for m in same if "exif_focal_length_mm" in m.extra]
-    fov = [float(m.extra["flir_field_of_view_deg"]) for m in same if "flir_field_of_view_deg" in m.extra]
-    result = nominal_camera(
-        make,
-        model,
-        w,
-        h,
-        exif_focal_mm=float(np.median(focal)) if focal else None,
-        field_of_view_deg=float(np.median(fov)) if fov else None,
-    )
+
+    def median(key: str) -> float | None:
+        values = [float(m.extra[key]) for m in same if key in m.extra]
+        return float(np.median(values)) if values else None
+
+    result = nominal_camera(make, model, w, h, exif_focal_mm=median("exif_focal_length_mm"),
+                            field_of_view_deg=median("flir_field_of_view_deg"),
+                            pixel_pitch_mm=median("exif_pixel_pitch_mm"), focal_35mm=median("exif_focal_length_35mm"))
     return result.camera, result.reason
 
 
@@ -95,26 +94,52 @@ def certificate_identity(
     return ident
 
 
+#: per-image heights above the take-off point an autopilot records: (extra key, what it is)
+HEIGHT_ABOVE_TAKEOFF = (
+    ("dji_relative_altitude_m", "DJI XMP RelativeAltitude"),
+    ("sensefly_height_above_takeoff_m", "senseFly XMP Height"),
+)
+
+
 def infer_height_agl(metas: list[ImageMetadata]) -> Inferred:
-    """Median DJI ``RelativeAltitude`` (m) of the images, where it is a flying height."""
-    values = [float(m.extra["dji_relative_altitude_m"]) for m in metas if "dji_relative_altitude_m" in m.extra]
-    if not values:
-        return Inferred(None, "no image records a height above ground (DJI XMP RelativeAltitude)")
-    med = float(np.median(values))
-    if med < MIN_HEIGHT_AGL_M:
-        return Inferred(None, f"DJI RelativeAltitude median {med:.1f} m: the images were not taken in flight")
-    return Inferred(
-        med,
-        f"median DJI XMP RelativeAltitude of {len(values)} images ({med:.1f} m above the take-off point; "
-        "a flying height above ground where the take-off point is at the area's ground level)",
-    )
+    """Median height above the take-off point (m) the images' autopilot records, where it is a flying height
+    (:data:`HEIGHT_ABOVE_TAKEOFF`: DJI RelativeAltitude, senseFly Height)."""
+    for key, name in HEIGHT_ABOVE_TAKEOFF:
+        values = [float(m.extra[key]) for m in metas if key in m.extra and np.isfinite(float(m.extra[key]))]
+        if not values:
+            continue
+        med = float(np.median(values))
+        if med < MIN_HEIGHT_AGL_M:
+            return Inferred(None, f"{name} median {med:.1f} m: the images were not taken in flight")
+        return Inferred(
+            med,
+            f"median {name} of {len(values)} images ({med:.1f} m above the take-off point; a flying height above "
+            "ground where the take-off point is at the area's ground level)",
+        )
+    return Inferred(None, "no image records a height above ground (DJI XMP RelativeAltitude, senseFly XMP Height)")
 
 
 def infer_gnss_sigma(metas: list[ImageMetadata]) -> Inferred:
-    """(horizontal, vertical) GNSS sigmas in metres from the images' DJI records, or ``None``."""
+    """(horizontal, vertical) GNSS sigmas in metres from the images' DJI records; consumer grade for positions
+    an image records without an accuracy (DJI without RTK, senseFly XMP, EXIF GPS); ``None`` for positions that
+    come from an EO file or nowhere (the file's author declares them in flight.json)."""
     dji = [m for m in metas if m.pose.source == "xmp:drone-dji" and m.pose.lat is not None]
+    xy = [float(m.extra["xmp_gps_xy_accuracy_m"]) for m in metas if "xmp_gps_xy_accuracy_m" in m.extra]
+    z = [float(m.extra["xmp_gps_z_accuracy_m"]) for m in metas if "xmp_gps_z_accuracy_m" in m.extra]
+    if not dji and xy and z and len(z) >= len(metas) // 2:
+        h, v = max(float(np.median(xy)), MIN_RTK_SIGMA_M), max(float(np.median(z)), MIN_RTK_SIGMA_M)
+        return Inferred((h, v), f"median XMP Camera:GPSXYAccuracy/GPSZAccuracy of {len(z)} images")
     if not dji:
-        return Inferred(None, "the images carry no DJI position record")
+        recorded = sorted({str(m.pose.source) for m in metas if m.pose.lat is not None
+                           and str(m.pose.source) in ("xmp:sensefly", "exif:gps")})
+        if not recorded:
+            return Inferred(None, "the images carry no position record of their own")
+        return Inferred(
+            CONSUMER_GNSS_SIGMA_M,
+            f"positions from {', '.join(recorded)} without an accuracy record: consumer-grade GNSS assumed "
+            f"({CONSUMER_GNSS_SIGMA_M[0]:g} m horizontal, {CONSUMER_GNSS_SIGMA_M[1]:g} m vertical); declare "
+            "gnss_sigma_m in flight.json if better",
+        )
     lon = [float(m.extra["dji_rtk_std_lon_m"]) for m in dji if "dji_rtk_std_lon_m" in m.extra]
     lat = [float(m.extra["dji_rtk_std_lat_m"]) for m in dji if "dji_rtk_std_lat_m" in m.extra]
     hgt = [float(m.extra["dji_rtk_std_hgt_m"]) for m in dji if "dji_rtk_std_hgt_m" in m.extra]

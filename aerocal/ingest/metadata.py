@@ -379,6 +379,27 @@ def _parse_xmp_time(text: str | None) -> tuple[dt.datetime | None, dt.timedelta 
     return local, offset
 
 
+#: GNSS accuracy the Pix4D camera namespace (``http://pix4d.com/camera/1.0/``, written by MicaSense, Parrot
+#: Sequoia and other cameras that follow Pix4D's XMP layout) records: standard deviations in metres
+GPS_ACCURACY_XMP = {"Camera:GPSXYAccuracy": "xmp_gps_xy_accuracy_m", "Camera:GPSZAccuracy": "xmp_gps_z_accuracy_m"}
+
+
+def _gps_accuracy(xmp: dict[str, str], meta: ImageMetadata, warn) -> None:
+    """The GNSS standard deviations of :data:`GPS_ACCURACY_XMP` into ``meta.extra`` (metres); a value that is not
+    a positive number below 1 km is a warning and left out."""
+    for key, name in GPS_ACCURACY_XMP.items():
+        if key not in xmp:
+            continue
+        try:
+            value = float(xmp[key])
+        except ValueError:
+            value = float("nan")
+        if math.isfinite(value) and 0 < value < 1000:
+            meta.extra[name] = value
+        else:
+            warn(f"XMP {key} = {xmp[key]!r} is not a standard deviation in metres (0-1000); ignored", key)
+
+
 def _interpret(
     meta: ImageMetadata, exif: ExifData | None, xmp: dict[str, str], cfg: IngestConfig, warn
 ) -> None:
@@ -400,6 +421,14 @@ def _interpret(
             )
         if exif.focal_length_mm is not None:
             meta.extra["exif_focal_length_mm"] = exif.focal_length_mm
+        if exif.focal_length_35mm is not None:
+            meta.extra["exif_focal_length_35mm"] = exif.focal_length_35mm
+        if exif.focal_plane_pitch_mm is not None:
+            # the pitch of the pixels as stored: a camera that records a 4000-pixel sensor width and a
+            # 1800-pixel image (resized after capture) has pixels 4000/1800 times larger than the sensor's
+            recorded = exif.exif_image_width or meta.width
+            meta.extra["exif_pixel_pitch_mm"] = exif.focal_plane_pitch_mm * recorded / meta.width if meta.width \
+                else exif.focal_plane_pitch_mm
         if exif.ambient_temperature_c is not None:
             meta.extra["exif_ambient_temperature_c"] = exif.ambient_temperature_c
         if exif.maker_note is not None and is_canon(exif.make):
@@ -461,6 +490,7 @@ def _interpret(
     for field_name, message in pose.notes:
         warn(message, field_name)
     meta.extra.update(pose.extra)
+    _gps_accuracy(xmp, meta, warn)
     _check_pose(pose, cfg, warn)
     meta.pose = pose
     if meta.temperature_c is not None:

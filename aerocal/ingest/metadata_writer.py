@@ -49,8 +49,9 @@ def _encode_value(typ: int, values: object) -> tuple[int, bytes]:
         return len(seq), struct.pack(f"<{len(seq)}I", *seq)
     if typ == 5:
         parts = []
-        for v in seq:
-            parts += [int(round(float(v) * 1_000_000)), 1_000_000]
+        for v in seq:  # the finest denominator (up to 1e6) whose numerator fits 32 bits
+            den = max(1, min(1_000_000, int(0xFFFFFFFF // max(abs(float(v)), 1.0))))
+            parts += [int(round(float(v) * den)), den]
         return len(seq), struct.pack(f"<{len(parts)}I", *parts)
     if typ == 11:
         return len(seq), struct.pack(f"<{len(seq)}f", *seq)
@@ -136,14 +137,18 @@ def exif_block(
     gps: tuple[float, float, float | None] | None = None,
     ifd0_extra: list[Entry] | None = None,
     focal_mm: float | None = None,
+    exif_extra: list[Entry] | None = None,
 ) -> bytes:
-    """A little-endian TIFF block: IFD0 (Make, Model), the EXIF IFD and the GPS IFD (a JPEG APP1 body)."""
+    """A little-endian TIFF block: IFD0 (Make, Model), the EXIF IFD and the GPS IFD (a JPEG APP1 body).
+
+    ``ifd0_extra`` and ``exif_extra``: further ``(tag, TIFF type, values)`` entries of IFD0 and of the EXIF IFD
+    (e.g. ``(Base.FocalPlaneXResolution, 5, [16393.44])``)."""
     ifd0: list[Entry] = list(ifd0_extra or [])
     if make:
         ifd0.append((Base.Make, 2, make))
     if model:
         ifd0.append((Base.Model, 2, model))
-    exif = _exif_entries(serial, lens, time, utc_offset, focal_mm)
+    exif = _exif_entries(serial, lens, time, utc_offset, focal_mm) + list(exif_extra or [])
     gps_e = _gps_entries(*gps) if gps else []
     # lay out: header (8) | IFD0 | EXIF IFD | GPS IFD; pointers are fixed up once sizes are known
     ifd0_full = ifd0 + ([(IFD.Exif, 4, [0])] if exif else []) + ([(IFD.GPSInfo, 4, [0])] if gps_e else [])

@@ -145,12 +145,13 @@ def check_processable(
             "identity",
         )
     if n and gcps.num_rows == 0 and height_agl_m is None and has_priors(images):
-        problems.blocker(
+        # not a stop: `aerocal process` measures it from the block's tie points
+        # (:func:`aerocal.matching.ground.flying_height`) and stops only if that fails
+        problems.warning(
             folder / "flight.json",
-            "flying height unknown: no GCPs, no height_agl_m in flight.json and no height above ground in "
-            "the images (DJI RelativeAltitude); the ground height for candidate pairs and the self-"
-            f'calibration\'s geometry need it. Fix: write {folder / "flight.json"} with {{"height_agl_m": H}} '
-            "(metres above ground)",
+            "flying height not recorded: no GCPs, no height_agl_m in flight.json and no height above ground in "
+            "the images (DJI RelativeAltitude, senseFly Height); `aerocal process` measures it from the block's "
+            f'tie points. To give it instead: write {folder / "flight.json"} with {{"height_agl_m": H}} (metres '
+            "above ground)",
             "height_agl_m",
         )
-

@@ -34,6 +34,7 @@ from aerocal.certificate import validate_camera
 from aerocal.ingest import ingest_folder
 from aerocal.ingest.inferred import certificate_identity
 from aerocal.io import file_sha256
+from aerocal.orient import has_priors
 from aerocal.pipeline.runner import table_sha256
 
 #: stem of the simulator's truth files and folder, which processing never reads (nor hashes)
@@ -201,10 +202,32 @@ class FolderDataset:
                    "camera": res.camera.to_dict(), "source": res.camera_source}
         tabs = {"images": res.images, "gcps": res.gcps, "gcp_observations": res.gcp_observations}
         # flight.json as ingest checked it, with what the images tell where it is silent
-        meta = {**res.plan, "height_agl_m": res.height_agl_m,
+        facts = dict(res.flight_facts)
+        height = res.height_agl_m
+        if height is None and res.gcps.num_rows == 0 and has_priors(res.images):
+            height, facts["height_agl_m"] = measured_flying_height(self.folder, res.images, res.camera)
+        meta = {**res.plan, "height_agl_m": height,
                 "gnss_sigma_m": None if res.gnss_sigma_m is None else list(res.gnss_sigma_m)}
         return IngestedFlight(tabs, cam_doc, meta, res.crs, "images", [str(p) for p in res.problems],
-                              list(res.skipped_images), res.flight_facts)
+                              list(res.skipped_images), facts)
+
+
+def measured_flying_height(folder: Path, images: pa.Table, camera: Camera) -> tuple[float, str]:
+    """The flying height (m) of a flight that records none, measured from its tie points
+    (:func:`aerocal.matching.ground.flying_height` on the enhanced frames matching uses), and its source;
+    raises :class:`FlightInputError` naming the fix where the images do not give it."""
+    from aerocal.matching.ground import flying_height
+    from aerocal.pipeline.match_step import frame_loader  # the pipeline's frame reader (it imports this module)
+
+    paths = images.column("path").to_pylist()
+    step = max(1, len(paths) // 40)  # the flight's stretch from 40 frames at most: a few seconds on any flight
+    measured = flying_height(images, camera, frame_loader(paths[::step]))
+    if measured.height_m is None:
+        raise FlightInputError(
+            f"{folder}: flying height unknown: no GCPs, no height_agl_m in flight.json, no height above ground in "
+            f"the images, and {measured.source}. Fix: write {folder / 'flight.json'} with {{\"height_agl_m\": H}} "
+            "(metres above ground), or add ground control")
+    return measured.height_m, f"{measured.height_m:.1f} m {measured.source}"
 
 
 @dataclass
