@@ -260,6 +260,10 @@ def test_copr_images_ingest_without_gnss_reported_once(copr):
     assert set(img.column("camera_id").to_pylist()) == {
         "Canon|Canon EOS DIGITAL REBEL XSi|1670520998|EF28-80mm f/3.5-5.6 USM"
     }
+    # as shared (images and gcp_list.txt, nothing hand-written), nothing stops `aerocal process`: the nominal camera
+    # from EXIF FocalLength over FocalPlaneXResolution's pitch, within 1 % of 30 mm on a 22.2 mm wide APS-C sensor
+    assert not copr.blocking, [str(p) for p in copr.blocking]
+    assert copr.camera.f == pytest.approx(30.0 / (22.2 / 2136), rel=0.01), copr.camera_source
 
 
 def test_copr_other_ground_control_files(copr):
