@@ -22,9 +22,13 @@ demo: $(STAMP)
 # (a Prefect server, the flights of a rendered test) are made once. Files in the order tests/conftest.py gives them
 # (the longest first): pytest-xdist otherwise reorders them by their number of tests, which started the rendered
 # flights (2 tests, 15 minutes) 21 minutes into the run
+# OMP/OpenBLAS/MKL at one thread per test process: two processes on two cores, each with a BLAS pool of two
+# threads that spin while they wait, had the whole run at 46 minutes; at one thread it took 31 (with other work on
+# the machine)
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=25
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
+		$(BIN)/python -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder --durations=25
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

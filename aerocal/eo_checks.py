@@ -283,8 +283,13 @@ def correct_recorded_eo(images: pa.Table, observations: pa.Table, camera: Camera
     corrected_gnss = eo.offset_m is not None or eo.time_offset_s is not None
     if att.offset_deg is None and not corrected_gnss:
         return att, eo
-    # the other order: without an attitude correction the GNSS tests saw the records as they are
-    other = positions_first(eo if att.offset_deg is None else correct_gnss_offset(images, *check, io, block))
+    # the other order: without an attitude correction the GNSS tests saw the records as they are; with one, the
+    # positions are tested on the images alone, the attitudes not observed (observed, a lag's tilt
+    # of the cameras would conflict with them and hold the lag back: a rendered 0.3 s lag then passed as a
+    # 1.2 deg boresight in both orders); the attitudes are then checked against the positions so corrected
+    free = dataclasses.replace(config, attitude_sigma_deg=None)
+    other = positions_first(eo if att.offset_deg is None else correct_gnss_offset(
+        images, observations, camera, free, gcps, gcp_observations, max_images, io, block))
     if _decisions(att, eo) == _decisions(*other):
         return att, eo
     fits, dofs = zip(*[_records_chi2(e.images, *check) for _, e in ((att, eo), other)], strict=True)

@@ -149,3 +149,24 @@ def test_gnss_sigmas_from_the_pix4d_camera_namespace_else_consumer_grade(tmp_pat
     assert sigma.value == (0.031, 0.052) and "GPSXYAccuracy" in sigma.source, sigma
     sigma = infer_gnss_sigma(metas[2:])
     assert sigma.value == (2.0, 5.0) and "exif:gps" in sigma.source and "consumer-grade" in sigma.source, sigma
+
+
+def test_a_parrot_image_gives_its_camera_attitude_and_height_above_ground(tmp_path):
+    """Parrot's XMP layout: the camera's attitude as gimbal angles (pitch -90 straight down), the position in EXIF
+    GPS, the height above ground in Pix4D's Camera:AboveGroundAltitude."""
+    buf = io.BytesIO()
+    Image.fromarray(np.zeros((64, 80, 3), np.uint8)).save(buf, "JPEG")
+    packet = ('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+              '<rdf:Description rdf:about="" xmlns:drone-parrot="http://www.parrot.com/drone-parrot/1.0/" '
+              'xmlns:Camera="http://pix4d.com/camera/1.0/" drone-parrot:CameraRollDegree="-0.32" '
+              'drone-parrot:CameraPitchDegree="-89.5" drone-parrot:CameraYawDegree="176.3" '
+              'Camera:AboveGroundAltitude="60.4"/></rdf:RDF></x:xmpmeta>')
+    exif = exif_block(make="Parrot", model="ANAFI", gps=(47.0, 8.0, 520.0))
+    (tmp_path / "p.jpg").write_bytes(jpeg_with_metadata(buf.getvalue(), exif, packet))
+    meta, problems = read_image_metadata(tmp_path / "p.jpg")
+    pose = meta.pose
+    assert (pose.source, pose.convention) == ("xmp:drone-parrot", "dji_gimbal"), problems
+    assert (pose.roll, pose.pitch, pose.yaw) == (-0.32, -89.5, 176.3) and pose.lat == pytest.approx(47.0)
+    height = infer_height_agl([meta])
+    assert height.value == 60.4 and "AboveGroundAltitude" in height.source, height
+    assert infer_gnss_sigma([meta]).value == (2.0, 5.0)  # a position recorded without an accuracy

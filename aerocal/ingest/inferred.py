@@ -98,6 +98,7 @@ def certificate_identity(
 HEIGHT_ABOVE_TAKEOFF = (
     ("dji_relative_altitude_m", "DJI XMP RelativeAltitude"),
     ("sensefly_height_above_takeoff_m", "senseFly XMP Height"),
+    ("xmp_above_ground_altitude_m", "Pix4D XMP Camera:AboveGroundAltitude"),
 )
 
 
@@ -131,7 +132,7 @@ def infer_gnss_sigma(metas: list[ImageMetadata]) -> Inferred:
         return Inferred((h, v), f"median XMP Camera:GPSXYAccuracy/GPSZAccuracy of {len(z)} images")
     if not dji:
         recorded = sorted({str(m.pose.source) for m in metas if m.pose.lat is not None
-                           and str(m.pose.source) in ("xmp:sensefly", "exif:gps")})
+                           and str(m.pose.source) in ("xmp:sensefly", "xmp:drone-parrot", "exif:gps")})
         if not recorded:
             return Inferred(None, "the images carry no position record of their own")
         return Inferred(

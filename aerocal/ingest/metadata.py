@@ -27,8 +27,9 @@ serial, lens)                     parsed by Pillow                notes only; ti
 JPEG markers (frame size, APPn,   ours (:mod:`.jpeg`)             Pillow keeps no segment offsets (the EOI
 end-of-image check)                                               check needs the start of scan), opens DJI
                                                                   R-JPEGs as MPO, says only "cannot identify"
-XMP (DJI, senseFly, FLIR, Adobe   ours (:mod:`.xmp`) on           Pillow's ``getxmp`` drops namespace URIs;
-namespaces)                       defusedxml                      :mod:`.dji`, :mod:`.sensefly` map names
+XMP (DJI, senseFly, Parrot,       ours (:mod:`.xmp`) on           Pillow's ``getxmp`` drops namespace URIs;
+FLIR, Pix4D, Adobe namespaces)    defusedxml                      :mod:`.dji`, :mod:`.sensefly`, :mod:`.parrot`
+                                                                  map names
 DJI R-JPEG raw frame, APP4        ours (:mod:`.dji`)              no library reads them (Pillow: opaque bytes)
 FLIR FFF records in APP1          ours (:mod:`.flir`)             Pillow: opaque bytes; flyr is EUPL-1.2 (test
                                                                   reference only) and misses DJI's layout
@@ -65,6 +66,7 @@ from aerocal.ingest.exif import (
 from aerocal.ingest.flir import FlirCameraInfo, FlirFormatError, flir_layout, has_flir
 from aerocal.ingest.jpeg import JpegFormatError, is_jpeg, parse_jpeg
 from aerocal.ingest.numbers import PLAUSIBLE_RANGES, in_range
+from aerocal.ingest.parrot import has_parrot, read_parrot
 from aerocal.ingest.problems import Problem
 from aerocal.ingest.recorded_pose import RecordedPose
 from aerocal.ingest.sensefly import has_sensefly, read_sensefly
@@ -379,25 +381,26 @@ def _parse_xmp_time(text: str | None) -> tuple[dt.datetime | None, dt.timedelta 
     return local, offset
 
 
-#: GNSS accuracy the Pix4D camera namespace (``http://pix4d.com/camera/1.0/``, written by MicaSense, Parrot
-#: Sequoia and other cameras that follow Pix4D's XMP layout) records: standard deviations in metres
-GPS_ACCURACY_XMP = {"Camera:GPSXYAccuracy": "xmp_gps_xy_accuracy_m", "Camera:GPSZAccuracy": "xmp_gps_z_accuracy_m"}
+#: numbers of the Pix4D camera namespace (``http://pix4d.com/camera/1.0/``, written by MicaSense, Parrot and other
+#: cameras that follow Pix4D's XMP layout), all in metres: the GNSS standard deviations, the height above ground
+PIX4D_CAMERA_NUMBERS = {"Camera:GPSXYAccuracy": "xmp_gps_xy_accuracy_m", "Camera:GPSZAccuracy": "xmp_gps_z_accuracy_m",
+                        "Camera:AboveGroundAltitude": "xmp_above_ground_altitude_m"}
 
 
 def _gps_accuracy(xmp: dict[str, str], meta: ImageMetadata, warn) -> None:
-    """The GNSS standard deviations of :data:`GPS_ACCURACY_XMP` into ``meta.extra`` (metres); a value that is not
-    a positive number below 1 km is a warning and left out."""
-    for key, name in GPS_ACCURACY_XMP.items():
+    """The numbers of :data:`PIX4D_CAMERA_NUMBERS` into ``meta.extra`` (metres); a value that is not a positive
+    number below 1 km (10 km for a height) is a warning and left out."""
+    for key, name in PIX4D_CAMERA_NUMBERS.items():
         if key not in xmp:
             continue
         try:
             value = float(xmp[key])
         except ValueError:
             value = float("nan")
-        if math.isfinite(value) and 0 < value < 1000:
+        if math.isfinite(value) and 0 < value < (10000 if "Altitude" in key else 1000):
             meta.extra[name] = value
         else:
-            warn(f"XMP {key} = {xmp[key]!r} is not a standard deviation in metres (0-1000); ignored", key)
+            warn(f"XMP {key} = {xmp[key]!r} is not a length in metres within its range; ignored", key)
 
 
 def _interpret(
@@ -473,6 +476,8 @@ def _interpret(
     # recorded pose: vendor XMP first, EXIF GPS otherwise
     if has_dji(xmp):
         pose = read_dji_xmp(xmp)
+    elif has_parrot(xmp):
+        pose = read_parrot(xmp)
     elif has_sensefly(xmp):
         pose = read_sensefly(xmp)
         if pose.utc_time and meta.gnss_utc is None:

@@ -29,6 +29,7 @@ MAX_PACKET_BYTES = 4 * 1024 * 1024
 KNOWN_NAMESPACES: dict[str, str] = {
     "http://www.dji.com/drone-dji/": "drone-dji",
     "http://ns.sensefly.com/sensefly/": "sensefly",
+    "http://www.parrot.com/drone-parrot/": "drone-parrot",
     "http://ns.adobe.com/xap/1.0/mm/": "xmpMM",
     "http://ns.adobe.com/xap/1.0/": "xmp",
     "http://ns.adobe.com/exif/1.0/aux/": "aux",
