@@ -1,0 +1,151 @@
+"""A Dask cluster of separate processes, as a user runs one beside `aerocal process --dask ADDRESS`: a
+``dask scheduler`` and two ``dask worker`` processes on 127.0.0.1, each in its own working folder with one
+thread. What a flight gives on it is what it gives on the local cluster the product starts itself.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+BIN = Path(sys.executable).parent
+AEROCAL = str(BIN / "aerocal")
+#: the environment of the worker processes: what :data:`aerocal.matching.cluster.WORKER_ENVIRONMENT` gives the
+#: product's own workers (one BLAS thread, glibc's malloc left alone)
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+
+def _wait_for(what: str, ready, timeout_s: float = 60.0, procs=()) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not ready():
+        for p in procs:
+            if p.poll() is not None:
+                raise RuntimeError(f"{what}: a process exited with {p.returncode} before it was ready")
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{what}: not ready after {timeout_s:.0f} s")
+        time.sleep(0.2)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory):
+    """``(address, worker processes)`` of a scheduler and two single-threaded workers, each its own process."""
+    from distributed import Client
+
+    work = tmp_path_factory.mktemp("dask")
+    env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"} | WORKER_ENV
+    sched_file = work / "scheduler.json"
+    procs = [subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(sched_file)], env=env, cwd=work,
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
+    try:
+        _wait_for("dask scheduler", sched_file.is_file, procs=procs)
+        address = json.loads(sched_file.read_text())["address"]
+        for k in range(2):
+            folder = work / f"worker{k}"
+            folder.mkdir()
+            procs.append(subprocess.Popen([str(BIN / "dask"), "worker", address, "--nthreads", "1", "--nworkers", "1",
+                                           "--no-dashboard", "--local-directory", str(folder), "--name", f"w{k}"],
+                                          env=env, cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                          start_new_session=True))
+        with Client(address, timeout=30) as client:
+            _wait_for("two dask workers", lambda: len(client.scheduler_info()["workers"]) == 2, procs=procs)
+            pids = client.run(os.getpid)
+        assert os.getpid() not in pids.values()  # the workers are other processes than this one
+        yield address, procs[1:]
+    finally:
+        for p in reversed(procs):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+
+
+@pytest.fixture(scope="module")
+def prefect_api():
+    from prefect.settings import PREFECT_API_URL
+    from prefect_harness import prefect_harness
+
+    with prefect_harness():
+        yield PREFECT_API_URL.value()
+
+
+def _process(folder: Path, out: Path, api: str, dask: str | None) -> dict:
+    args = [AEROCAL, "process", str(folder), "--certificate", "none", "--out", str(out), "--database-url",
+            f"sqlite:///{out.parent / (out.name + '.db')}", "--artifacts", str(out.parent / (out.name + '-art'))]
+    done = subprocess.run(args + (["--dask", dask] if dask else []), capture_output=True, text=True, timeout=900,
+                          env={**os.environ, "PREFECT_API_URL": api, "COLUMNS": "200"})
+    assert done.returncode == 0, f"aerocal process exited {done.returncode}:\n{done.stdout}\n{done.stderr}"
+    return json.loads((out / "run.json").read_text())
+
+
+def test_an_image_flight_on_a_cluster_of_separate_processes_gives_the_local_clusters_answer(cluster, prefect_api,
+                                                                                          tmp_path):
+    """`aerocal process --dask tcp://...` on rendered frames: matching (SIFT and pairs on the workers, the frames
+    read by path from the flight folder), orientation, calibration, block and mosaic tiles on both workers; the
+    same tie points and poses (1e-6 m) and the same orthomosaic as the product's own run without one (a block
+    this small is matched in the process itself)."""
+    import rasterio
+    from distributed import Client
+
+    from aerocal.simulate import simulate_flight, write_flight
+
+    address, _ = cluster
+
+    def executed() -> dict:
+        with Client(address, timeout=30) as client:
+            return client.run(lambda dask_worker: dask_worker.state.executed_count)
+
+    seed = 41
+    folder = write_flight(simulate_flight("conte-calibration", seed=seed, max_images=10), tmp_path / "flight",
+                          mode="images")
+    before = executed()
+    remote = _process(folder, tmp_path / "remote", prefect_api, address)
+    after = executed()
+    assert all(after[w] > before.get(w, 0) for w in after), (before, after)  # both workers did the run's work
+    local = _process(folder, tmp_path / "local", prefect_api, None)
+    assert remote["steps"]["match"]["extra"] == local["steps"]["match"]["extra"], f"seed {seed}"
+    a, b = (pq.read_table(tmp_path / name / "poses.parquet") for name in ("local", "remote"))
+    assert a.column("image_id").to_pylist() == b.column("image_id").to_pylist()
+    for col in ("X", "Y", "Z"):
+        np.testing.assert_allclose(b.column(col).to_numpy(), a.column(col).to_numpy(), rtol=0, atol=1e-6,
+                                   err_msg=f"seed {seed}: {col}")
+    with rasterio.open(tmp_path / "local" / "orthomosaic.tif") as x, \
+            rasterio.open(tmp_path / "remote" / "orthomosaic.tif") as y:
+        assert x.transform == y.transform and x.crs == y.crs
+        np.testing.assert_array_equal(x.read(1), y.read(1))
+
+
+def test_the_partitioned_adjustment_runs_on_the_separate_workers_with_the_single_adjustments_poses(cluster,
+                                                                                                 tmp_path):
+    """A block cut into sub-blocks (forced below its size) adjusted on the separate-process workers: its poses
+    are the single adjustment's within 1e-6 m, and the adjustment says how it was cut."""
+    from aerocal.pipeline import LocalRunner, MemoryCertificates, process
+    from aerocal.pipeline.config import BlockStepConfig, ProcessConfig
+    from aerocal.simulate import simulate_flight, write_flight
+
+    address, _ = cluster
+    seed = 7
+    folder = write_flight(simulate_flight("conte-city", seed=seed, max_images=40), tmp_path / "city",
+                          mode="observations")
+    runner, store = LocalRunner(), MemoryCertificates()
+    single = process(folder, certificate="none", runner=runner, certificates=store)
+    cut = ProcessConfig(block=BlockStepConfig(partition_min_images=30, partition_max_images=15))
+    parted = process(folder, cut, certificate="auto", runner=runner, certificates=store, dask_address=address)
+    info = parted.json("adjustment")["partitioned"]
+    assert info is not None and info["sub_blocks"] == 3, info
+    a, b = single.table("poses"), parted.table("poses")
+    for col in ("X", "Y", "Z"):
+        np.testing.assert_allclose(b.column(col).to_numpy(), a.column(col).to_numpy(), rtol=0, atol=1e-6,
+                                   err_msg=f"seed {seed}: {col}")
