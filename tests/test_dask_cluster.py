@@ -149,3 +149,40 @@ def test_the_partitioned_adjustment_runs_on_the_separate_workers_with_the_single
     for col in ("X", "Y", "Z"):
         np.testing.assert_allclose(b.column(col).to_numpy(), a.column(col).to_numpy(), rtol=0, atol=1e-6,
                                    err_msg=f"seed {seed}: {col}")
+
+
+def test_a_worker_killed_during_matching_leaves_the_run_to_the_other_worker(cluster, prefect_api, tmp_path):
+    """One of the two workers (its nanny and its process) killed while the flight's frames are being matched: the
+    run completes on the other worker, with the tie points and poses of a run on the whole cluster. (Last in this
+    file: it leaves the cluster one worker short.)"""
+    from distributed import Client
+
+    from aerocal.simulate import simulate_flight, write_flight
+
+    address, workers = cluster
+    seed = 43
+    folder = write_flight(simulate_flight("conte-calibration", seed=seed, max_images=10), tmp_path / "flight",
+                          mode="images")
+    whole = _process(folder, tmp_path / "whole", prefect_api, address)
+    out = tmp_path / "killed"
+    args = [AEROCAL, "process", str(folder), "--certificate", "none", "--out", str(out), "--database-url",
+            f"sqlite:///{tmp_path / 'killed.db'}", "--artifacts", str(tmp_path / "killed-art"), "--dask", address]
+    run = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                           env={**os.environ, "PREFECT_API_URL": prefect_api, "COLUMNS": "200",
+                                "PYTHONUNBUFFERED": "1"})
+    lines = []
+    for line in run.stdout:  # killed once the matching has started on the cluster
+        lines.append(line)
+        if line.rstrip().endswith("flight: match"):
+            os.killpg(workers[0].pid, signal.SIGKILL)
+            break
+    lines += run.stdout.readlines()
+    assert run.wait(timeout=900) == 0, "".join(lines)
+    with Client(address, timeout=30) as client:
+        assert len(client.scheduler_info()["workers"]) == 1, "".join(lines)  # the run finished on the one left
+    summary = json.loads((out / "run.json").read_text())
+    assert summary["steps"]["match"]["extra"] == whole["steps"]["match"]["extra"], f"seed {seed}"
+    a, b = (pq.read_table(tmp_path / name / "poses.parquet") for name in ("whole", "killed"))
+    for col in ("X", "Y", "Z"):
+        np.testing.assert_allclose(b.column(col).to_numpy(), a.column(col).to_numpy(), rtol=0, atol=1e-6,
+                                   err_msg=f"seed {seed}: {col}")

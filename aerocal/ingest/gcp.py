@@ -215,9 +215,9 @@ def _check_measurements(
                 continue  # its coordinates were reported
             frame = images.get(m.image)
             if frame is None:
-                if m.image in folder_files:  # the image's own error says why: one error, not one per line
-                    problems.warning(m.file, f"image {m.image} could not be ingested (see its error); measurement "
-                                     f"of {m.gcp_id} ignored", "image", m.line)
+                if m.image in folder_files:  # the image's own problem says why: one, not one per line
+                    problems.warning(m.file, f"image {m.image} was not ingested (skipped or left out: see its own "
+                                     f"problem); measurement of {m.gcp_id} ignored", "image", m.line)
                 else:
                     problems.error(m.file, f"image {m.image} is not in the image folder; measurement of {m.gcp_id} "
                                    "ignored", "image", m.line)

@@ -34,6 +34,7 @@ from aerocal.certificate import validate_camera
 from aerocal.ingest import ingest_folder
 from aerocal.ingest.inferred import certificate_identity
 from aerocal.io import file_sha256
+from aerocal.matching.ground import flying_height
 from aerocal.orient import has_priors
 from aerocal.pipeline.runner import table_sha256
 
@@ -216,8 +217,8 @@ def measured_flying_height(folder: Path, images: pa.Table, camera: Camera) -> tu
     """The flying height (m) of a flight that records none, measured from its tie points
     (:func:`aerocal.matching.ground.flying_height` on the enhanced frames matching uses), and its source;
     raises :class:`FlightInputError` naming the fix where the images do not give it."""
-    from aerocal.matching.ground import flying_height
-    from aerocal.pipeline.match_step import frame_loader  # the pipeline's frame reader (it imports this module)
+    # import cycle: aerocal.pipeline.match_step (the pipeline's frame reader) imports this module
+    from aerocal.pipeline.match_step import frame_loader
 
     paths = images.column("path").to_pylist()
     step = max(1, len(paths) // 40)  # the flight's stretch from 40 frames at most: a few seconds on any flight
