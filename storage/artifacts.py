@@ -23,6 +23,8 @@ The root is ``$AEROCAL_ARTIFACT_ROOT``, else ``$XDG_DATA_HOME/aerocal/artifacts`
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import hashlib
 import os
 import time
@@ -173,6 +175,21 @@ class ArtifactStore:
         session.flush()
         return artifact
 
+    @contextlib.contextmanager
+    def _writing(self, final: Path, size: int) -> Iterator[None]:
+        """Around the write of an artifact file: a full disk is a :class:`StorageError` that names the folder and
+        the fix (the temporary file is already gone, :func:`aerocal.io.atomic_path`, and nothing is registered)."""
+        try:
+            yield
+        except OSError as exc:
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                raise
+            raise StorageError(
+                f"{self.root}: {exc.strerror} while storing {size} bytes (artifact store); free space on that disk "
+                "or give another artifact folder (--artifacts, AEROCAL_ARTIFACT_ROOT, with the files already there "
+                "copied over), then run the same command again: it resumes after its last completed step"
+            ) from None
+
     def put_bytes(
         self,
         session: Session,
@@ -193,7 +210,7 @@ class ArtifactStore:
         sha = hashlib.sha256(data).hexdigest()
         final = self.path_for(sha, ext)
         if not self._holds(final, sha, len(data)):
-            with atomic_path(final) as tmp:
+            with self._writing(final, len(data)), atomic_path(final) as tmp:
                 with open(tmp, "wb") as fh:
                     for chunk in _chunks(data):
                         fh.write(chunk)
@@ -217,7 +234,7 @@ class ArtifactStore:
             raise StorageError(f"{source}: cannot read ({exc.strerror}); check the path") from None
         final = self.path_for(sha, source.suffix if ext is None else ext)
         if not self._holds(final, sha, size):
-            with atomic_path(final) as tmp:
+            with self._writing(final, size), atomic_path(final) as tmp:
                 digest = hashlib.sha256()
                 with open(source, "rb") as src, open(tmp, "wb") as dst:
                     while chunk := src.read(CHUNK_BYTES):

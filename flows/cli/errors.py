@@ -16,6 +16,7 @@ Every error is one line on standard error, ``error: WHAT IS WRONG; THE FIX``, wi
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 from collections.abc import Iterator
 from pathlib import Path
@@ -91,7 +92,8 @@ def user_errors(source: str | Path | None = None, interrupted: str = INTERRUPTED
 
     * Ctrl-C -> ``interrupted`` (yellow), exit :data:`INTERRUPTED`;
     * invalid JSON -> its line and column, :data:`BAD_INPUT`;
-    * ``OSError`` (no such file, permission) -> the path and "check the path", :data:`BAD_INPUT`;
+    * ``OSError`` (no such file, permission) -> the path and "check the path", :data:`BAD_INPUT`; a full disk
+      -> the path and "free space", :data:`FAILED`;
     * one of :data:`STORAGE_ERRORS` -> the message, :data:`FAILED`;
     * ``ValueError`` / ``LookupError`` -> the message, :data:`BAD_INPUT` or :data:`FAILED` as above.
 
@@ -112,6 +114,9 @@ def user_errors(source: str | Path | None = None, interrupted: str = INTERRUPTED
              BAD_INPUT)
     except OSError as exc:
         name = exc.filename or where
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):  # not the user's input: the disk written to is full
+            reason = f"{exc.strerror}; free space on that disk or write elsewhere, then run the command again"
+            fail(f"{name}: {reason}" if name else reason, FAILED)
         reason = f"{exc.strerror or exc}; check the path"
         fail(f"{name}: {reason}" if name else reason, BAD_INPUT)
     except Exception as exc:
