@@ -19,7 +19,8 @@ def pytest_configure(config):
 #: the longest test files (minutes each), started first: the last file a process starts is then a short one, and
 #: the two processes of ``make test`` finish together
 FIRST = ("test_rendered_discovery.py", "test_seneca_process.py", "test_study_daakir2019.py",
-         "test_study_conte2018.py", "test_flir_flight.py", "test_model_loop.py", "test_demo.py")
+         "test_study_conte2018.py", "test_flir_flight.py", "test_model_loop.py", "test_dask_cluster.py",
+         "test_demo.py", "test_campaign_concurrency.py")
 
 
 def pytest_collection_modifyitems(session, config, items):

@@ -32,7 +32,7 @@ def test_eight_flights_of_two_cameras_four_at_a_time_share_one_store(request, tm
 
     url = create_postgres_database(request.config, "campaign")
     upgrade(url)
-    folders = [write_flight(simulate_flight(preset, seed=seed, max_images=12), tmp_path / f"{preset}-{seed}",
+    folders = [write_flight(simulate_flight(preset, seed=seed, max_images=10), tmp_path / f"{preset}-{seed}",
                             mode="observations") for preset, seed in FLIGHTS]
     with prefect_harness():
         from prefect.settings import PREFECT_API_URL

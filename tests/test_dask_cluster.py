@@ -81,6 +81,21 @@ def prefect_api():
         yield PREFECT_API_URL.value()
 
 
+#: the rendered flight of the image-mode tests (conte-calibration frames)
+SEED, N_FRAMES = 41, 10
+
+
+@pytest.fixture(scope="module")
+def on_cluster(cluster, prefect_api, tmp_path_factory):
+    """``(flight folder, work folder, run summary)``: the rendered flight processed on the whole cluster."""
+    from aerocal.simulate import simulate_flight, write_flight
+
+    work = tmp_path_factory.mktemp("on-cluster")
+    folder = write_flight(simulate_flight("conte-calibration", seed=SEED, max_images=N_FRAMES), work / "flight",
+                          mode="images")
+    return folder, work, _process(folder, work / "remote", prefect_api, cluster[0])
+
+
 def _process(folder: Path, out: Path, api: str, dask: str | None) -> dict:
     args = [AEROCAL, "process", str(folder), "--certificate", "none", "--out", str(out), "--database-url",
             f"sqlite:///{out.parent / (out.name + '.db')}", "--artifacts", str(out.parent / (out.name + '-art'))]
@@ -90,8 +105,8 @@ def _process(folder: Path, out: Path, api: str, dask: str | None) -> dict:
     return json.loads((out / "run.json").read_text())
 
 
-def test_an_image_flight_on_a_cluster_of_separate_processes_gives_the_local_clusters_answer(cluster, prefect_api,
-                                                                                          tmp_path):
+def test_an_image_flight_on_a_cluster_of_separate_processes_gives_the_local_clusters_answer(cluster, on_cluster,
+                                                                                          prefect_api):
     """`aerocal process --dask tcp://...` on rendered frames: matching (SIFT and pairs on the workers, the frames
     read by path from the flight folder), orientation, calibration, block and mosaic tiles on both workers; the
     same tie points and poses (1e-6 m) and the same orthomosaic as the product's own run without one (a block
@@ -99,30 +114,20 @@ def test_an_image_flight_on_a_cluster_of_separate_processes_gives_the_local_clus
     import rasterio
     from distributed import Client
 
-    from aerocal.simulate import simulate_flight, write_flight
-
     address, _ = cluster
-
-    def executed() -> dict:
-        with Client(address, timeout=30) as client:
-            return client.run(lambda dask_worker: dask_worker.state.executed_count)
-
-    seed = 41
-    folder = write_flight(simulate_flight("conte-calibration", seed=seed, max_images=10), tmp_path / "flight",
-                          mode="images")
-    before = executed()
-    remote = _process(folder, tmp_path / "remote", prefect_api, address)
-    after = executed()
-    assert all(after[w] > before.get(w, 0) for w in after), (before, after)  # both workers did the run's work
-    local = _process(folder, tmp_path / "local", prefect_api, None)
-    assert remote["steps"]["match"]["extra"] == local["steps"]["match"]["extra"], f"seed {seed}"
-    a, b = (pq.read_table(tmp_path / name / "poses.parquet") for name in ("local", "remote"))
+    with Client(address, timeout=30) as client:  # the workers did the cluster run's work, both of them
+        executed = client.run(lambda dask_worker: dask_worker.state.executed_count)
+    assert len(executed) == 2 and all(n > 0 for n in executed.values()), executed
+    folder, work, remote = on_cluster
+    local = _process(folder, work / "local", prefect_api, None)
+    assert remote["steps"]["match"]["extra"] == local["steps"]["match"]["extra"], f"seed {SEED}"
+    a, b = (pq.read_table(work / name / "poses.parquet") for name in ("local", "remote"))
     assert a.column("image_id").to_pylist() == b.column("image_id").to_pylist()
     for col in ("X", "Y", "Z"):
         np.testing.assert_allclose(b.column(col).to_numpy(), a.column(col).to_numpy(), rtol=0, atol=1e-6,
-                                   err_msg=f"seed {seed}: {col}")
-    with rasterio.open(tmp_path / "local" / "orthomosaic.tif") as x, \
-            rasterio.open(tmp_path / "remote" / "orthomosaic.tif") as y:
+                                   err_msg=f"seed {SEED}: {col}")
+    with rasterio.open(work / "local" / "orthomosaic.tif") as x, \
+            rasterio.open(work / "remote" / "orthomosaic.tif") as y:
         assert x.transform == y.transform and x.crs == y.crs
         np.testing.assert_array_equal(x.read(1), y.read(1))
 
@@ -151,19 +156,15 @@ def test_the_partitioned_adjustment_runs_on_the_separate_workers_with_the_single
                                    err_msg=f"seed {seed}: {col}")
 
 
-def test_a_worker_killed_during_matching_leaves_the_run_to_the_other_worker(cluster, prefect_api, tmp_path):
+def test_a_worker_killed_during_matching_leaves_the_run_to_the_other_worker(cluster, on_cluster, prefect_api,
+                                                                           tmp_path):
     """One of the two workers (its nanny and its process) killed while the flight's frames are being matched: the
-    run completes on the other worker, with the tie points and poses of a run on the whole cluster. (Last in this
-    file: it leaves the cluster one worker short.)"""
+    run completes on the other worker, with the tie points and poses of the run on the whole cluster. (Last in
+    this file: it leaves the cluster one worker short.)"""
     from distributed import Client
 
-    from aerocal.simulate import simulate_flight, write_flight
-
     address, workers = cluster
-    seed = 43
-    folder = write_flight(simulate_flight("conte-calibration", seed=seed, max_images=10), tmp_path / "flight",
-                          mode="images")
-    whole = _process(folder, tmp_path / "whole", prefect_api, address)
+    folder, work, whole = on_cluster
     out = tmp_path / "killed"
     args = [AEROCAL, "process", str(folder), "--certificate", "none", "--out", str(out), "--database-url",
             f"sqlite:///{tmp_path / 'killed.db'}", "--artifacts", str(tmp_path / "killed-art"), "--dask", address]
@@ -181,8 +182,8 @@ def test_a_worker_killed_during_matching_leaves_the_run_to_the_other_worker(clus
     with Client(address, timeout=30) as client:
         assert len(client.scheduler_info()["workers"]) == 1, "".join(lines)  # the run finished on the one left
     summary = json.loads((out / "run.json").read_text())
-    assert summary["steps"]["match"]["extra"] == whole["steps"]["match"]["extra"], f"seed {seed}"
-    a, b = (pq.read_table(tmp_path / name / "poses.parquet") for name in ("whole", "killed"))
+    assert summary["steps"]["match"]["extra"] == whole["steps"]["match"]["extra"], f"seed {SEED}"
+    a, b = (pq.read_table(path / "poses.parquet") for path in (work / "remote", out))
     for col in ("X", "Y", "Z"):
         np.testing.assert_allclose(b.column(col).to_numpy(), a.column(col).to_numpy(), rtol=0, atol=1e-6,
-                                   err_msg=f"seed {seed}: {col}")
+                                   err_msg=f"seed {SEED}: {col}")
