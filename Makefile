@@ -23,7 +23,8 @@ demo: $(STAMP)
 # (the longest first): pytest-xdist otherwise reorders them by their number of tests, which started the rendered
 # flights (2 tests, 15 minutes) 21 minutes into the run
 # OMP/OpenBLAS/MKL at one thread per test process: two processes on two cores, each with a BLAS pool of two
-# threads that spin while they wait, had the whole run at 46 minutes; at one thread it takes 22
+# threads that spin while they wait, had the whole run at 46 minutes; at one thread it took 22 (26 since the
+# cluster, store-fault and campaign tests)
 test: $(STAMP)
 	$(BIN)/ruff check .
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 MKL_NUM_THREADS=1 \
