@@ -176,7 +176,7 @@ class ArtifactStore:
         return artifact
 
     @contextlib.contextmanager
-    def _writing(self, final: Path, size: int) -> Iterator[None]:
+    def _writing(self, size: int) -> Iterator[None]:
         """Around the write of an artifact file: a full disk is a :class:`StorageError` that names the folder and
         the fix (the temporary file is already gone, :func:`aerocal.io.atomic_path`, and nothing is registered)."""
         try:
@@ -210,7 +210,7 @@ class ArtifactStore:
         sha = hashlib.sha256(data).hexdigest()
         final = self.path_for(sha, ext)
         if not self._holds(final, sha, len(data)):
-            with self._writing(final, len(data)), atomic_path(final) as tmp:
+            with self._writing(len(data)), atomic_path(final) as tmp:
                 with open(tmp, "wb") as fh:
                     for chunk in _chunks(data):
                         fh.write(chunk)
@@ -234,7 +234,7 @@ class ArtifactStore:
             raise StorageError(f"{source}: cannot read ({exc.strerror}); check the path") from None
         final = self.path_for(sha, source.suffix if ext is None else ext)
         if not self._holds(final, sha, size):
-            with self._writing(final, size), atomic_path(final) as tmp:
+            with self._writing(size), atomic_path(final) as tmp:
                 digest = hashlib.sha256()
                 with open(source, "rb") as src, open(tmp, "wb") as dst:
                     while chunk := src.read(CHUNK_BYTES):
