@@ -6,9 +6,12 @@ PostgreSQL is reached through psycopg 3 (``postgresql+psycopg://USER:PASSWORD@HO
 ``postgresql://`` and ``postgres://`` URLs are read as that).
 
 SQLite connections are configured for several processes sharing one file: foreign keys on, WAL journal,
-a busy timeout, and explicit ``BEGIN`` statements so that :func:`begin_write` can take the write lock
-up front (``BEGIN IMMEDIATE``) and savepoints work (the pysqlite driver's own transaction handling is
-switched off, as SQLAlchemy's documentation recommends for this).
+a busy timeout, and explicit ``BEGIN`` statements so that every transaction takes the write lock up
+front (``BEGIN IMMEDIATE``) and savepoints work (the pysqlite driver's own transaction handling is
+switched off, as SQLAlchemy's documentation recommends for this). A deferred transaction that reads and
+then writes while another process has committed fails at once with "database is locked" in WAL mode
+(its snapshot is stale; the busy timeout does not apply), so on SQLite writers queue instead: one
+process writes at a time, each waiting up to the busy timeout. Concurrent flights belong on PostgreSQL.
 """
 
 from __future__ import annotations
@@ -23,12 +26,12 @@ from sqlalchemy import event
 from sqlalchemy.engine import URL, Engine, make_url
 from sqlalchemy.orm import Session, sessionmaker
 
-from storage.errors import DatabaseUnreachableError, DatabaseURLError, StorageError
+from storage.errors import DatabaseBusyError, DatabaseUnreachableError, DatabaseURLError, StorageError
 
 #: Environment variable that names the database.
 URL_ENV = "AEROCAL_DATABASE_URL"
 
-#: Execution option read by the SQLite ``begin`` hook: ``"DEFERRED"`` (default) or ``"IMMEDIATE"``.
+#: Execution option read by the SQLite ``begin`` hook: ``"IMMEDIATE"`` (default) or ``"DEFERRED"``.
 SQLITE_BEGIN_OPTION = "aerocal_sqlite_begin"
 
 _URL_HELP = (
@@ -253,12 +256,22 @@ def _configure_sqlite(engine: Engine, options: DatabaseOptions, url: URL) -> Non
 
     @event.listens_for(engine, "begin")
     def _on_begin(conn: sa.Connection) -> None:
-        mode = conn.get_execution_options().get(SQLITE_BEGIN_OPTION, "DEFERRED")
+        mode = conn.get_execution_options().get(SQLITE_BEGIN_OPTION, "IMMEDIATE")
         if mode not in ("DEFERRED", "IMMEDIATE", "EXCLUSIVE"):
             raise StorageError(
                 f"{SQLITE_BEGIN_OPTION} must be DEFERRED, IMMEDIATE or EXCLUSIVE, not {mode!r}"
             )
         conn.exec_driver_sql(f"BEGIN {mode}")
+
+    @event.listens_for(engine, "handle_error")
+    def _on_error(context) -> None:
+        if "database is locked" in str(context.original_exception):
+            raise DatabaseBusyError(
+                f"the SQLite store {database or ':memory:'} stayed locked by another process for longer than "
+                f"{options.sqlite_busy_timeout_s:g} s: SQLite lets one process write at a time; run flights "
+                "one after another on it, or give flights processed at once a PostgreSQL store "
+                "(--database-url postgresql+psycopg://USER@HOST/DB); the same command then resumes"
+            ) from context.sqlalchemy_exception
 
 
 def begin_write(session: Session) -> None:

@@ -21,6 +21,11 @@ class DatabaseUnreachableError(StorageError):
     """The database server does not answer or refuses the connection."""
 
 
+class DatabaseBusyError(StorageError):
+    """A SQLite store stayed locked by another process for longer than the busy timeout: SQLite lets one
+    process write at a time, so flights processed at once belong on PostgreSQL."""
+
+
 class SchemaOutOfDateError(StorageError):
     """The database schema is not at the revision this code expects; run ``aerocal db upgrade``."""
 

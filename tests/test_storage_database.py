@@ -11,13 +11,14 @@ from alembic.runtime.migration import MigrationContext
 
 from storage import migrations
 from storage.database import (
+    DatabaseOptions,
     DatabaseUnreachableError,
     DatabaseURLError,
     connect,
     database_url,
     mask_url,
 )
-from storage.errors import SchemaOutOfDateError, StorageError
+from storage.errors import DatabaseBusyError, SchemaOutOfDateError, StorageError
 from storage.models import Base, Run
 
 pytest_plugins = ["conftest_storage"]  # fixtures: storage_url, storage_db, unique, ...
@@ -55,6 +56,35 @@ def test_connect_creates_the_sqlite_folder_with_wal_and_foreign_keys(monkeypatch
             assert conn.exec_driver_sql("PRAGMA busy_timeout").scalar() == 30000
     finally:
         db.dispose()
+
+
+def test_a_sqlite_writer_queues_behind_another_and_says_what_sqlite_cannot_do(tmp_path):
+    """Every SQLite transaction takes the write lock when it begins: a process that reads, then writes, can
+    no longer be overtaken between the two (in WAL mode that failed at once with "database is locked",
+    whatever the busy timeout). A writer that waits longer than its timeout is told why and what to use."""
+    url = f"sqlite:///{tmp_path / 'store.db'}"
+    migrations.upgrade(url)
+    first = connect(url)
+    second = connect(url, DatabaseOptions(sqlite_busy_timeout_s=0.3))
+    started = datetime(2026, 1, 1, tzinfo=timezone.utc)
+    try:
+        with first.session() as holder:
+            assert holder.query(Run).count() == 0  # the read takes the write lock
+            with second.session() as other, pytest.raises(DatabaseBusyError) as caught:
+                other.add(Run(id="waiting", kind="process_flight", status="running", started=started))
+                other.commit()
+            message = str(caught.value)
+            assert str(tmp_path / "store.db") in message and "one process write at a time" in message
+            assert "PostgreSQL" in message and "0.3 s" in message
+            holder.add(Run(id="holder", kind="process_flight", status="running", started=started))
+            holder.commit()
+        with second.session() as other:  # the lock released, the same write goes through
+            other.add(Run(id="waiting", kind="process_flight", status="running", started=started))
+            other.commit()
+            assert {r.id for r in other.query(Run)} == {"holder", "waiting"}
+    finally:
+        first.dispose()
+        second.dispose()
 
 
 def test_unknown_database_kind_is_one_clear_line():
