@@ -9,6 +9,9 @@
    matches found, and pairs holding at least 15 verified matches in the exhaustive run that the footprint
    pairs also hold).
 4. Orthomosaic of the whole flight, Dask 1 vs 2 workers, from the end-to-end run's poses and DSM.
+5. End to end on a cluster of separate processes (a ``dask scheduler`` and two ``dask worker`` processes,
+   as ``aerocal process --dask ADDRESS`` uses one) against the local cluster of part 1, same run: time per
+   step and the largest pose difference.
 
 The rendered flight is cached in ``benchmarks/data/`` (rendering the 818 frames takes ~13 min on one core;
 ``--images 3200``: the same plan over a larger area, rendered in ~2 h on one core shared with other jobs).
@@ -119,11 +122,11 @@ def subset_folder(folder: Path, n: int, work: Path) -> Path:
     return out
 
 
-def end_to_end(folder: Path, work: Path) -> tuple[dict, float]:
+def end_to_end(folder: Path, work: Path, dask_address: str | None = None) -> tuple[dict, float]:
     """The run summary of the whole flight through :func:`aerocal.pipeline.process` (``run.json`` written
-    beside the products), and its seconds."""
+    beside the products), and its seconds; on the Dask scheduler ``dask_address`` when given."""
     t0 = time.perf_counter()
-    run = process(folder, certificate="none", out_dir=work / "run")
+    run = process(folder, certificate="none", out_dir=work / "run", dask_address=dask_address)
     seconds = time.perf_counter() - t0
     write_json_atomic(work / "run" / "run.json", run.summary)
     return run.summary, seconds
@@ -187,6 +190,30 @@ def mosaic_workers(run_dir: Path, folder: Path, workers: int, work: Path) -> flo
         return time.perf_counter() - t0
 
 
+def separate_processes(folder: Path, work: Path, local: dict, local_wall: float) -> list[str]:
+    """Part 5: the flight end to end on a scheduler and two worker processes, against the local run."""
+    import pyarrow.parquet as pq
+
+    from benchmarks.process_cluster import process_cluster
+
+    (work / "cluster").mkdir()
+    with process_cluster(work / "cluster", n_workers=2) as cluster:
+        remote, wall = end_to_end(folder, work / "remote", cluster.address)
+    a, b = (pq.read_table(Path(s["out_dir"]) / "poses.parquet").sort_by("name") for s in (local, remote))
+    xyz = [np.column_stack([t.column(c).to_numpy() for c in ("X", "Y", "Z")]) for t in (a, b)]
+    lines = ["### End to end, separate worker processes against the local cluster (same run)", "",
+             "| step | local cluster | 2 worker processes |", "|---|---|---|"]
+    for step, info in local["steps"].items():
+        other = remote["steps"].get(step, {})
+        lines.append(f"| {step} | {info.get('seconds', float('nan')):.1f} s | "
+                     f"{other.get('seconds', float('nan')):.1f} s |")
+    same = a.column("name").to_pylist() == b.column("name").to_pylist()
+    diff = f"{float(np.abs(xyz[0] - xyz[1]).max()):.1e} m" if same else "the oriented frames differ"
+    lines += [f"| **total** | **{local_wall:.1f} s** | **{wall:.1f} s** |", "",
+              f"- ratio separate / local: {wall / local_wall:.2f}; largest pose difference: {diff}", ""]
+    return lines
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=None, help="only the N frames nearest the block centre")
@@ -195,12 +222,14 @@ def main(argv: list[str] | None = None) -> None:
                          "the preset itself; 3200 took ~2 h on one core shared with other jobs; cached)")
     ap.add_argument("--source", type=Path, default=None,
                     help="a rendered flight folder (default: conte-city seed 0, rendered on first use)")
-    ap.add_argument("--parts", default="e2e,matching,pairs,mosaic",
-                    help="comma-separated parts to run: e2e, matching, pairs, mosaic (mosaic needs e2e)")
+    ap.add_argument("--parts", default="e2e,matching,pairs,mosaic,cluster",
+                    help="comma-separated parts to run: e2e, matching, pairs, mosaic, cluster (mosaic and cluster "
+                         "need e2e)")
     args = ap.parse_args(argv)
     parts = set(args.parts.split(","))
-    if "mosaic" in parts and "e2e" not in parts:
-        ap.error("--parts mosaic needs e2e (it mosaics from the end-to-end run's poses and DSM)")
+    for part in ("mosaic", "cluster"):
+        if part in parts and "e2e" not in parts:
+            ap.error(f"--parts {part} needs e2e (it is compared with the end-to-end run)")
     with scratch_folder("work-") as work:
         full = args.source or rendered_flight(args.images)
         folder = subset_folder(full, args.frames, work) if args.frames else full
@@ -269,6 +298,9 @@ def main(argv: list[str] | None = None) -> None:
             lines += ["### Orthomosaic of the whole flight, Dask 1 vs 2 workers", "",
                       "| workers | time |", "|---|---|"] + [f"| {w} | {s:.1f} s |" for w, s in mos.items()]
             lines += ["", f"- speed-up 2 vs 1 workers: {mos[1] / mos[2]:.2f}x", ""]
+
+        if "cluster" in parts:
+            lines += separate_processes(folder, work, summary, wall)
         record("City scale: conte-city rendered, end to end", lines)
 
 

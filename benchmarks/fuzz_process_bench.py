@@ -8,7 +8,8 @@ point; after a run that did not succeed, no stored certificate changed, no artif
 run folder is absent or says it failed; after a run that succeeded on input with ingest errors, every
 certificate it stored is rejected. ``kill`` cases send SIGKILL at a random moment, then check that the
 store holds no half-made certificate, that ``aerocal runs list`` shows no dead run as running, and that a
-re-run succeeds.
+re-run succeeds. Then the infrastructure's faults at random moments (:mod:`benchmarks.infrastructure_faults`:
+a Dask worker killed, the PostgreSQL connections dropped, the artifact disk full), three of each.
 
 Run: ``python -m benchmarks.fuzz_process_bench [N_CASES]`` (default 220). Results go to RESULTS.md.
 """
@@ -34,6 +35,7 @@ from prefect.testing.utilities import prefect_test_harness
 from aerocal.ingest import ingest_folder
 from aerocal.simulate.faults import FAULTS, AppliedFault, apply_fault
 from benchmarks.common import record
+from benchmarks.infrastructure_faults import run_cases, table
 
 AEROCAL = str(Path(sys.executable).with_name("aerocal"))
 BASE_PRESET, BASE_IMAGES = "conte-calibration", 12
@@ -216,6 +218,7 @@ def main(n_cases: int | None = None) -> None:
             outcomes.append(out)
             print(f"[{i + 1}/{n_cases}] {out.line()}", flush=True)
             shutil.rmtree(work / f"{kind}-{seed}", ignore_errors=True)
+        infrastructure = run_cases(base, 3, env, progress=lambda line: print(line, flush=True))
         total = time.perf_counter() - t0
     bad = [o for o in outcomes if o.problems]
     codes = Counter((o.fault.kind, o.exit_code) for o in outcomes)
@@ -228,6 +231,7 @@ def main(n_cases: int | None = None) -> None:
     if bad:
         lines += ["", "Cases with a problem:", "", "| kind | seed | fault | exit | s | problem |",
                   "|---|---|---|---|---|---|", *[o.line() for o in bad]]
+    lines += ["", *table(infrastructure)]
     record("Fault corpus through `aerocal process`", lines)
 
 

@@ -10,66 +10,22 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-BIN = Path(sys.executable).parent
-AEROCAL = str(BIN / "aerocal")
-#: the environment of the worker processes: what :data:`aerocal.matching.cluster.WORKER_ENVIRONMENT` gives the
-#: product's own workers (one BLAS thread, glibc's malloc left alone)
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
-
-
-def _wait_for(what: str, ready, timeout_s: float = 60.0, procs=()) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not ready():
-        for p in procs:
-            if p.poll() is not None:
-                raise RuntimeError(f"{what}: a process exited with {p.returncode} before it was ready")
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"{what}: not ready after {timeout_s:.0f} s")
-        time.sleep(0.2)
+AEROCAL = str(Path(sys.executable).with_name("aerocal"))
 
 
 @pytest.fixture(scope="module")
 def cluster(tmp_path_factory):
     """``(address, worker processes)`` of a scheduler and two single-threaded workers, each its own process."""
-    from distributed import Client
+    from benchmarks.process_cluster import process_cluster
 
-    work = tmp_path_factory.mktemp("dask")
-    env = {k: v for k, v in os.environ.items() if k != "MALLOC_TRIM_THRESHOLD_"} | WORKER_ENV
-    sched_file = work / "scheduler.json"
-    procs = [subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0",
-                               "--no-dashboard", "--scheduler-file", str(sched_file)], env=env, cwd=work,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)]
-    try:
-        _wait_for("dask scheduler", sched_file.is_file, procs=procs)
-        address = json.loads(sched_file.read_text())["address"]
-        for k in range(2):
-            folder = work / f"worker{k}"
-            folder.mkdir()
-            procs.append(subprocess.Popen([str(BIN / "dask"), "worker", address, "--nthreads", "1", "--nworkers", "1",
-                                           "--no-dashboard", "--local-directory", str(folder), "--name", f"w{k}"],
-                                          env=env, cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                          start_new_session=True))
-        with Client(address, timeout=30) as client:
-            _wait_for("two dask workers", lambda: len(client.scheduler_info()["workers"]) == 2, procs=procs)
-            pids = client.run(os.getpid)
-        assert os.getpid() not in pids.values()  # the workers are other processes than this one
-        yield address, procs[1:]
-    finally:
-        for p in reversed(procs):
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGTERM)
-        for p in procs:
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+    with process_cluster(tmp_path_factory.mktemp("dask"), n_workers=2) as running:
+        yield running.address, running.workers
 
 
 @pytest.fixture(scope="module")
