@@ -199,7 +199,7 @@ def separate_processes(folder: Path, work: Path, local: dict, local_wall: float)
     (work / "cluster").mkdir()
     with process_cluster(work / "cluster", n_workers=2) as cluster:
         remote, wall = end_to_end(folder, work / "remote", cluster.address)
-    a, b = (pq.read_table(Path(s["out_dir"]) / "poses.parquet").sort_by("name") for s in (local, remote))
+    a, b = (pq.read_table(Path(s["out_dir"]) / "poses.parquet").sort_by("image_id") for s in (local, remote))
     xyz = [np.column_stack([t.column(c).to_numpy() for c in ("X", "Y", "Z")]) for t in (a, b)]
     lines = ["### End to end, separate worker processes against the local cluster (same run)", "",
              "| step | local cluster | 2 worker processes |", "|---|---|---|"]
@@ -207,7 +207,7 @@ def separate_processes(folder: Path, work: Path, local: dict, local_wall: float)
         other = remote["steps"].get(step, {})
         lines.append(f"| {step} | {info.get('seconds', float('nan')):.1f} s | "
                      f"{other.get('seconds', float('nan')):.1f} s |")
-    same = a.column("name").to_pylist() == b.column("name").to_pylist()
+    same = a.column("image_id").to_pylist() == b.column("image_id").to_pylist()
     diff = f"{float(np.abs(xyz[0] - xyz[1]).max()):.1e} m" if same else "the oriented frames differ"
     lines += [f"| **total** | **{local_wall:.1f} s** | **{wall:.1f} s** |", "",
               f"- ratio separate / local: {wall / local_wall:.2f}; largest pose difference: {diff}", ""]
