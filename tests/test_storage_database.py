@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta, timezone
 
 import pytest
 import sqlalchemy as sa
@@ -66,7 +66,7 @@ def test_a_sqlite_writer_queues_behind_another_and_says_what_sqlite_cannot_do(tm
     migrations.upgrade(url)
     first = connect(url)
     second = connect(url, DatabaseOptions(sqlite_busy_timeout_s=0.3))
-    started = datetime(2026, 1, 1, tzinfo=timezone.utc)
+    started = datetime(2026, 1, 1, tzinfo=UTC)
     try:
         with first.session() as holder:
             assert holder.query(Run).count() == 0  # the read takes the write lock
