@@ -112,6 +112,45 @@ def test_the_partitioned_adjustment_runs_on_the_separate_workers_with_the_single
                                    err_msg=f"seed {seed}: {col}")
 
 
+def test_a_worker_killed_during_the_partitioned_adjustment_leaves_the_solve_to_the_other(tmp_path, monkeypatch):
+    """One of two workers (nanny and process, SIGKILL) killed once its sub-blocks are built, before the first
+    iteration: the partitioned solve starts again on the worker left and gives the single adjustment's poses,
+    and the adjustment says it was restarted and why. A cluster of its own (the kill leaves it one worker
+    short)."""
+    import aerocal.adjust.partition as partition
+    from aerocal.pipeline import LocalRunner, MemoryCertificates, process
+    from aerocal.pipeline.config import BlockStepConfig, ProcessConfig
+    from aerocal.simulate import simulate_flight, write_flight
+    from benchmarks.process_cluster import process_cluster
+
+    seed = 8
+    folder = write_flight(simulate_flight("conte-city", seed=seed, max_images=40), tmp_path / "city",
+                          mode="observations")
+    runner, store = LocalRunner(), MemoryCertificates()
+    single = process(folder, certificate="none", runner=runner, certificates=store)
+    (tmp_path / "dask").mkdir()
+    with process_cluster(tmp_path / "dask", n_workers=2) as running:
+        iterate, killed = partition.levenberg_marquardt, []
+
+        def kill_then_iterate(*args, **kwargs):
+            if not killed:  # the sub-blocks are on the workers now: one of them goes, with its actors
+                os.killpg(running.workers[0].pid, signal.SIGKILL)
+                killed.append(running.workers[0].pid)
+            return iterate(*args, **kwargs)
+
+        monkeypatch.setattr(partition, "levenberg_marquardt", kill_then_iterate)
+        cut = ProcessConfig(block=BlockStepConfig(partition_min_images=30, partition_max_images=15))
+        parted = process(folder, cut, certificate="auto", runner=runner, certificates=store,
+                         dask_address=running.address)
+    info = parted.json("adjustment")["partitioned"]
+    assert killed and info["sub_blocks"] == 3, info
+    assert info["restarted"] and "worker was lost" in info["restarted"] and "1 worker" in info["restarted"], info
+    a, b = single.table("poses"), parted.table("poses")
+    for col in ("X", "Y", "Z"):
+        np.testing.assert_allclose(b.column(col).to_numpy(), a.column(col).to_numpy(), rtol=0, atol=1e-6,
+                                   err_msg=f"seed {seed}: {col}")
+
+
 def test_a_worker_killed_during_matching_leaves_the_run_to_the_other_worker(cluster, on_cluster, prefect_api,
                                                                            tmp_path):
     """One of the two workers (its nanny and its process) killed while the flight's frames are being matched: the

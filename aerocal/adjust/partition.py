@@ -31,6 +31,7 @@ shares instead, the same block took 9.5 s against 14.8 s (``benchmarks/partition
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import scipy.sparse as sp
@@ -309,8 +310,10 @@ class PartitionedSolver:
     """A ``solver`` for :func:`aerocal.adjust.bundle.adjust`: blocks of at least ``min_images`` images are solved
     by :func:`solve_partitioned` in ``max(2, n_workers, ceil(N / max_images))`` sub-blocks (each holds at most
     about ``max_images`` images, bounding a worker's memory), smaller ones by the single solve. ``client``:
-    a Dask client whose workers hold the sub-blocks (``None``: in this process). ``runs`` records, per solve,
-    the images, sub-blocks and boundary images, for the step's summary."""
+    a Dask client whose workers hold the sub-blocks (``None``: in this process). A worker lost during a solve
+    (killed, out of memory) takes its sub-blocks with it: the solve starts again from the same state on the
+    workers left (in this process when none is), with the same answer; any other failure is raised. ``runs``
+    records, per solve, the images, sub-blocks, boundary images and any restart, for the step's summary."""
 
     min_images: int
     max_images: int
@@ -328,7 +331,43 @@ class PartitionedSolver:
         if K < 2:
             return solve(problem, start)
         plan = plan_partition(problem.b, start.C[:, :2], K)
-        sol = solve_partitioned(problem, start, plan, self.client)
+        before = self._workers()
+        restarted = None
+        try:
+            sol = solve_partitioned(problem, start, plan, self.client)
+        except Exception as exc:
+            left = self._workers_after_loss(before)
+            if left is None:
+                raise
+            # a worker holding sub-blocks died (its actors and scattered data are gone): the same solve from the
+            # same start on the workers left, or in this process when none is; the answer is the same
+            restarted = (f"a worker was lost ({type(exc).__name__}: {' '.join(str(exc).split())[:120]}); solved "
+                         f"again on {len(left)} worker(s)" if left else "solved again in the calling process")
+            sol = solve_partitioned(problem, start, plan, self.client if left else None)
         self.runs.append({"images": problem.b.n_images, "sub_blocks": K, "boundary_images": len(plan.boundary),
-                          "iterations": sol.iterations})
+                          "iterations": sol.iterations, "restarted": restarted})
         return sol
+
+    def _workers(self) -> set[str]:
+        """The addresses of the client's workers (empty without a client)."""
+        if self.client is None:
+            return set()
+        return set(self.client.scheduler_info()["workers"])  # type: ignore[attr-defined]
+
+    def _workers_after_loss(self, before: set[str], wait_s: float = 10.0) -> set[str] | None:
+        """After a failed solve on the cluster: the workers left when one of ``before`` is gone, ``None`` when all
+        are still there (the failure is not the cluster's, and is raised). The scheduler drops a killed worker
+        when its connection closes; up to ``wait_s`` seconds are given for that."""
+        if self.client is None:
+            return None
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                now = self._workers()
+            except Exception:  # the scheduler itself is gone: nothing to retry on but this process
+                return set()
+            if before - now:
+                return now
+            if time.monotonic() > deadline:
+                return None
+            time.sleep(0.2)
