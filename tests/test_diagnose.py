@@ -448,3 +448,22 @@ def test_a_twin_that_cannot_be_made_is_said_and_the_diagnosis_goes_on(monkeypatc
     d = diagnose_baseline(base, DiagnoseConfig(reference_temperature=SPEC.sensors.reference_temperature_c, twins=3))
     assert d.twin["summary"].startswith("the twin could not be made on this block (ValueError: focal length")
     assert [e.name for e in d.effects] == ["rolling_shutter"], f"seed {seed}: {d.summary()}"
+
+
+def test_held_out_folds_of_a_three_strip_block_keep_both_directions_in_every_fit():
+    """Folds of half strips where a block has fewer strips than folds: no fold's fitting images are all flown one
+    way (with whole strips, leaving the middle of three back-and-forth strips out did, and a GNSS lag was then
+    undetermined in that fold, its images never held out); every image is in a fold, strips in flight order."""
+    from aerocal.diagnose.model import Covariates
+    from aerocal.diagnose.prediction import PredictionConfig, fold_of_images
+
+    strip = np.repeat([0, 1, 2], 8)
+    heading = np.array([1, -1, 1])[strip]  # flown east, west, east
+    fold, units = fold_of_images(Covariates(time_s=np.arange(24.0), strip=strip), PredictionConfig())
+    assert units == "half strips" and sorted(set(fold.tolist())) == [0, 1, 2, 3, 4]
+    for k in range(5):
+        assert set(heading[fold != k].tolist()) == {-1, 1}, (k, fold)
+    assert [fold[strip == s][:4].tolist() for s in range(3)] == [[0] * 4, [2] * 4, [4] * 4]
+    five, units5 = fold_of_images(Covariates(time_s=np.arange(40.0), strip=np.repeat(np.arange(5), 8)),
+                                  PredictionConfig())
+    assert units5 == "strips" and five.tolist() == np.repeat(np.arange(5), 8).tolist()
