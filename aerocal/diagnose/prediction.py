@@ -75,8 +75,8 @@ class PredictionConfig:
 class HeldOutGain:
     """The outcome of a k-fold comparison (module docstring). ``gain``: relative reduction of the held-out
     images' misfit (dimensionless; NaN when no fold could be evaluated) and ``sigma`` its standard error;
-    ``units``: "strips", "half strips" or "time blocks"; ``image_ids``, ``reduction`` (d_i) and ``baseline`` (chi2_i of the
-    baseline model) per held-out image; ``folds``: per fold, its images and both models' chi-square."""
+    ``units``: "strips", "half strips" or "time blocks"; ``image_ids``, ``reduction`` (d_i) and ``baseline``
+    (chi2_i of the baseline model) per held-out image; ``folds``: per fold, its images and both models' chi-square."""
 
     gain: float
     sigma: float
