@@ -341,8 +341,9 @@ class PartitionedSolver:
                 raise
             # a worker holding sub-blocks died (its actors and scattered data are gone): the same solve from the
             # same start on the workers left, or in this process when none is; the answer is the same
-            restarted = (f"a worker was lost ({type(exc).__name__}: {' '.join(str(exc).split())[:120]}); solved "
-                         f"again on {len(left)} worker(s)" if left else "solved again in the calling process")
+            where = f"on {len(left)} worker(s)" if left else "in the calling process (no worker left)"
+            why = " ".join(str(exc).split())[:100]
+            restarted = f"a worker was lost ({type(exc).__name__}: {why}); solved again {where}"
             sol = solve_partitioned(problem, start, plan, self.client if left else None)
         self.runs.append({"images": problem.b.n_images, "sub_blocks": K, "boundary_images": len(plan.boundary),
                           "iterations": sol.iterations, "restarted": restarted})

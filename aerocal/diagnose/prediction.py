@@ -48,8 +48,9 @@ class UndeterminedFold(ValueError):
 
 @dataclass(frozen=True)
 class PredictionConfig:
-    """k-fold settings. ``folds`` (5): strips are dealt round-robin in flight order into at most this many folds
-    (a flight of 5 strips or fewer leaves one strip out at a time): each fit keeps most of the block, so its
+    """k-fold settings. ``folds`` (5): strips are dealt round-robin in flight order into this many folds
+    (a flight of 5 strips leaves one strip out at a time, one of 3 or 4 half a strip, see
+    :func:`fold_of_images`): each fit keeps most of the block, so its
     estimate is nearly the whole block's (a rendered conte-calibration block, 5 strips warming 10 -> 23 degC, with
     a 0.15 px/degC focal drift: held-out gain +0.12 +- 0.17 % with 3 folds, whose fits scattered the slope by up to
     2 of their sigmas, +0.60 +- 0.14 % with 5); ``min_groups`` (3): with
@@ -127,8 +128,8 @@ def fold_of_images(covariates: Covariates, config: PredictionConfig) -> tuple[np
     Half strips keep every fold's fitting images flown in both directions where the block is: with whole strips
     of a 3-strip block flown back and forth, leaving the middle strip out leaves two strips flown one way, on
     which a GNSS time lag is a constant offset (the datum itself without GCPs) and that fold tells nothing; its
-    images are then never held out (a rendered XT2 survey of 3 x 8 images with a 0.3 s lag: 16 of 24 images
-    held out, the lag named on 2 of 11 seeds; see ``benchmarks/RESULTS.md``)."""
+    images were then never held out (the xt2-survey preset, 3 strips of 8: how often its lag is named before
+    and after, ``benchmarks/detection_rate_bench.py`` in ``benchmarks/RESULTS.md``)."""
     t, strip = np.asarray(covariates.time_s, float), np.asarray(covariates.strip)
     order = np.argsort(t, kind="stable")
     flown = [s for s in dict.fromkeys(strip[order].tolist()) if s >= 0]
