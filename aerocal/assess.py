@@ -123,7 +123,7 @@ def intersect_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
 
 
 def _frame_rays(frame, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """World rays of pixels ``uv`` (N, 2) in a :class:`aerocal.mosaic.FrameGeometry`."""
+    """World rays of pixels ``uv`` (N, 2) in a :class:`aerocal.products.mosaic.FrameGeometry`."""
     uv = np.atleast_2d(np.asarray(uv, dtype=float))
     if frame.thermal_model is not None:
         uv = correct_measurements(frame.camera, uv, frame.temperature, frame.thermal_model)
@@ -135,7 +135,7 @@ def _frame_rays(frame, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def triangulate_gcps(frames: Sequence, gcp_observations) -> dict[str, np.ndarray]:
     """Triangulate every GCP / check point seen in at least two frames: {gcp_id: (3,) world metres}.
 
-    ``frames``: :class:`aerocal.mosaic.FrameGeometry` (adjusted poses with their per-image IO).
+    ``frames``: :class:`aerocal.products.mosaic.FrameGeometry` (adjusted poses with their per-image IO).
     """
     obs = tables.validate(gcp_observations, "gcp_observations")
     by_id = {f.image_id: f for f in frames}
@@ -354,7 +354,7 @@ def compare_dems(
     transects: Sequence[tuple[tuple[float, float], tuple[float, float]]] = (),
     selection: str | None = None,
 ) -> DemDifference:
-    """Difference of DEMs on a common grid: ``dem`` (an :class:`aerocal.dsm.Dsm`) minus ``reference``.
+    """Difference of DEMs on a common grid: ``dem`` (an :class:`aerocal.products.dsm.Dsm`) minus ``reference``.
 
     The common grid is ``dem``'s; ``reference`` is a Dsm or any ``height_at(E, N)`` callable, sampled
     bilinearly at the cell centres. ``mask`` (bool, dem's shape) restricts the compared cells (e.g.
@@ -421,7 +421,7 @@ def loop_closure(frames: Sequence, observations, first_pair: tuple[int, int],
                  last_pair: tuple[int, int]) -> LoopClosure:
     """Loop-closure error from tie points (``observations`` table, pixels) seen in all four images.
 
-    ``frames``: :class:`aerocal.mosaic.FrameGeometry` of the adjusted block.
+    ``frames``: :class:`aerocal.products.mosaic.FrameGeometry` of the adjusted block.
     """
     obs = tables.validate(observations, "observations")
     by_id = {f.image_id: f for f in frames}

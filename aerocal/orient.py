@@ -38,7 +38,7 @@ from aerocal.geometry import (
     attitude_to_R_cw,
     estimate_similarity,
 )
-from aerocal.poses import poses_arrays, poses_table
+from aerocal.poses import has_priors, poses_arrays, poses_table
 
 
 class OrientationError(RuntimeError):
@@ -53,12 +53,6 @@ class IncrementalConfig:
     refine_intrinsics: bool = False  # keep the starting camera: flat nadir blocks do not determine it
     multiple_models: bool = False  # one model; images that do not join it stay unregistered
     camera_model: str = "SIMPLE_RADIAL"  # COLMAP model seeded from the starting camera (f, cx, cy, k1)
-
-
-def has_priors(images: pa.Table) -> bool:
-    """True when every image has a recorded position and attitude."""
-    cols = ("gnss_x", "gnss_y", "gnss_z", "roll", "pitch", "yaw", "attitude_convention")
-    return all(images.column(c).null_count == 0 for c in cols) and images.num_rows > 0
 
 
 def orient_from_priors(images: pa.Table) -> pa.Table:

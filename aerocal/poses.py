@@ -28,3 +28,9 @@ def poses_arrays(poses: pa.Table) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     q = np.column_stack([p["qw"], p["qx"], p["qy"], p["qz"]])
     return (np.asarray(p["image_id"]), matrix_from_quat_wxyz(q).reshape(-1, 3, 3),
             np.column_stack([p["X"], p["Y"], p["Z"]]))
+
+
+def has_priors(images: pa.Table) -> bool:
+    """True when every image has a recorded position and attitude."""
+    cols = ("gnss_x", "gnss_y", "gnss_z", "roll", "pitch", "yaw", "attitude_convention")
+    return all(images.column(c).null_count == 0 for c in cols) and images.num_rows > 0

@@ -37,8 +37,7 @@ import rasterio
 
 from aerocal import tables
 from aerocal.camera import Camera
-from aerocal.certificate import Certificate
-from aerocal.dsm import read_dsm
+from aerocal.certificates.document import Certificate
 from aerocal.ingest import ingest_folder
 from aerocal.io import write_json_atomic
 from aerocal.matching import (
@@ -50,10 +49,11 @@ from aerocal.matching import (
     local_client,
     match_pairs_detailed,
 )
-from aerocal.mosaic import build_mosaic, frames_from_poses
 from aerocal.pipeline import process
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.match_step import frame_loader, match_images
+from aerocal.products.dsm import read_dsm
+from aerocal.products.mosaic import build_mosaic, frames_from_poses
 from aerocal.simulate import simulate_flight, write_flight
 from benchmarks.common import CITY_FRAMES, city_spec, peak_rss_mb, record
 

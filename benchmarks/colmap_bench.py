@@ -50,16 +50,16 @@ import pycolmap
 from aerocal import tables
 from aerocal.adjust import adjust, adjust_fixed_io, select_images
 from aerocal.assess import point_residuals, triangulate_gcps
+from aerocal.calibrate.subset import SubsetConfig, propose_subset
 from aerocal.camera import Camera, LinearThermalModel, from_pycolmap
 from aerocal.enhance import EnhanceConfig, enhance, stretch_params
 from aerocal.geometry import estimate_similarity
 from aerocal.ingest import ingest_folder, read_raw
-from aerocal.mosaic import frames_from_poses
 from aerocal.orient import georeference, orient_from_priors
 from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
 from aerocal.pipeline.match_step import match_images, terrain_height
 from aerocal.poses import poses_arrays, poses_table
-from aerocal.subset import SubsetConfig, propose_subset
+from aerocal.products.mosaic import frames_from_poses
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
 from benchmarks.common import flight_document, record
 

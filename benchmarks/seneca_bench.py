@@ -56,7 +56,7 @@ import pyarrow as pa
 from aerocal import tables
 from aerocal.adjust import AdjustConfig, scale_tie_sigma, screened_rows
 from aerocal.camera import Camera
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.ingest import ingest_folder

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import sqlalchemy as sa
 
-from aerocal.certificate import CameraIdentity, Certificate, Conditions
+from aerocal.certificates.document import CameraIdentity, Certificate, Conditions
 from aerocal.simulate.presets import PRESETS
 from benchmarks.common import record
 from storage.certificates import issue_certificate, select_certificate

@@ -22,11 +22,11 @@ import time
 import numpy as np
 
 from aerocal.adjust import adjust, adjust_fixed_io, select_images
+from aerocal.calibrate.subset import SubsetConfig, propose_subset
 from aerocal.camera import LinearThermalModel
 from aerocal.ingest import ingest_folder
 from aerocal.pipeline.config import ProcessConfig, with_flight_sigmas
 from aerocal.pipeline.match_step import match_images
-from aerocal.subset import SubsetConfig, propose_subset
 from benchmarks.city_bench import rendered_flight, scratch_folder, subset_folder
 from benchmarks.common import flight_document, record
 

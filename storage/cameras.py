@@ -1,12 +1,12 @@
 """The camera repository: one row per physical camera (make, model, serial number, lens).
 
-The identity is :class:`aerocal.camera_identity.CameraIdentity`, the class ingest, certificates and the
+The identity is :class:`aerocal.certificates.identity.CameraIdentity`, the class ingest, certificates and the
 exchange formats use (re-exported here). The four ``cameras`` columns hold its parts as its ``key`` writes
 them: ``"unknown"`` for a lens not recorded (a value, not NULL, so that the unique constraint on the four
 fields holds on every database). Make, model and serial must be known:
 a certificate of "some camera" must never be selected for another one, so :func:`stored_identity` refuses an
 identity without them. A camera that records no serial number is identified by make, model, lens and frame
-size, with the serial ``"no-serial WxH"`` (:data:`aerocal.camera_identity.NO_SERIAL`): its certificates may be
+size, with the serial ``"no-serial WxH"`` (:data:`aerocal.certificates.identity.NO_SERIAL`): its certificates may be
 shared by several bodies of the model, which its label says.
 """
 
@@ -16,7 +16,7 @@ import sqlalchemy as sa
 from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.orm import Session
 
-from aerocal.camera_identity import UNKNOWN, CameraIdentity
+from aerocal.certificates.identity import UNKNOWN, CameraIdentity
 from storage.errors import NotFoundError
 from storage.models import Camera, utcnow
 

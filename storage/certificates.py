@@ -1,7 +1,7 @@
 """The certificate store: issuing immutable, versioned certificates and selecting the one a flight uses.
 
-A certificate document is validated whole by the engine's schema (:mod:`aerocal.certificate_schema`, through
-:meth:`aerocal.certificate.Certificate.from_dict`) and stored unchanged apart from the fields the store owns:
+A certificate document is validated whole by the engine's schema (:mod:`aerocal.certificates.schema`, through
+:meth:`aerocal.certificates.document.Certificate.from_dict`) and stored unchanged apart from the fields the store owns:
 ``id`` (kept, or a new uuid4 hex when absent), ``issued`` (kept, or now when absent), ``version`` and
 ``supersedes``. The columns selection needs are indexed from the engine certificate (:func:`index_fields`).
 
@@ -10,7 +10,7 @@ Versions are consecutive per camera from 1, assigned under a lock: ``BEGIN IMMED
 (camera_id, version) as the last guard and a retry when two writers still collide.
 
 Which stored certificate a flight uses is decided by the engine's rules
-(:func:`aerocal.certificate_selection.choose_certificate`: same camera, date and temperature coverage, age,
+(:func:`aerocal.certificates.selection.choose_certificate`: same camera, date and temperature coverage, age,
 pins, rejected ones never chosen); :func:`select_certificate` queries the candidates and records the choice.
 """
 
@@ -28,13 +28,13 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.orm import Session
 
-from aerocal.certificate import Certificate as EngineCertificate
-from aerocal.certificate import CertificateError
-from aerocal.certificate_schema import SCHEMA
-from aerocal.certificate_selection import Candidate, SelectionRules, choose_certificate, flight_day
-from aerocal.certificate_selection import NoCertificateError as NoApplicableCertificate
-from aerocal.certificate_selection import coverage as candidate_coverage
-from aerocal.decision import STATUSES
+from aerocal.certificates.document import Certificate as EngineCertificate
+from aerocal.certificates.document import CertificateError
+from aerocal.certificates.review import STATUSES
+from aerocal.certificates.schema import SCHEMA
+from aerocal.certificates.selection import Candidate, SelectionRules, choose_certificate, flight_day
+from aerocal.certificates.selection import NoCertificateError as NoApplicableCertificate
+from aerocal.certificates.selection import coverage as candidate_coverage
 from storage.cameras import CameraIdentity, find_camera, get_or_create_camera, stored_identity
 from storage.database import begin_write
 from storage.errors import (
@@ -50,7 +50,7 @@ from storage.runs import record_certificate
 SCHEMA_FAMILY, _, _major = SCHEMA.partition("/")
 SCHEMA_VERSION = int(_major)
 
-#: review verdicts a stored certificate can carry (``aerocal.decision.STATUSES``)
+#: review verdicts a stored certificate can carry (``aerocal.certificates.review.STATUSES``)
 CERTIFICATE_STATUSES = STATUSES
 
 __all__ = [
@@ -319,7 +319,7 @@ def candidate(certificate: Certificate, camera: CameraIdentity | None = None) ->
 
 def coverage(certificate: Certificate, rules: SelectionRules | None = None) -> tuple[float, float] | None:
     """Temperature range (degC) the stored certificate covers under ``rules``, ``None`` when it records none
-    (:func:`aerocal.certificate_selection.coverage`)."""
+    (:func:`aerocal.certificates.selection.coverage`)."""
     return candidate_coverage(candidate(certificate), rules)
 
 
@@ -336,7 +336,7 @@ def select_certificate(
     """The stored certificate a flight of ``camera`` on ``flight_date`` should use, and why.
 
     The candidates are the camera's stored certificates (or, with ``pin``, the certificate with that id or
-    unique prefix, of any camera); the choice is :func:`aerocal.certificate_selection.choose_certificate`'s:
+    unique prefix, of any camera); the choice is :func:`aerocal.certificates.selection.choose_certificate`'s:
     same camera identity, calibrated on or before the flight date and at most ``max_age_days`` before it,
     temperature coverage containing ``temperature_range`` (the flight's sensor temperatures ``(min, max)`` in
     degC, or ``None`` when unknown), never a rejected one; the newest by calibration date (then version)

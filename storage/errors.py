@@ -6,7 +6,7 @@ masked, certificate id, artifact URI, document field) and says how to fix it.
 
 from __future__ import annotations
 
-from aerocal.certificate_selection import NoCertificateError as NoApplicableCertificateError
+from aerocal.certificates.selection import NoCertificateError as NoApplicableCertificateError
 
 
 class StorageError(Exception):
@@ -44,7 +44,7 @@ class ImmutableCertificateError(StorageError):
 
 class NoCertificateError(StorageError, NoApplicableCertificateError):
     """No stored certificate applies to a flight; the message says what is missing (the engine's
-    :class:`aerocal.certificate_selection.NoCertificateError`, raised by the database store)."""
+    :class:`aerocal.certificates.selection.NoCertificateError`, raised by the database store)."""
 
 
 class CorruptArtifactError(StorageError):

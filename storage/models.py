@@ -40,7 +40,7 @@ from sqlalchemy import (
 )
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, relationship
 
-from aerocal.camera_identity import CameraIdentity
+from aerocal.certificates.identity import CameraIdentity
 from storage.errors import ImmutableCertificateError
 
 #: Constraint names follow one pattern, so migrations (and SQLite batch mode) can refer to them.
@@ -130,8 +130,9 @@ class Camera(Base):
 
     @property
     def label(self) -> str:
-        """Human-readable identity, e.g. ``NEC TS9260 s/n 123`` (:attr:`aerocal.camera_identity.CameraIdentity.label`:
-        a camera without a recorded serial number says its certificates may serve several bodies of the model)."""
+        """Human-readable identity, e.g. ``NEC TS9260 s/n 123``
+        (:attr:`aerocal.certificates.identity.CameraIdentity.label`: a camera without a recorded serial number
+        says its certificates may serve several bodies of the model)."""
         return self.identity.label
 
 

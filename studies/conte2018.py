@@ -26,7 +26,7 @@ This study simulates both years and the calibration subset with the engine (``ae
 
 The DSM bias is the mean height error of the adjusted tie points against the simulated surface (a DoD mean,
 computed minus true); check points never enter the datum, their residual is planimetric as the paper's.
-The diagnosis (``aerocal.diagnose``, with its twin ``aerocal.twin``) is run on the extended 2017 block adjusted
+The diagnosis (``aerocal.diagnose``, with its twin ``aerocal.diagnose.twin``) is run on the extended 2017 block adjusted
 with today's model, to name what today's simulation lacks.
 
 The same strategies are also run as a user runs them (:func:`product_runs`): every flight through
@@ -51,7 +51,7 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, adjust, run_strategy
-from aerocal.certificate_selection import NoCertificateError
+from aerocal.certificates.selection import NoCertificateError
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.pipeline import MemoryCertificates, process
 from aerocal.simulate import as_dataset, get_preset, simulate_flight
@@ -453,7 +453,7 @@ def markdown(result: dict) -> str:
         L += ["### What the diagnosis names", "",
               f"`aerocal.diagnose` on the extended 2017 block ({d['images']} frames) adjusted with today's model "
               f"(STR2's self-calibration, default free set): {d['summary']}. sigma0 {d['sigma0'][0]:.2f} -> "
-              f"{d['sigma0'][1]:.2f}. The twin (`aerocal.twin`): {d['twin_summary'] or 'not run'}", ""]
+              f"{d['sigma0'][1]:.2f}. The twin (`aerocal.diagnose.twin`): {d['twin_summary'] or 'not run'}", ""]
     if result.get("diagnosis_error"):
         L += [f"The diagnosis did not run: {result['diagnosis_error']}.", ""]
     L += [f"Run time {result['seconds'] / 60:.1f} min.", ""]
@@ -535,7 +535,7 @@ def product_markdown(result: dict) -> list[str]:
           + (f"({min(named):.1f}-{max(named):.1f} ms; simulated {1000 * result['readout_s']:.0f} ms)"
              if named else "") + f" and on {len(today_named)} of today's model's (which has none). "
           "The GNSS time lag that the readout mimics is tested beside it before the calibration "
-          f"(`aerocal.eo_checks.TIME_LAG_RIVALS`): a lag was removed in {lag_removed} of the {len(issued)} "
+          f"(`aerocal.calibrate.eo_checks.TIME_LAG_RIVALS`): a lag was removed in {lag_removed} of the {len(issued)} "
           "certificates the product issued on these flights, which have none. "
           "What the product still lacks: a readout term in the camera model, so that the named rolling shutter "
           "is corrected rather than only reported (STR1's certificate carries its f shift).", ""]

@@ -61,7 +61,7 @@ import pyarrow.compute as pc
 
 from aerocal.adjust import AdjustConfig, run_strategy
 from aerocal.camera import LinearThermalModel
-from aerocal.certificate_selection import NoCertificateError
+from aerocal.certificates.selection import NoCertificateError
 from aerocal.geometry import estimate_similarity
 from aerocal.pipeline import MemoryCertificates, ProcessConfig, process
 from aerocal.simulate import as_dataset, get_preset, simulate_flight

@@ -11,12 +11,12 @@ The study is a thin caller of the product: it runs :func:`aerocal.pipeline.proce
 itself decided, from its own outputs, so that the study and ``aerocal process`` give the same answer on the
 same images:
 
-1. the self-calibration under the decision rule (:mod:`aerocal.calibration`): per parameter the formal t,
+1. the self-calibration under the decision rule (:mod:`aerocal.calibrate.self_calibration`): per parameter the formal t,
    the t calibrated by the block's overdispersion (pure-noise per-image focal hypotheses), the held-out gain
-   of a thermal slope (k-fold over strips, :mod:`aerocal.heldout`), kept / held at nominal / dropped and why;
+   of a thermal slope (k-fold over strips, :mod:`aerocal.calibrate.heldout`), kept / held at nominal / dropped and why;
 2. the recorded-EO checks (height datum, GNSS time lag, lever arm, boresight) with their sigmas;
 3. the diagnosis of the fixed-IO block: what is named, what is not testable here and why;
-4. the flight's twin (:mod:`aerocal.twin`): the real block's statistics beside those of the same block made
+4. the flight's twin (:mod:`aerocal.diagnose.twin`): the real block's statistics beside those of the same block made
    again with the simulation's noise model, what differs and its likely cause, and how much of the gap the
    extended simulation (per-image focal jitter) closes.
 
@@ -44,7 +44,7 @@ import matplotlib  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
 from aerocal import pipeline  # noqa: E402
-from aerocal.certificate import Certificate  # noqa: E402
+from aerocal.certificates.document import Certificate  # noqa: E402
 from aerocal.io import atomic_path, write_json_atomic, write_text_atomic  # noqa: E402
 from aerocal.matching import FeatureConfig  # noqa: E402
 from aerocal.pipeline.config import MatchStepConfig, ProcessConfig  # noqa: E402

@@ -17,9 +17,9 @@ from aerocal.assess import (
     triangulate_gcps,
 )
 from aerocal.camera import Camera
-from aerocal.dsm import Dsm
 from aerocal.geometry import nadir_R_cw
-from aerocal.mosaic import FrameGeometry
+from aerocal.products.dsm import Dsm
+from aerocal.products.mosaic import FrameGeometry
 
 SIGMA = np.array([0.05, 0.05, 0.12])
 

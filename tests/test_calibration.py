@@ -3,7 +3,7 @@
 import dataclasses
 
 from aerocal.adjust import AdjustConfig
-from aerocal.calibration import CalibrationConfig, self_calibrate
+from aerocal.calibrate.self_calibration import CalibrationConfig, self_calibrate
 from aerocal.simulate import PRESETS, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
 
@@ -24,7 +24,7 @@ def test_a_calibration_from_input_with_errors_is_rejected():
 def test_an_overdispersion_that_could_not_be_measured_is_said(monkeypatch):
     """When the block's null cannot be fitted, the formal sigmas are used as they are, and the review says so
     with the reason (they were several times too small on real blocks)."""
-    import aerocal.calibration as calibration
+    import aerocal.calibrate.self_calibration as calibration
 
     def failing(*args, **kwargs):
         raise ValueError("no tie point left after thinning")

@@ -7,27 +7,27 @@ from types import SimpleNamespace
 
 import pytest
 
-import aerocal.certificate
-import aerocal.ingest.camera_identity
+import aerocal.certificates.document
+import aerocal.ingest.folder
 import storage.cameras
 from aerocal.camera import Camera
-from aerocal.camera_identity import UNKNOWN, CameraIdentity
-from aerocal.certificate import CertificateError
-from aerocal.ingest.camera_identity import UNKNOWN_CAMERA_ID, identity_of
+from aerocal.certificates.document import CertificateError
+from aerocal.certificates.identity import UNKNOWN, CameraIdentity
+from aerocal.ingest.camera_json import UNKNOWN_CAMERA_ID
 from aerocal.ingest.inferred import certificate_identity
 from storage.cameras import stored_identity
 
 
 def test_every_layer_uses_the_same_class():
-    assert aerocal.certificate.CameraIdentity is CameraIdentity
-    assert aerocal.ingest.camera_identity.CameraIdentity is CameraIdentity
+    assert aerocal.certificates.document.CameraIdentity is CameraIdentity
+    assert aerocal.ingest.folder.CameraIdentity is CameraIdentity
     assert storage.cameras.CameraIdentity is CameraIdentity
 
 
 def test_missing_parts_are_unknown_and_whitespace_is_stripped():
     assert CameraIdentity("DJI", " XT2 ", "", None) == CameraIdentity("DJI", "XT2")  # type: ignore[arg-type]
     assert CameraIdentity("DJI", "XT2").parts == ("DJI", "XT2", UNKNOWN, UNKNOWN)
-    assert identity_of("DJI", "XT2", None, "  ") == CameraIdentity("DJI", "XT2")
+    assert CameraIdentity.from_parts("DJI", "XT2", None, "  ") == CameraIdentity("DJI", "XT2")
     assert CameraIdentity.unknown().key == "unknown|unknown|unknown|unknown"
     assert not CameraIdentity.unknown().is_known and CameraIdentity(model="XT2").is_known
 
@@ -37,12 +37,12 @@ def test_certificate_key_and_images_camera_id_are_two_forms_of_one_identity():
     assert ident.key == ident.camera_id == "DJI|ZH20T|1ZNBJ7|DL 4.5mm"
     assert CameraIdentity.from_key(ident.key) == ident
     # a part not recorded: "unknown" in the key (certificates, database), empty in images.camera_id
-    canon = identity_of("Canon", "Canon PowerShot ELPH 300 HS", None, None)
+    canon = CameraIdentity.from_parts("Canon", "Canon PowerShot ELPH 300 HS", None, None)
     assert canon.key == "Canon|Canon PowerShot ELPH 300 HS|unknown|unknown"
     assert canon.camera_id == "Canon|Canon PowerShot ELPH 300 HS||"  # as earlier flights' tables hold it
     assert CameraIdentity.from_camera_id(canon.camera_id) == canon == CameraIdentity.from_key(canon.key)
     # '|' inside a part is written as '/' in images.camera_id (the key of a certificate refuses it)
-    assert identity_of("A|B", "m", "s", None).camera_id == "A/B|m|s|"
+    assert CameraIdentity.from_parts("A|B", "m", "s", None).camera_id == "A/B|m|s|"
     assert CameraIdentity.from_camera_id(UNKNOWN_CAMERA_ID) == CameraIdentity.unknown()
     assert CameraIdentity.from_key("NEC|TS9260|123") == CameraIdentity("NEC", "TS9260", "123")  # lens left out
     with pytest.raises(CertificateError, match="expected 4 parts"):
@@ -77,7 +77,7 @@ def test_labels_and_the_database_refusal_of_an_incomplete_identity():
 def test_a_camera_recording_no_serial_gets_the_serial_less_identity():
     camera = Camera(width=640, height=512, f=764.7, cx=320.0, cy=256.0, pixel_size_mm=0.017)
     for serial in (None, "", "unknown"):  # camera.json written by hand says "unknown"
-        given = identity_of("DJI", "XT2", serial, None)
+        given = CameraIdentity.from_parts("DJI", "XT2", serial, None)
         assert certificate_identity([], given, camera) == CameraIdentity("DJI", "XT2", "no-serial 640x512", "13.0 mm")
     kept = certificate_identity([], CameraIdentity("DJI", "XT2", "SN1", "13 mm"), camera)
     assert kept == CameraIdentity("DJI", "XT2", "SN1", "13 mm")

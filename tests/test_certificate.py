@@ -19,7 +19,7 @@ from aerocal.camera import (
     PolynomialThermalModel,
     SimilarityThermalModel,
 )
-from aerocal.certificate import (
+from aerocal.certificates.document import (
     SCHEMA,
     CameraIdentity,
     Certificate,
@@ -411,7 +411,7 @@ def test_calibrated_sigmas_are_printed_and_carried_once_into_the_diagnosis():
 def test_a_nominal_camera_taken_as_it_is_is_uncertain_in_f_principal_point_and_distortion():
     """The certificate a block uses when no calibration is accepted holds the nominal camera with nothing
     estimated: its f, cx, cy and its unknown radial distortion carry their tolerances into the diagnosis."""
-    from aerocal.decision import NOMINAL_PARAMETERS, nominal_sigma
+    from aerocal.certificates.review import NOMINAL_PARAMETERS, nominal_sigma
     from aerocal.diagnose.io_uncertainty import IOUncertainty
 
     camera = Camera(width=640, height=512, f=1125.0, cx=320.0, cy=256.0)

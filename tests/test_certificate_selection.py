@@ -8,15 +8,15 @@ import datetime as dt
 import pytest
 
 from aerocal.camera import Camera, LinearThermalModel
-from aerocal.certificate import CameraIdentity, Certificate, Conditions, ThermalCalibration
-from aerocal.certificate_selection import (
+from aerocal.certificates.document import CameraIdentity, Certificate, Conditions, ThermalCalibration
+from aerocal.certificates.review import Review
+from aerocal.certificates.selection import (
     Candidate,
     NoCertificateError,
     SelectionRules,
     choose_certificate,
     coverage,
 )
-from aerocal.decision import Review
 
 CAMERA = CameraIdentity("NEC", "TS9260", "123")
 OTHER = CameraIdentity("NEC", "TS9260", "456")

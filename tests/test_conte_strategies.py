@@ -13,7 +13,7 @@ import numpy as np
 
 from aerocal.adjust import AdjustConfig, adjust, run_strategy
 from aerocal.assess import compare_dems
-from aerocal.dsm import DsmConfig, dsm_from_points
+from aerocal.products.dsm import DsmConfig, dsm_from_points
 from aerocal.report import write_report
 from aerocal.report.figures import dem_difference_figure
 from aerocal.simulate import simulate_flight

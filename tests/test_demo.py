@@ -35,7 +35,7 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
     it): the hidden 10 ms readout is not told to processing; the diagnosis names it within 25 %, the block is
     adjusted again with it, the check points improve, the readout goes into version 2 of the camera's certificate
     and the extended block's diagnosis names nothing."""
-    from aerocal.certificate import Certificate
+    from aerocal.certificates.document import Certificate
     from flows.demo import DemoConfig, demo
     from storage.certificates import get_certificate
     from storage.database import connect

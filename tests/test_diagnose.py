@@ -187,7 +187,7 @@ def test_cli_diagnose_names_the_effect_from_a_flight_folder(tmp_path):
 
     from typer.testing import CliRunner
 
-    from aerocal.certificate import CameraIdentity, Certificate
+    from aerocal.certificates.document import CameraIdentity, Certificate
     from aerocal.cli import app
     from aerocal.simulate import write_flight
 
@@ -359,7 +359,7 @@ def test_cli_diagnose_with_a_thermal_certificate_diagnoses_what_its_model_leaves
     from typer.testing import CliRunner
 
     from aerocal.camera import LinearThermalModel
-    from aerocal.certificate import CameraIdentity, Certificate, ThermalCalibration
+    from aerocal.certificates.document import CameraIdentity, Certificate, ThermalCalibration
     from aerocal.cli import app
     from aerocal.simulate import write_flight
 

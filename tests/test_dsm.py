@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from aerocal.dsm import NODATA, DsmConfig, dsm_from_points, read_dsm, write_dsm
+from aerocal.products.dsm import NODATA, DsmConfig, dsm_from_points, read_dsm, write_dsm
 
 CRS = "EPSG:32632"
 
@@ -90,7 +90,7 @@ def test_sparse_points_far_below_the_ground_are_rejected_and_the_grid_keeps_its_
     lo, hi = d.height_range()
     print(f"seed {seed}: rejected {d.stats['rejected_outliers']}, heights {lo:.1f}..{hi:.1f} m")
     assert 45.0 < lo and hi < 90.0, f"seed {seed}: the DSM spans {lo:.1f}..{hi:.1f} m"
-    from aerocal.dsm import reject_outliers
+    from aerocal.products.dsm import reject_outliers
 
     keep = reject_outliers(np.vstack([pts, deep, roof]), DsmConfig(cell_m=1.0), 1.0)
     assert not keep[len(pts):len(pts) + 3].any(), f"seed {seed}: a deep or high blunder kept"
@@ -142,7 +142,7 @@ def test_hole_filling_gives_scipy_griddata_values(seed):
     from scipy.interpolate import griddata
     from scipy.spatial import cKDTree
 
-    from aerocal.dsm import _fill
+    from aerocal.products.dsm import _fill
 
     rng = np.random.default_rng(seed)
     heights = np.full((120, 90), np.nan)

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 
 from aerocal.adjust import AdjustConfig
-from aerocal.eo_checks import correct_gnss_offset
+from aerocal.calibrate.eo_checks import correct_gnss_offset
 from aerocal.simulate import PRESETS, simulate_flight
 
 SPEC = PRESETS["conte-calibration"]

@@ -45,7 +45,7 @@ def _json(ctx_store, session, sha):
 
 
 def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path):
-    from aerocal.certificate import Certificate
+    from aerocal.certificates.document import Certificate
     from flows.process import process_flight
     from storage.certificates import get_certificate
     from storage.database import connect
@@ -152,7 +152,7 @@ def check_report_shows_every_figure(run_dir):
     from PIL import Image
     from typer.testing import CliRunner
 
-    from aerocal.certificate import Certificate
+    from aerocal.certificates.document import Certificate
     from aerocal.cli import app
     from aerocal.report import io_at_temperatures
 
@@ -186,8 +186,8 @@ def check_report_shows_every_figure(run_dir):
           f"{measured['n']} measured cells mean {measured['mean_m']:.3f} m NMAD {measured['nmad_m']:.3f} m; "
           f"check points RMSE Up {rmse_u:.3f} m")
     # where the DSM is measured its offset from the reference is the block's height error, which the check
-    # points measure (plus the tie-point DSM's own ~0.1 m, aerocal.dsm); interpolation across roofs and
-    # trees spreads the differences elsewhere (aerocal.dsm): the measured cells scatter less than all
+    # points measure (plus the tie-point DSM's own ~0.1 m, aerocal.products.dsm); interpolation across roofs and
+    # trees spreads the differences elsewhere (aerocal.products.dsm): the measured cells scatter less than all
     assert abs(measured["mean_m"]) < 2.0 * rmse_u + 0.1, f"seed {SEED}: {measured}, check RMSE Up {rmse_u}"
     assert measured["nmad_m"] < dem["nmad_m"], f"seed {SEED}: measured {measured}, all cells {dem}"
     assert measured["n"] > 0.02 * dem["n"], f"seed {SEED}: few measured cells {measured['n']} of {dem['n']}"
@@ -309,14 +309,14 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
 
 def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
     """A flight larger than ``whole_flight_max_images`` calibrates on the sub-block that
-    :func:`aerocal.subset.propose_subset` predicts best; the certificate's conditions describe it."""
-    from aerocal.certificate import Certificate
+    :func:`aerocal.calibrate.subset.propose_subset` predicts best; the certificate's conditions describe it."""
+    from aerocal.calibrate.subset import SubsetConfig
+    from aerocal.certificates.document import Certificate
     from aerocal.pipeline import FolderDataset
     from aerocal.pipeline.calibrate_step import calibrate_step
     from aerocal.pipeline.config import CalibrationStepConfig
     from aerocal.pipeline.ingest_step import ingest_step
     from aerocal.pipeline.runner import JsonOutput
-    from aerocal.subset import SubsetConfig
     from storage.migrations import upgrade
     from storage.runs import start_run
     from storage.steps import StepContext

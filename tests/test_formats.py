@@ -20,7 +20,7 @@ import pycolmap
 import pytest
 
 from aerocal.camera import Camera
-from aerocal.certificate import CameraIdentity, CameraTerm, Certificate, Quality
+from aerocal.certificates.document import CameraIdentity, CameraTerm, Certificate, Quality
 from aerocal.formats import (
     FormatError,
     export_certificate,

@@ -166,3 +166,60 @@ def test_every_function_local_import_says_why():
         "function-local imports without a '# lazy: ...' or '# import cycle: ...' comment (move them to the top "
         f"of the module, or say why not): {offenders}"
     )
+
+
+#: the engine's units (top-level modules and packages of ``aerocal``), lowest first: a unit imports only units
+#: of lower layers, never one of its own layer or above (``cli`` reaches ``flows`` lazily, checked above)
+ENGINE_LAYERS: tuple[tuple[str, ...], ...] = (
+    ("io",),
+    ("tables", "geometry", "camera", "effects", "targets"),
+    ("poses",),
+    ("certificates",),
+    ("formats", "ingest"),
+    ("adjust", "matching", "enhance"),
+    ("orient",),
+    ("diagnose",),
+    ("calibrate",),
+    ("products", "assess"),
+    ("report",),
+    ("pipeline",),
+    ("simulate",),
+    ("cli",),
+)
+MAX_TOP_LEVEL_MODULES = 12
+
+
+def _engine_unit_edges() -> dict[tuple[str, str], list[str]]:
+    """(importing unit, imported unit) -> the files with such an import (lazy imports included)."""
+    edges: dict[tuple[str, str], list[str]] = {}
+    for path in sorted((ROOT / "aerocal").rglob("*.py")):
+        rel = path.relative_to(ROOT / "aerocal")
+        src = rel.parts[0].removesuffix(".py")
+        for name in _imported_modules(path):
+            parts = name.split(".")
+            if parts[0] != "aerocal" or len(parts) < 2:
+                continue
+            dst = parts[1]
+            if dst != src and ((ROOT / "aerocal" / dst).is_dir() or (ROOT / "aerocal" / f"{dst}.py").is_file()):
+                edges.setdefault((src, dst), []).append(rel.as_posix())
+    return edges
+
+
+def test_engine_units_import_only_lower_layers():
+    rank = {unit: k for k, layer in enumerate(ENGINE_LAYERS) for unit in layer}
+    units = {p.name.removesuffix(".py") for p in (ROOT / "aerocal").iterdir()
+             if (p.suffix == ".py" and p.name != "__init__.py") or (p.is_dir() and (p / "__init__.py").exists())}
+    assert units == set(rank), f"units missing from ENGINE_LAYERS (place them): {sorted(units ^ set(rank))}"
+    bad = {f"{src} -> {dst}": files for (src, dst), files in _engine_unit_edges().items() if rank[dst] >= rank[src]}
+    assert not bad, f"sideways or upward imports between engine units (see ENGINE_LAYERS): {bad}"
+
+
+def test_engine_top_level_is_small_and_every_package_says_what_it_owns():
+    modules = sorted(p.name for p in (ROOT / "aerocal").glob("*.py") if p.name != "__init__.py")
+    assert len(modules) <= MAX_TOP_LEVEL_MODULES, f"aerocal/ holds {len(modules)} modules: {modules}"
+    thin = []
+    for init in sorted((ROOT / "aerocal").glob("*/__init__.py")):
+        doc = ast.get_docstring(ast.parse(init.read_text())) or ""
+        if len(doc.split()) < 25:
+            thin.append(init.relative_to(ROOT).as_posix())
+    assert not thin, f"package docstrings that do not say what the package owns: {thin}"

@@ -6,8 +6,8 @@ import rasterio
 
 from aerocal.assess import mosaic_target_residuals
 from aerocal.camera import Camera, LinearThermalModel
-from aerocal.dsm import Dsm, dsm_from_points
-from aerocal.mosaic import MosaicConfig, build_mosaic, frames_from_poses
+from aerocal.products.dsm import Dsm, dsm_from_points
+from aerocal.products.mosaic import MosaicConfig, build_mosaic, frames_from_poses
 
 SEED = 3
 
@@ -71,7 +71,7 @@ def test_mosaic_opens_with_the_flight_crs_grid_and_radiometry(flight):
 
 def test_mosaic_value_is_the_original_pixel_value(flight):
     """At the nadir of a frame the mosaic samples that frame alone: its DN, bilinearly resampled."""
-    from aerocal.mosaic import read_frame
+    from aerocal.products.mosaic import read_frame
 
     res, fr = flight["serial"], flight["frames"][4]
     img = read_frame(flight["images"][fr.image_id]).astype(float)
@@ -168,8 +168,8 @@ def test_compiled_frame_view_is_the_camera_model(flight):
     ground points behind the camera, outside the frame and without a height."""
     import dataclasses
 
-    from aerocal.mosaic import _frame_view_numpy
-    from aerocal.mosaic_kernels import frame_view
+    from aerocal.products.kernels import frame_view
+    from aerocal.products.mosaic import _frame_view_numpy
 
     rng = np.random.default_rng(SEED)
     fr = flight["frames"][4]
@@ -200,8 +200,8 @@ def test_a_frame_read_out_row_by_row_is_projected_as_the_simulator_exposed_it(fl
     frame), in the numpy path and in the compiled tiles' loop alike."""
     import dataclasses
 
-    from aerocal.mosaic import _frame_view_numpy
-    from aerocal.mosaic_kernels import frame_view
+    from aerocal.products.kernels import frame_view
+    from aerocal.products.mosaic import _frame_view_numpy
     from aerocal.simulate.exposure import Exposure
 
     fr = flight["frames"][4]

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.simulate import PRESETS, simulate_flight, write_flight
 
 

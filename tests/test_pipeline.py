@@ -52,7 +52,7 @@ print(json.dumps({{"heavy": heavy, "reason": run.summary["certificate_reason"], 
         assert ds.crs is not None and heights.count() > 100
     cert = json.loads(Path(files["certificate"]).read_text())
     # f at the reference temperature, within 4 sigma of the truth it was simulated with
-    from aerocal.certificate import Certificate
+    from aerocal.certificates.document import Certificate
 
     parsed = Certificate.from_dict(cert)
     true_f = sim.spec.camera_true.f

@@ -15,7 +15,7 @@ import pytest
 from typer.testing import CliRunner
 
 from aerocal.camera import PARAM_NAMES
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.effects import CATALOGUE, plausible_size
 
 
@@ -60,7 +60,7 @@ def test_preset_runs_through_process_and_diagnose(preset, max_images, effect, tm
     if effect:
         # a vertical GNSS offset moves the self-calibrated f (2 m: +4 px, 8 sigma, check points at rho 2.9 in E):
         # with f free it is f's twin, so the calibration reports it but does not correct it
-        # (aerocal.eo_checks); the diagnosis of the fixed-IO block then names it
+        # (aerocal.calibrate.eo_checks); the diagnosis of the fixed-IO block then names it
         calibration = json.loads((out / "calibration.json").read_text())
         assert any("GNSS offset" in n for n in calibration["review"]["notes"]), calibration["review"]
     elif "f" in cert.estimated:

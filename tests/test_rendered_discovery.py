@@ -147,7 +147,7 @@ def test_a_rendered_flat_block_without_gcps_keeps_the_nominal_focal_length(rende
     env = {**os.environ, "PREFECT_API_URL": prefect_api, "COLUMNS": "250"}
     _run(["process", "flight", "--certificate", "none", "--out", "run", "--database-url",
           f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", "artifacts"], env, tmp_path)
-    from aerocal.certificate import Certificate
+    from aerocal.certificates.document import Certificate
 
     cert = Certificate.from_json((tmp_path / "run" / "calibration_certificate.json").read_text())
     # the flying height from the block's tie points, within 5 % of the one the simulation flew, and said so

@@ -22,7 +22,7 @@ import pytest
 
 from aerocal.assess import accuracy_ratio, bin_residuals, compare_dems
 from aerocal.camera import Camera, LinearThermalModel
-from aerocal.dsm import Dsm
+from aerocal.products.dsm import Dsm
 from aerocal.report import (
     CertificateTable,
     block_figure,
@@ -285,9 +285,9 @@ def processed_flight(tmp_path_factory):
     the reference DSM the simulator writes beside it."""
     from aerocal.adjust import AdjustConfig, adjust_fixed_io
     from aerocal.assess import reprojection_stats
-    from aerocal.certificate import CameraIdentity, Certificate, Conditions, Quality
+    from aerocal.certificates.document import CameraIdentity, Certificate, Conditions, Quality
     from aerocal.diagnose.engine import DiagnoseConfig, diagnose
-    from aerocal.dsm import dsm_from_points, write_dsm
+    from aerocal.products.dsm import dsm_from_points, write_dsm
     from aerocal.simulate import simulate_flight, write_flight
 
     sim = simulate_flight("conte-calibration", seed=SEED, max_images=16)
@@ -437,7 +437,7 @@ def test_overlap_counts_cover_each_footprint_once():
     none 2; two frames a footprint apart along E count 2 nowhere either, half a footprint apart on half of
     it."""
     from aerocal.geometry import nadir_R_cw
-    from aerocal.mosaic import FrameGeometry
+    from aerocal.products.mosaic import FrameGeometry
     from aerocal.report import overlap_counts
 
     cam = Camera(640, 480, f=1600.0, cx=320.0, cy=240.0)

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.effects import CATALOGUE
 
 SENECA = Path(__file__).resolve().parents[2] / "shared" / "data" / "seneca" / "images"

@@ -9,9 +9,9 @@ import time
 import pytest
 import sqlalchemy as sa
 
-from aerocal.certificate import Certificate as EngineCertificate
-from aerocal.certificate_selection import NoCertificateError as NoApplicableCertificateError
-from aerocal.certificate_selection import choose_certificate
+from aerocal.certificates.document import Certificate as EngineCertificate
+from aerocal.certificates.selection import NoCertificateError as NoApplicableCertificateError
+from aerocal.certificates.selection import choose_certificate
 from storage.cameras import CameraIdentity
 from storage.certificates import (
     SelectionRules,

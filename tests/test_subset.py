@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 
 from aerocal.adjust import AdjustConfig, adjust, select_images
+from aerocal.calibrate.subset import SubsetConfig, propose_subset
 from aerocal.simulate import get_preset, simulate_flight
-from aerocal.subset import SubsetConfig, propose_subset
 
 
 def test_subset_prefers_transversal_strip_and_its_prediction_is_honest():

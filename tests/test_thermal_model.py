@@ -14,7 +14,7 @@ import pytest
 
 from aerocal.adjust import AdjustConfig, AdjustmentError, adjust, fit_thermal_model, run_strategy, thermal_certificate
 from aerocal.adjust.thermal import CalibrationAtTemperature
-from aerocal.certificate import CameraIdentity, Certificate
+from aerocal.certificates.document import CameraIdentity, Certificate
 from aerocal.simulate import get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
 

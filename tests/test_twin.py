@@ -7,8 +7,8 @@ import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig
 from aerocal.diagnose.model import fit_baseline
+from aerocal.diagnose.twin import compare
 from aerocal.simulate import PRESETS, simulate_flight
-from aerocal.twin import compare
 
 SPEC = PRESETS["conte-calibration"]
 CONFIG = AdjustConfig(free=(), gnss_sigma_m=(0.10, 0.10, 0.15))
@@ -111,7 +111,7 @@ def test_mismatches_left_in_a_least_squares_block_are_named_and_take_the_per_ima
 def test_an_implausible_extension_is_not_offered_as_the_nearest_explanation():
     """A statistic no extension explains quotes the extension closing most of its gap; when that one is beyond
     its physical bound (already ruled out), the summary says so instead of offering it as a near miss."""
-    from aerocal.twin import TwinComparison
+    from aerocal.diagnose.twin import TwinComparison
 
     c = TwinComparison(
         real={"gnss_lag1": 0.82}, twin_mean={"gnss_lag1": 0.02}, twin_sd={"gnss_lag1": 0.01}, z={"gnss_lag1": 80.0},
@@ -128,8 +128,8 @@ def test_an_extended_simulation_that_overshoots_is_not_said_to_reproduce_the_blo
     """Causes sized one at a time can over-close a statistic when applied together (real h20t: the per-image
     scale 181 %, the tail fraction 265 %) while the real value stays within the combined twins' wide spread: the
     summary and the report say it overshoots, and nothing is called reproduced on that spread alone."""
+    from aerocal.diagnose.twin import TwinComparison, _combined_misses
     from aerocal.report.wording import twin_view
-    from aerocal.twin import TwinComparison, _combined_misses
 
     gap_closed = {"tail_fraction": 2.65, "per_image_scale": 1.81, "per_image_row_field": 0.3, "variance_tie": 1.1}
     combined = {"extensions": {"mismatches": 0.01}, "gap_closed": gap_closed, "still_differs": {},

@@ -4,7 +4,7 @@
   certificate), measurements corrected for temperature when a thermal model is given.
 * ``"self"`` (STR2): self-calibration of the whole block.
 * ``"certificate"``: self-calibration on a calibration sub-block (image ids given, e.g. from
-  :func:`aerocal.subset.propose_subset`), then the whole block with that IO fixed (and its thermal
+  :func:`aerocal.calibrate.subset.propose_subset`), then the whole block with that IO fixed (and its thermal
   model applied to the measurements, when one was estimated).
 """
 
@@ -39,6 +39,27 @@ def select_images(table: pa.Table, image_ids) -> pa.Table:
     """Rows of ``table`` (any table with an ``image_id`` column) whose image is in ``image_ids``."""
     ids = pa.array(np.asarray(list(image_ids), dtype=np.int32))
     return table.filter(pc.is_in(table.column("image_id"), value_set=ids))
+
+
+def central_images(images: pa.Table, n: int) -> np.ndarray:
+    """Image ids of the ``n`` images whose recorded positions lie nearest the block's median position
+    (the first ``n`` ids when positions are missing).
+
+    A square of a block flown in parallel strips holds a stretch of every strip, so the sub-block spans
+    the flight's whole time and sensor-temperature range (what thermal and time hypotheses need) and
+    keeps the strips' overlaps; a corridor keeps its middle stretch.
+    """
+    ids = images.column("image_id").to_numpy()
+    if len(ids) <= n:
+        return ids
+    x = images.column("gnss_x").to_numpy(zero_copy_only=False).astype(float)
+    y = images.column("gnss_y").to_numpy(zero_copy_only=False).astype(float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < n:
+        return np.sort(ids)[:n]
+    d = np.hypot(x - np.median(x[ok]), y - np.median(y[ok]))
+    d[~ok] = np.inf
+    return np.sort(ids[np.argsort(d, kind="stable")[:n]])
 
 
 def adjust_fixed_io(

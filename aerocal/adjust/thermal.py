@@ -17,8 +17,8 @@ whether the calibrations are consistent with a straight line: a large chi2/dof m
 linear or the calibrations' sigmas are optimistic, and :attr:`ThermalFit.consistent` is then False.
 
 Why this module: fitting is an estimation over adjustment outputs, the sibling of the joint estimate of
-the bundle, so it lives in :mod:`aerocal.adjust`; :mod:`aerocal.certificate` only holds and validates
-records and already has the field this model goes into (:class:`~aerocal.certificate.ThermalCalibration`),
+the bundle, so it lives in :mod:`aerocal.adjust`; :mod:`aerocal.certificates.document` only holds and validates
+records and already has the field this model goes into (:class:`~aerocal.certificates.document.ThermalCalibration`),
 which :func:`thermal_certificate` fills.
 """
 
@@ -34,7 +34,7 @@ from scipy import stats
 from aerocal.adjust.bundle import AdjustmentResult
 from aerocal.adjust.problem import AdjustmentError
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
-from aerocal.certificate import (
+from aerocal.certificates.document import (
     CameraIdentity,
     Certificate,
     Conditions,

@@ -34,6 +34,7 @@ from scipy import stats
 from aerocal.adjust import adjust, scale_tie_sigma
 from aerocal.adjust.problem import AdjustConfig
 from aerocal.adjust.solver import Problem, inverse_spd, solve
+from aerocal.adjust.strategy import central_images
 from aerocal.camera import Camera, LinearThermalModel
 from aerocal.diagnose import hypotheses as hyp
 from aerocal.diagnose.attitude import mean_rotation_covariance, offset_statistics
@@ -55,9 +56,8 @@ from aerocal.diagnose.prediction import (
     UndeterminedFold,
     held_out_gain,
 )
+from aerocal.diagnose.twin import compare as compare_twins
 from aerocal.effects import CATALOGUE
-from aerocal.subset import central_images
-from aerocal.twin import compare as compare_twins
 
 #: A switch effect (refraction) has a known size: on = 1. An estimate further than this many sigmas from
 #: 1 is a signal of the effect's shape but not the effect, and is not named. Measured on a rendered,
@@ -219,7 +219,7 @@ class Diagnosis:
     notes: list[str] = field(default_factory=list)
     overdispersion: float = 1.0  # statistics were divided by this (>= 1), measured on the block itself
     recorded_eo: dict = field(default_factory=dict)  # see :func:`recorded_eo_checks`
-    twin: dict = field(default_factory=dict)  # :meth:`aerocal.twin.TwinComparison.to_dict` and its summary
+    twin: dict = field(default_factory=dict)  # :meth:`aerocal.diagnose.twin.TwinComparison.to_dict` and its summary
     # effects the block could not tell apart: {"effects": [a, b], "estimates", "separated_by", "note"}; neither named
     pairs: list[dict] = field(default_factory=list)
 
@@ -669,10 +669,10 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
 
 
 #: a named effect's gain on data the fit did not use must be positive beyond this many standard errors (the
-#: decision rule's third question, :mod:`aerocal.decision`), and it must not make the check points worse beyond
-#: as many
+#: decision rule's third question, :mod:`aerocal.certificates.review`), and it must not make the check points
+#: worse beyond as many
 HELD_OUT_SIGMAS = 2.0
-#: check points a block needs for their paired gain to count (as :class:`aerocal.decision.DecisionConfig`)
+#: check points a block needs for their paired gain to count (as :class:`aerocal.certificates.review.DecisionConfig`)
 MIN_CHECK_POINTS = 3
 #: an effect is not named when it makes the check points' squared error worse by more than this fraction (10 % in
 #: RMSE) beyond HELD_OUT_SIGMAS standard errors. The standard error is over the check points, but a model change moves
@@ -921,8 +921,8 @@ def recorded_eo_checks(round1: list[Evidence], over: Overdispersion | float, cam
 
 #: a recorded-attitude offset or a check-point offset is reported as one beyond this many of its sigmas
 OFFSET_SIGMAS = 3.0
-#: control GCPs a block needs to test a GNSS offset against them (as :data:`aerocal.eo_checks.MIN_CONTROL`); with
-#: fewer the check points are asked (:func:`check_point_offset`)
+#: control GCPs a block needs to test a GNSS offset against them (as
+#: :data:`aerocal.calibrate.eo_checks.MIN_CONTROL`); with fewer the check points are asked (:func:`check_point_offset`)
 MIN_CONTROL_FOR_OFFSET = 3
 
 

@@ -29,8 +29,8 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.camera import Camera, LinearThermalModel
-from aerocal.certificate import CameraTerm, Certificate, ThermalCalibration
-from aerocal.certificate_schema import CAMERA_TERMS
+from aerocal.certificates.document import CameraTerm, Certificate, ThermalCalibration
+from aerocal.certificates.schema import CAMERA_TERMS
 from aerocal.diagnose import hypotheses as hyp
 from aerocal.diagnose.model import image_strips, image_times_s, point_geometry
 from aerocal.effects import CATALOGUE, bertram_refraction_k, image_rotation, thermal_rotation_angle
@@ -325,9 +325,9 @@ def measurement_terms(cert: Certificate) -> tuple[ModelTerm, ...]:
 def frame_terms(cert: Certificate, images: pa.Table, poses: pa.Table) -> tuple[dict[int, np.ndarray] | None,
                                                                             dict[int, np.ndarray] | None]:
     """What the certificate's measurement terms make of each adjusted frame, for the products that project the
-    ground into the frames (:func:`aerocal.mosaic.frames_from_poses`): per image id the readout's displacement of
-    the projection centre (velocity from the adjusted neighbours x readout; ``motion``) and the thermal rotation
-    about the camera axis (``turn``); None where the certificate has no such term."""
+    ground into the frames (:func:`aerocal.products.mosaic.frames_from_poses`): per image id the readout's
+    displacement of the projection centre (velocity from the adjusted neighbours x readout; ``motion``) and the
+    thermal rotation about the camera axis (``turn``); None where the certificate has no such term."""
     terms = {t.name: t for t in measurement_terms(cert)}
     if not terms:
         return None, None

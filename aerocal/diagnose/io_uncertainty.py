@@ -54,7 +54,7 @@ class IOUncertainty:
 
     @classmethod
     def from_certificate(cls, cert) -> IOUncertainty | None:
-        """The estimated IO of ``cert`` (:class:`aerocal.certificate.Certificate`) with its covariance from
+        """The estimated IO of ``cert`` (:class:`aerocal.certificates.document.Certificate`) with its covariance from
         its sigmas and correlation matrix: calibrated sigmas where ``quality.overdispersion`` is recorded, else
         the formal ones inflated by the overdispersion its calibration measured (squared ratio of formal to
         calibrated t, where recorded), plus the nominal values it holds because

@@ -111,7 +111,7 @@ def fit_baseline(images: pa.Table, observations: pa.Table, camera: Camera, confi
 
 
 #: 99.9 % point of chi-square with 2 dof: a tie observation beyond it (times the block's robust scale) is in the tail
-#: of its residuals (:mod:`aerocal.twin`)
+#: of its residuals (:mod:`aerocal.diagnose.twin`)
 TAIL_CHI2 = 13.8
 #: median of chi-square with 2 dof (2 ln 2): the robust scale of a block's normalised squared tie residuals
 CHI2_2_MEDIAN = 1.386

@@ -21,7 +21,7 @@ pose). Resecting into a fixed block tests what a model predicts for a new image,
 re-adjustment of a held-out strip alone would absorb: a GNSS time lag moves a held-out image's recorded
 position away from where the training block's points put it, a readout stretches its rows against them.
 
-This is :mod:`aerocal.heldout`'s question (there for the camera models of a self-calibration) asked of the
+This is :mod:`aerocal.calibrate.heldout`'s question (there for the camera models of a self-calibration) asked of the
 diagnosis's hypotheses.
 """
 

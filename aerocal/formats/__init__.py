@@ -3,7 +3,7 @@
 =============  =====================================  ==============================================
 ``fmt``        file                                   module
 =============  =====================================  ==============================================
-certificate    aerocal certificate JSON (lossless)    :mod:`aerocal.certificate_schema`
+certificate    aerocal certificate JSON (lossless)    :mod:`aerocal.certificates.schema`
 opencv         OpenCV ``cv2.FileStorage`` YAML        :mod:`aerocal.formats.opencv` (XML read too)
 colmap         COLMAP ``cameras.txt`` (FULL_OPENCV)   :mod:`aerocal.formats.colmap`
 opensfm        OpenSfM / ODM ``cameras.json``         :mod:`aerocal.formats.opensfm`
@@ -23,9 +23,9 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import Certificate, CertificateError
-from aerocal.certificate_schema import SCHEMA
+from aerocal.certificates.document import Certificate, CertificateError
+from aerocal.certificates.identity import CameraIdentity
+from aerocal.certificates.schema import SCHEMA
 from aerocal.formats import colmap, metashape, opencv, opensfm
 from aerocal.formats.safe_parsing import FormatError, decode_text, format_error, parse_xml, read_bytes
 from aerocal.io import write_text_atomic
@@ -92,7 +92,7 @@ def export_certificate(doc_or_cert: Certificate | Mapping[str, Any], fmt: str, p
 
 def import_certificate(path: str | Path, fmt: str | None = None, *, identity: CameraIdentity | None = None,
                        **options: Any) -> Certificate:
-    """Read a calibration file into a :class:`~aerocal.certificate.Certificate`.
+    """Read a calibration file into a :class:`~aerocal.certificates.document.Certificate`.
 
     ``fmt`` is guessed from the file (:func:`guess_format`) when ``None``. ``identity`` names the camera
     for foreign formats (``unknown`` otherwise; a certificate JSON records its own and refuses one).

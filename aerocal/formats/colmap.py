@@ -15,9 +15,9 @@ from pathlib import Path
 import pycolmap
 
 from aerocal.camera import from_pycolmap, to_pycolmap
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import Certificate
-from aerocal.certificate_schema import MAX_IMAGE_SIDE_PX
+from aerocal.certificates.document import Certificate
+from aerocal.certificates.identity import CameraIdentity
+from aerocal.certificates.schema import MAX_IMAGE_SIDE_PX
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import decode_text, format_error, read_bytes
 from aerocal.io import write_text_atomic

@@ -1,4 +1,4 @@
-"""Building a :class:`~aerocal.certificate.Certificate` from what a foreign calibration file holds.
+"""Building a :class:`~aerocal.certificates.document.Certificate` from what a foreign calibration file holds.
 
 Foreign formats hold a camera model and, at best, a date, a covariance or an RMS error. Everything else
 of a certificate stays unknown (``None``): no sigmas unless the file has them, no image counts, no
@@ -13,8 +13,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 from aerocal.camera import Camera
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import (
+from aerocal.certificates.document import (
     Certificate,
     CertificateError,
     Conditions,
@@ -22,6 +21,7 @@ from aerocal.certificate import (
     Provenance,
     Quality,
 )
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.formats.safe_parsing import format_error
 
 

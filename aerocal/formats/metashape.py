@@ -33,9 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from aerocal.camera import PARAM_NAMES, Camera
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import Certificate, sigmas_and_correlation
-from aerocal.certificate_schema import MAX_IMAGE_SIDE_PX
+from aerocal.certificates.document import Certificate, sigmas_and_correlation
+from aerocal.certificates.identity import CameraIdentity
+from aerocal.certificates.schema import MAX_IMAGE_SIDE_PX
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import FormatError, format_error, parse_xml, read_bytes
 from aerocal.io import write_text_atomic

@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 
 from aerocal.camera import Camera
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import (
     decode_text,

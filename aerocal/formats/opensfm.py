@@ -26,9 +26,9 @@ from pathlib import Path
 from typing import Any
 
 from aerocal.camera import Camera
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import Certificate
-from aerocal.certificate_schema import MAX_IMAGE_SIDE_PX
+from aerocal.certificates.document import Certificate
+from aerocal.certificates.identity import CameraIdentity
+from aerocal.certificates.schema import MAX_IMAGE_SIDE_PX
 from aerocal.formats.imported import imported_certificate
 from aerocal.formats.safe_parsing import (
     FormatError,

@@ -9,7 +9,7 @@ Entry points:
 * :func:`summary_rows`: (item, value) rows for a CLI summary.
 """
 
-from aerocal.ingest.camera_identity import CameraIdentity
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.ingest.config import IngestConfig
 from aerocal.ingest.folder import IngestResult, ingest_folder
 from aerocal.ingest.output import IngestOutputError, read_ingest, write_ingest

@@ -20,7 +20,7 @@ A camera not in the catalogue (a visible or compact camera) is built from what i
    image is stored at, :mod:`aerocal.ingest.metadata`): the camera's own statement of its sensor;
 2. EXIF FocalLengthIn35mmFilm over the 36 mm long side of 35 mm film, ``f = f35 / 36 * max(w, h)`` (the
    convention OpenSfM and OpenDroneMap use; makers that scale by the diagonal give 4 % less on a 4:3
-   sensor, within the nominal tolerance of :func:`aerocal.decision.nominal_sigma`);
+   sensor, within the nominal tolerance of :func:`aerocal.certificates.review.nominal_sigma`);
 3. EXIF FocalLength over the pixel pitch of the sensor-width table ``data/sensor_widths.csv``.
 
 The catalogue comes first for the cameras it holds: its pitch is the maker's, where a thermal camera's

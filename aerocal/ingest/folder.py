@@ -5,7 +5,7 @@ A *flight folder* keeps its images in ``images/`` and beside it, all optional::
     eo.csv          exterior orientation overriding the image metadata (see aerocal.ingest.eo_csv)
     gcp_list.txt    OpenDroneMap ground control list (see aerocal.ingest.gcp_odm)
     gcps.csv        GCP coordinates with sigmas and roles (see aerocal.ingest.gcp_csv)
-    camera.json     camera identity and nominal camera (see aerocal.ingest.camera_identity); without it,
+    camera.json     camera identity and nominal camera (see aerocal.ingest.camera_json); without it,
                     the nominal camera comes from the camera catalogue (aerocal.ingest.camera_catalogue)
     flight.json     the flight plan: height_agl_m, gnss_sigma_m [h, v], imu_sigma_deg, ...; without it the
                     flying height and GNSS sigmas are inferred from the images (aerocal.ingest.inferred)
@@ -35,13 +35,9 @@ import pyarrow as pa
 
 from aerocal import tables
 from aerocal.camera import Camera
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.geometry import CONVENTIONS, attitude_to_R_cw, lonlat_to_projected, utm_crs_for
-from aerocal.ingest.camera_identity import (
-    UNKNOWN_CAMERA_ID,
-    CameraIdentity,
-    identity_of,
-    read_camera_json,
-)
+from aerocal.ingest.camera_json import UNKNOWN_CAMERA_ID, read_camera_json
 from aerocal.ingest.capture_time import resolve_utc_times
 from aerocal.ingest.config import IngestConfig
 from aerocal.ingest.crs_strings import CrsTextError, crs_kind, normalise_crs
@@ -514,11 +510,11 @@ def _camera_ids(
     ids: list[str] = []
     known: dict[tuple[int, int], set[str]] = {}
     for m in metas:
-        ident = identity_of(m.make, m.model, m.serial, m.lens)
+        ident = CameraIdentity.from_parts(m.make, m.model, m.serial, m.lens)
         if ident.is_known:
             known.setdefault((m.width, m.height), set()).add(ident.camera_id)
     for m in metas:
-        ident = identity_of(m.make, m.model, m.serial, m.lens)
+        ident = CameraIdentity.from_parts(m.make, m.model, m.serial, m.lens)
         if ident.is_known:
             if (
                 identity is not None

@@ -7,7 +7,7 @@ and processing can use it; each returns ``None`` (with the reason) where the ima
 * :func:`infer_camera`: the nominal camera from :mod:`aerocal.ingest.camera_catalogue`.
 * :func:`certificate_identity`: the identity a certificate is stored under. A camera that records no
   serial number is identified by make, model, lens and frame size: its serial part is
-  ``"no-serial WxH"`` (:data:`aerocal.camera_identity.NO_SERIAL`), and such a certificate may be
+  ``"no-serial WxH"`` (:data:`aerocal.certificates.identity.NO_SERIAL`), and such a certificate may be
   shared by several bodies of that model (the certificate store says so).
 * :func:`infer_height_agl`: the flying height above ground from DJI's XMP ``RelativeAltitude`` or senseFly's
   ``Height`` (height above the take-off point: above ground where the take-off point is at the ground level
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aerocal.camera import Camera
-from aerocal.camera_identity import CameraIdentity
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.ingest.camera_catalogue import nominal_camera
 from aerocal.ingest.metadata import ImageMetadata
 

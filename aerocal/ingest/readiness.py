@@ -17,10 +17,10 @@ from pathlib import Path
 import pyarrow as pa
 
 from aerocal.camera import Camera
-from aerocal.ingest.camera_identity import CameraIdentity
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.ingest.crs_strings import CrsTextError, crs_kind, normalise_crs
 from aerocal.ingest.problems import ProblemLog
-from aerocal.orient import has_priors
+from aerocal.poses import has_priors
 
 MAX_JSON_BYTES = 4 * 1024 * 1024
 #: flight.json fields and their checks: name -> (kind, low, high); lists are checked element-wise

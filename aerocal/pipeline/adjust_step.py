@@ -10,10 +10,10 @@ import numpy as np
 
 from aerocal.adjust import AdjustConfig, adjust_fixed_io
 from aerocal.adjust.partition import PartitionedSolver
-from aerocal.certificate import Certificate
+from aerocal.calibrate.eo_checks import correct_recorded_eo
+from aerocal.certificates.document import Certificate
 from aerocal.diagnose.extension import correct_measurements, measurement_terms
 from aerocal.diagnose.io_uncertainty import IOUncertainty
-from aerocal.eo_checks import correct_recorded_eo
 from aerocal.matching.cluster import dask_client, n_workers
 from aerocal.pipeline.config import BlockStepConfig
 from aerocal.pipeline.runner import ArrayOutput, JsonOutput, Runner, StepInputs, StepResult, TableOutput

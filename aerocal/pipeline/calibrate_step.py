@@ -1,11 +1,12 @@
 """The self-calibration step: the calibration block, what it can determine, the adjustment, the held-out test
-of thermal slopes, the review (:func:`aerocal.calibration.self_calibrate`), and the certificate document built
-from it (:func:`aerocal.calibration.certificate_from_calibration`), not yet issued to a store."""
+of thermal slopes, the review (:func:`aerocal.calibrate.self_calibration.self_calibrate`), and the certificate
+document built from it (:func:`aerocal.calibrate.self_calibration.certificate_from_calibration`), not yet issued
+to a store."""
 
 from __future__ import annotations
 
 from aerocal.adjust import AdjustConfig
-from aerocal.calibration import CalibrationConfig, certificate_from_calibration, self_calibrate
+from aerocal.calibrate.self_calibration import CalibrationConfig, certificate_from_calibration, self_calibrate
 from aerocal.camera import Camera
 from aerocal.pipeline.certificates import identity_of
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
@@ -16,10 +17,11 @@ def calibrate_step(runner: Runner, ingest: StepResult, observations: str, config
     """Self-calibrate the flight and build the certificate document.
 
     Outputs: ``certificate`` (the document; its ``review`` says accepted or rejected), ``calibration``
-    (:meth:`aerocal.calibration.Calibration.summary`: the block and why, predicted sigmas, parameters held at
-    nominal, held-out tests, the review, the parameter pairs correlated beyond 0.9). ``adjust_config``
-    overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas). ``name``: the step's name in the run
-    (a re-calibration of the camera once the diagnosis named a camera term is another step of the same run).
+    (:meth:`aerocal.calibrate.self_calibration.Calibration.summary`: the block and why, predicted sigmas,
+    parameters held at nominal, held-out tests, the review, the parameter pairs correlated beyond 0.9).
+    ``adjust_config`` overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas). ``name``: the
+    step's name in the run (a re-calibration of the camera once the diagnosis named a camera term is another step
+    of the same run).
     """
     config = config or CalibrationConfig()
     acfg = adjust_config or config.adjust

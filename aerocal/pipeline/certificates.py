@@ -2,12 +2,12 @@
 nominal camera.
 
 :class:`CertificateStore` is what the pipeline asks of a store: the certificate that applies to a flight
-(:func:`aerocal.certificate_selection.choose_certificate`'s rules) and issuing a new one.
+(:func:`aerocal.certificates.selection.choose_certificate`'s rules) and issuing a new one.
 :class:`MemoryCertificates` keeps them in a list (a notebook, a study, a test); the
 platform's store is the database (``tasks.certificates.DatabaseCertificates``).
 
 Before a stored certificate is reused it is reviewed against this flight's nominal camera
-(:func:`aerocal.decision.review_camera`: image size, f within its band, principal point, distortion, thermal
+(:func:`aerocal.certificates.review.review_camera`: image size, f within its band, principal point, distortion, thermal
 slopes); one that fails is not used, and the reason says why. A certificate whose review rejected it is
 stored as rejected, and the flight goes on with the nominal camera (:func:`nominal_certificate`).
 """
@@ -23,10 +23,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from aerocal.camera import Camera
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import Certificate, ParameterSignificance, Provenance
-from aerocal.certificate_selection import NoCertificateError, choose_certificate
-from aerocal.decision import NOMINAL_PARAMETERS, Review, nominal_sigma, review_camera
+from aerocal.certificates.document import Certificate, ParameterSignificance, Provenance
+from aerocal.certificates.identity import CameraIdentity
+from aerocal.certificates.review import NOMINAL_PARAMETERS, Review, nominal_sigma, review_camera
+from aerocal.certificates.selection import NoCertificateError, choose_certificate
 from aerocal.diagnose.extension import ModelTerm, extend_certificate
 
 

@@ -13,15 +13,15 @@ from typing import Any
 
 from aerocal.adjust import AdjustConfig, ThinningConfig
 from aerocal.adjust.control import ControlScreeningConfig
-from aerocal.calibration import CalibrationConfig
+from aerocal.calibrate.self_calibration import CalibrationConfig
 from aerocal.diagnose.engine import DiagnoseConfig
-from aerocal.dsm import DsmConfig
 from aerocal.enhance import EnhanceConfig
 from aerocal.matching import FeatureConfig, MatchConfig
-from aerocal.mosaic import MosaicConfig
 from aerocal.orient import IncrementalConfig
 from aerocal.pipeline.dataset import IngestSettings
 from aerocal.pipeline.runner import configuration_json
+from aerocal.products.dsm import DsmConfig
+from aerocal.products.mosaic import MosaicConfig
 
 #: values of ``certificate`` that are not certificate ids: ``auto`` (the stored certificate that applies, else
 #: self-calibrate), ``none`` (always self-calibrate) and ``nominal`` (the flight's nominal camera as given in its
@@ -83,7 +83,7 @@ class BlockStepConfig:
     sigmas 0.10/0.10/0.15 m, GCPs weighted by their survey sigmas); ``thermal_correction`` (True): apply
     the certificate's linear thermal model to the measurements; ``recorded_eo_images`` (200): test the
     recorded positions for a GNSS time lag (and, with 3 control GCPs, a horizontal offset) on this many
-    central images and remove what passes before adjusting (:func:`aerocal.eo_checks.correct_gnss_offset`;
+    central images and remove what passes before adjusting (:func:`aerocal.calibrate.eo_checks.correct_gnss_offset`;
     0 = use the positions as recorded).
 
     City-scale blocks: from ``partition_min_images`` images (800; 0 = never) the adjustment runs in sub-blocks
@@ -104,10 +104,10 @@ class BlockStepConfig:
 
 @dataclass(frozen=True)
 class MosaicStepConfig:
-    """DSM and orthomosaic settings (:class:`aerocal.dsm.DsmConfig`, :class:`aerocal.mosaic.MosaicConfig`;
-    ``None`` = their defaults); ``dask_workers`` of the local cluster for the mosaic tiles (2; 0 = serial);
-    mosaics of at most ``serial_max_frames`` frames (4) run here without a cluster, since starting the
-    worker processes (a few seconds) costs more than the tiles."""
+    """DSM and orthomosaic settings (:class:`aerocal.products.dsm.DsmConfig`,
+    :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults); ``dask_workers`` of the local
+    cluster for the mosaic tiles (2; 0 = serial); mosaics of at most ``serial_max_frames`` frames (4) run here
+    without a cluster, since starting the worker processes (a few seconds) costs more than the tiles."""
 
     dsm: DsmConfig | None = None
     mosaic: MosaicConfig | None = None

@@ -29,14 +29,14 @@ import pyarrow as pa
 
 from aerocal import tables
 from aerocal.camera import Camera
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import validate_camera
+from aerocal.certificates.document import validate_camera
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.ingest import ingest_folder
 from aerocal.ingest.inferred import certificate_identity
 from aerocal.io import file_sha256
 from aerocal.matching.ground import flying_height
-from aerocal.orient import has_priors
 from aerocal.pipeline.runner import table_sha256
+from aerocal.poses import has_priors
 
 #: stem of the simulator's truth files and folder, which processing never reads (nor hashes)
 TRUTH_STEM = "truth"

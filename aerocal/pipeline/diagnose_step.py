@@ -11,7 +11,7 @@ import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, corrected_to_t0, scale_tie_sigma, screened_rows
 from aerocal.camera import PARAM_NAMES
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult

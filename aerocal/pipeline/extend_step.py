@@ -11,7 +11,7 @@ and the terms are added to its certificate); the certificate extended by the cam
 
 from __future__ import annotations
 
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.diagnose.engine import MISFIT_SIGMA0
 from aerocal.diagnose.extension import (
     BLOCK_TERMS,

@@ -3,9 +3,9 @@
 A flight's systematic effects are caught at three places, each with its own test on data the fit did not use:
 
 * the **self-calibration** keeps a thermal slope of the focal length or the principal point only with a gain on
-  held-out strips (:mod:`aerocal.heldout`); the slope is then the certificate's thermal model;
+  held-out strips (:mod:`aerocal.calibrate.heldout`); the slope is then the certificate's thermal model;
 * the **recorded-EO check** of the block adjustment removes a GNSS time lag, and a horizontal GNSS offset against
-  three or more control points, from the recorded positions before the adjustment (:mod:`aerocal.eo_checks`);
+  three or more control points, from the recorded positions before the adjustment (:mod:`aerocal.calibrate.eo_checks`);
 * the **diagnosis** names what the block's model still leaves, with a held-out gain, and the block is extended by
   it (:mod:`aerocal.pipeline.extend_step`).
 

@@ -21,11 +21,11 @@ from aerocal.matching import (
     exhaustive_pairs,
 )
 from aerocal.matching.cluster import Progress
-from aerocal.orient import has_priors
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.dataset import FlightInputError
 from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
+from aerocal.poses import has_priors
 
 
 def enhanced_frame(path: str, params, config: EnhanceConfig) -> np.ndarray:

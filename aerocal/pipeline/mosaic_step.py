@@ -1,6 +1,6 @@
-"""The products step: a DSM gridded from the adjusted tie points (:func:`aerocal.dsm.dsm_from_points`, GeoTIFF)
+"""The products step: a DSM gridded from the adjusted tie points (:func:`aerocal.products.dsm.dsm_from_points`, GeoTIFF)
 and, when frames with pixels exist (``images/`` of the flight folder), the orthomosaic in the flight's CRS from
-their original radiometry (:func:`aerocal.mosaic.build_mosaic`, tiles on a Dask client), with a temperature
+their original radiometry (:func:`aerocal.products.mosaic.build_mosaic`, tiles on a Dask client), with a temperature
 raster for FLIR radiometric frames. A flight without frames gets the DSM only."""
 
 from __future__ import annotations
@@ -13,17 +13,17 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.diagnose.extension import frame_terms
-from aerocal.dsm import DsmConfig, dsm_from_points, write_dsm
 from aerocal.ingest.flir import common_camera_info, raw_to_celsius
 from aerocal.io import file_sha256
 from aerocal.matching import dask_client
-from aerocal.mosaic import MosaicConfig, build_mosaic, frames_from_poses, write_temperature_raster
 from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, StepResult
+from aerocal.products.dsm import DsmConfig, dsm_from_points, write_dsm
+from aerocal.products.mosaic import MosaicConfig, build_mosaic, frames_from_poses, write_temperature_raster
 
 
 def frame_paths(flight: dict, images: pa.Table) -> dict[int, Path]:

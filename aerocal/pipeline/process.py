@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
-from aerocal.camera_identity import CameraIdentity
+from aerocal.certificates.identity import CameraIdentity
 from aerocal.pipeline.adjust_step import adjust_step
 from aerocal.pipeline.assess_step import assess_step
 from aerocal.pipeline.calibrate_step import calibrate_step

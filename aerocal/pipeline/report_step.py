@@ -9,7 +9,7 @@ import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
-from aerocal.certificate import Certificate
+from aerocal.certificates.document import Certificate
 from aerocal.pipeline.config import ReportStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.mosaic_step import reference_dsm_path

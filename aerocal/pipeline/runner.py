@@ -170,12 +170,12 @@ def configuration_json(config: Any) -> Any:
     return plain_json(config)
 
 
-#: the packages whose code computes step outputs, for :func:`code_version`
+#: the packages whose code computes step outputs, for :func:`source_digest`
 CODE_PACKAGES = ("aerocal", "tasks")
 
 
 @functools.cache
-def code_version() -> str:
+def source_digest() -> str:
     """SHA-256 (hex) of the source of :data:`CODE_PACKAGES`: every ``.py`` file's path (relative to the project
     root) and bytes, in path order (about 200 files, a few milliseconds, read once per process). A step
     computed by other code is computed again: the cache cannot tell whether the change matters (a diagnosis
@@ -191,10 +191,10 @@ def code_version() -> str:
 
 def cache_key(step: str, inputs: Mapping[str, str], config: Any = None) -> str:
     """SHA-256 (hex) of the step name, its inputs' references by name, its configuration as JSON, the key
-    recipe (:data:`STEP_FORMAT`) and the code version (:func:`code_version`)."""
+    recipe (:data:`STEP_FORMAT`) and the code version (:func:`source_digest`)."""
     doc = {
         "format": STEP_FORMAT,
-        "code": code_version(),
+        "code": source_digest(),
         "step": step,
         "inputs": dict(sorted(inputs.items())),
         "config": configuration_json(config),

@@ -24,7 +24,7 @@ from scipy import ndimage
 
 from aerocal.assess import BinnedResiduals, compare_dems
 from aerocal.camera import Camera
-from aerocal.mosaic import FrameGeometry
+from aerocal.products.mosaic import FrameGeometry
 from aerocal.report.figures import (
     Figure,
     dem_difference_figure,
@@ -108,7 +108,7 @@ def temperature_io_for_flight(
 
 
 def _inside(dsm, reference) -> np.ndarray:
-    """Cells of ``dsm`` whose centres lie inside the grid of ``reference`` (both :class:`aerocal.dsm.Dsm`)."""
+    """Cells of ``dsm`` whose centres lie inside the grid of ``reference`` (both :class:`aerocal.products.dsm.Dsm`)."""
     E, N = dsm.cell_centres()
     w, s, e, n = reference.bounds()
     return (E >= w) & (E <= e) & (N >= s) & (N <= n)
@@ -135,7 +135,7 @@ def dem_difference_for_flight(
     dsm, reference, tie_points_en: np.ndarray | None = None, measured_within_m: float = MEASURED_WITHIN_M,
     reference_name: str = "the reference DSM",
 ) -> Figure:
-    """The flight's DSM minus a reference surface (both :class:`aerocal.dsm.Dsm`), map and histogram, on
+    """The flight's DSM minus a reference surface (both :class:`aerocal.products.dsm.Dsm`), map and histogram, on
     the DSM's cells inside the reference grid. With the adjusted tie points (``tie_points_en`` (N, 2+) E, N
     metres) the numbers add ``measured_cells``: the same statistics on the cells within
     ``measured_within_m`` of a tie point, where the DSM's heights are measured rather than interpolated."""

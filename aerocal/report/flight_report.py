@@ -27,10 +27,10 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from aerocal.certificate import Certificate
-from aerocal.dsm import read_dsm
+from aerocal.certificates.document import Certificate
 from aerocal.io import write_json_atomic, write_text_atomic
-from aerocal.mosaic import frames_from_poses
+from aerocal.products.dsm import read_dsm
+from aerocal.products.mosaic import frames_from_poses
 from aerocal.report import wording
 from aerocal.report.figures import Figure, block_figure
 from aerocal.report.flight_figures import (

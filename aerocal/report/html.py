@@ -20,7 +20,7 @@ from pathlib import Path
 import jinja2
 
 from aerocal.camera import PARAM_UNITS
-from aerocal.certificate import Conditions
+from aerocal.certificates.document import Conditions
 from aerocal.io import write_json_atomic, write_text_atomic
 from aerocal.report import wording
 from aerocal.report.figures import Figure

@@ -14,7 +14,7 @@ import re
 from collections.abc import Mapping, Sequence
 
 from aerocal.camera import PARAM_NAMES, PARAM_UNITS
-from aerocal.certificate import Certificate, Conditions
+from aerocal.certificates.document import Certificate, Conditions
 from aerocal.effects import CATALOGUE
 from aerocal.ingest.problems import name_list
 
@@ -68,7 +68,7 @@ STAT_LABELS: dict[str, str] = {
 #: effects the diagnosis tests beyond the catalogue (:data:`aerocal.diagnose.hypotheses.HYPOTHESES`)
 EXTRA_EFFECTS: dict[str, str] = {"per_strip_io": "an interior orientation of its own per strip"}
 
-#: the statistics of a block and its simulated twins (:func:`aerocal.twin.block_statistics`), for a reader
+#: the statistics of a block and its simulated twins (:func:`aerocal.diagnose.twin.block_statistics`), for a reader
 TWIN_LABELS: dict[str, str] = {
     "variance_tie": "Variance factor of the tie points",
     "variance_gnss": "Variance factor of the GNSS positions",
@@ -480,7 +480,7 @@ def duration(seconds: float) -> str:
 
 
 def twin_view(twin: Mapping) -> dict:
-    """The comparison of the block with its simulated twins (:meth:`aerocal.twin.TwinComparison.to_dict`):
+    """The comparison of the block with its simulated twins (:meth:`aerocal.diagnose.twin.TwinComparison.to_dict`):
     a ``lead`` sentence, ``rows`` (statistic, block value, twins' mean ± spread, what a difference means) for
     the statistics that differ, and ``sentences`` on the likely causes."""
     if not twin or "real" not in twin:

@@ -29,7 +29,6 @@ import pyarrow as pa
 
 from aerocal import tables
 from aerocal.camera import Camera
-from aerocal.dsm import Dsm, write_dsm
 from aerocal.effects import bertram_refraction_k, image_rotation, normalise_effects, thermal_rotation_angle
 from aerocal.geometry import (
     R_cw_to_dji_gimbal,
@@ -39,6 +38,7 @@ from aerocal.geometry import (
 from aerocal.io import write_json_atomic
 from aerocal.pipeline.dataset import MemoryDataset
 from aerocal.poses import poses_table
+from aerocal.products.dsm import Dsm, write_dsm
 from aerocal.simulate.exposure import Exposure
 from aerocal.simulate.flight_plan import Trajectory, footprint_m, overlaps, plan_flight
 from aerocal.simulate.measured import trajectory

@@ -117,7 +117,7 @@ def certificates_show(
     Example: aerocal certificates show 3f2a9c --json
     """
     # lazy: storage imports SQLAlchemy (~0.5 s CPU at start-up), the engine numpy; --help must not pay it
-    from aerocal.certificate import Quality
+    from aerocal.certificates.document import Quality
     from storage.certificates import get_certificate
 
     with user_errors():
@@ -226,13 +226,13 @@ def _read_document(path: Path, fmt: str | None, identity: dict[str, str]) -> dic
 
     ``identity`` (make, model, serial, lens given on the command line) replaces what the file says.
     """
-    # lazy: aerocal.certificate costs ~0.2 s CPU at start-up (numpy, pydantic); --help must not pay it
-    from aerocal.certificate import CameraIdentity, Certificate
+    # lazy: aerocal.certificates.document costs ~0.2 s CPU at start-up (numpy, pydantic); --help must not pay it
+    from aerocal.certificates.document import CameraIdentity, Certificate
 
     doc: Any = None
     if fmt == "json" or (fmt is None and path.suffix.lower() == ".json"):
         doc = json.loads(path.read_text(encoding="utf-8"))
-        is_ours = isinstance(doc, dict) and str(doc.get("schema", "")).startswith("aerocal.certificate")
+        is_ours = isinstance(doc, dict) and str(doc.get("schema", "")).startswith("aerocal.certificates.document")
         if fmt == "json" and not is_ours:
             raise ValueError("not an aerocal certificate document (no 'schema': 'aerocal.certificate/1')")
         if not is_ours:

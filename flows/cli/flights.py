@@ -389,7 +389,7 @@ def calibrate(
     quiet_prefect()
     with flow_errors(default_run_dir(flight_dir, out)):
         # lazy: flows.process imports Prefect (~2.9 s CPU at start-up); --help must not pay it
-        from aerocal.certificate import Certificate
+        from aerocal.certificates.document import Certificate
         from aerocal.pipeline import ProcessConfig
         from flows.process import calibrate_camera
 

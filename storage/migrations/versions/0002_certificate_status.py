@@ -1,6 +1,6 @@
 """Certificates carry the verdict of their review: accepted or rejected.
 
-A certificate whose calibration failed its quality gates (:mod:`aerocal.decision`) is stored, so that the
+A certificate whose calibration failed its quality gates (:mod:`aerocal.certificates.review`) is stored, so that the
 failure is on record with its reasons (in the document's ``review``), but it is never selected for a
 flight. Certificates stored before this revision were not reviewed and count as accepted.
 

@@ -9,7 +9,7 @@ nodata value; written atomically (:func:`aerocal.io.atomic_path`).
 
 Per output pixel
 ----------------
-1. Its ground point ``X = (E, N, h)`` with ``h`` bilinear in the DSM (:class:`aerocal.dsm.Dsm`).
+1. Its ground point ``X = (E, N, h)`` with ``h`` bilinear in the DSM (:class:`aerocal.products.dsm.Dsm`).
 2. For every candidate frame: ``uv = camera_i.project(R_cw (X - C))`` through the FULL camera model
    (Brown distortion, affinity, skew) with that frame's IO: ``LinearThermalModel.camera_at(camera, T_i)``
    when a linear thermal model is given; for the similarity/polynomial models (which map measured
@@ -53,11 +53,11 @@ from rasterio.transform import from_origin
 
 from aerocal import tables
 from aerocal.camera import Camera, LinearThermalModel, ThermalModel, correct_measurements
-from aerocal.dsm import Dsm
 from aerocal.geometry import matrix_from_quat_wxyz
 from aerocal.ingest.pixels import ImageReadError, read_raw
 from aerocal.io import atomic_path
-from aerocal.mosaic_kernels import NO_PIXEL, frame_view
+from aerocal.products.dsm import Dsm
+from aerocal.products.kernels import NO_PIXEL, frame_view
 
 Progress = Callable[[int, int], None]
 
@@ -291,7 +291,7 @@ def render_tile(
 
 def _frame_view_numpy(fr: FrameGeometry, X: np.ndarray, feather_px: float, map_u: np.ndarray, map_v: np.ndarray,
                       score: np.ndarray, taper: np.ndarray) -> None:
-    """:func:`aerocal.mosaic_kernels.frame_view` for the frames whose thermal model corrects measurements
+    """:func:`aerocal.products.kernels.frame_view` for the frames whose thermal model corrects measurements
     (:meth:`FrameGeometry.project` inverts it), with numpy: the same outputs from the ground points ``X``."""
     uv = fr.project(X)
     cam = fr.camera

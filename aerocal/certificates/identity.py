@@ -27,7 +27,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from aerocal.certificate_schema import CertificateError
+from aerocal.certificates.errors import CertificateError
 
 #: The value of an identity part that was not recorded.
 UNKNOWN = "unknown"

@@ -1,25 +1,26 @@
-"""Self-calibration of a flight, governed by the decision rule (:mod:`aerocal.decision`), and its certificate.
+"""Self-calibration of a flight, governed by the decision rule (:mod:`aerocal.certificates.review`), and its
+certificate.
 
 :func:`self_calibrate` does, in order:
 
 1. **The calibration block.** The images given by the user; else the whole flight when it has at most
-   ``whole_flight_max_images``; else the sub-block of :func:`aerocal.subset.propose_subset` (parallel strips
+   ``whole_flight_max_images``; else the sub-block of :func:`aerocal.calibrate.subset.propose_subset` (parallel strips
    near the centre, a transversal strip when flown). A flight whose geometry yields no candidate (a corridor
    of one or two strips) is calibrated on its central ``corridor_max_images`` images, and the reason says so.
 2. **What the block can determine.** The precision of f, cx, cy (and slopes) is predicted from the block's
-   geometry and its GNSS/GCP weights before any fit (:func:`aerocal.subset.predict_io_sigmas`); a parameter
-   the block cannot determine stays at the nominal value (:func:`aerocal.decision.undetermined_io`), and
+   geometry and its GNSS/GCP weights before any fit (:func:`aerocal.calibrate.subset.predict_io_sigmas`); a parameter
+   the block cannot determine stays at the nominal value (:func:`aerocal.certificates.review.undetermined_io`), and
    so does its temperature slope.
 3. **The recorded GNSS offset** is tested against the control GCPs and subtracted where the diagnosis names
-   it (:func:`aerocal.eo_checks.correct_gnss_offset`): unmodelled, it is absorbed by f.
+   it (:func:`aerocal.calibrate.eo_checks.correct_gnss_offset`): unmodelled, it is absorbed by f.
    **The adjustment** with adaptive parameter selection (:func:`aerocal.adjust.adjust`); the formal statistics
    are then calibrated by the block's overdispersion, the selection repeated against t > 1.96 sqrt(phi), and
    f, cx, cy whose calibrated sigma fails the determinability test go back to nominal.
-4. **Held-out test of the thermal slopes** it kept (:func:`aerocal.heldout.compare_models`, k-fold over
+4. **Held-out test of the thermal slopes** it kept (:func:`aerocal.calibrate.heldout.compare_models`, k-fold over
    strips): a slope whose held-out gain is not positive beyond ``DecisionConfig.held_out_sigmas`` standard
    errors is dropped and the block adjusted again without it. The formal t of a slope on matched tie
    points can be 7 where the held-out gain is nil (the real seneca flight).
-5. **Review** (:func:`aerocal.decision.review_calibration`): plausibility against the nominal camera,
+5. **Review** (:func:`aerocal.certificates.review.review_calibration`): plausibility against the nominal camera,
    convergence, sigma0, check points. A rejected calibration still yields a certificate, marked rejected
    with every reason, so that the store keeps the record; it is never used for a flight.
 
@@ -37,8 +38,12 @@ import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, AdjustmentResult, adjust, corrected_to_t0, scale_tie_sigma, select_images
 from aerocal.adjust.covariance import t_critical
+from aerocal.adjust.strategy import central_images
+from aerocal.calibrate.eo_checks import correct_gnss_offset
+from aerocal.calibrate.heldout import HeldOutComparison, HeldOutConfig, compare_models
+from aerocal.calibrate.subset import SubsetConfig, predict_io_sigmas, propose_subset
 from aerocal.camera import PARAM_NAMES, Camera, LinearThermalModel
-from aerocal.certificate import (
+from aerocal.certificates.document import (
     CameraIdentity,
     Certificate,
     Conditions,
@@ -48,12 +53,9 @@ from aerocal.certificate import (
     Quality,
     ThermalCalibration,
 )
-from aerocal.decision import DecisionConfig, Review, nominal_sigma, review_calibration, undetermined_io
+from aerocal.certificates.review import DecisionConfig, Review, nominal_sigma, review_calibration, undetermined_io
 from aerocal.diagnose.engine import overdispersion
 from aerocal.diagnose.model import fit_baseline
-from aerocal.eo_checks import correct_gnss_offset
-from aerocal.heldout import HeldOutComparison, HeldOutConfig, compare_models
-from aerocal.subset import SubsetConfig, central_images, predict_io_sigmas, propose_subset
 
 #: adjustment names of thermal slopes -> certificate names (pixels per degC)
 SLOPE_NAMES = {"df/dT": "df_dt", "dcx/dT": "dcx_dt", "dcy/dT": "dcy_dt"}
@@ -65,7 +67,7 @@ class CalibrationConfig:
 
     * ``adjust``: the self-calibrating adjustment (default: f, cx, cy, k1..k3, p1, p2 free, a focal-length
       temperature slope, adaptive selection dropping insignificant or |r| > 0.95 parameters).
-    * ``subset``: :class:`aerocal.subset.SubsetConfig` for :func:`~aerocal.subset.propose_subset`
+    * ``subset``: :class:`aerocal.calibrate.subset.SubsetConfig` for :func:`~aerocal.calibrate.subset.propose_subset`
       (``None``: its defaults, with the flight's height above ground and this adjustment's weights).
     * ``whole_flight_max_images`` (44, Conte 2018's sub-block size): a flight of at most this many images
       is calibrated whole, with no sub-block search.
@@ -73,8 +75,8 @@ class CalibrationConfig:
       calibrated on at most this many images nearest its centre.
     * ``subset_images``: image ids of the sub-block, chosen by hand (``None``: propose one);
       ``subset_names``: the same by image name.
-    * ``decision``: :class:`aerocal.decision.DecisionConfig`, the thresholds of the decision rule.
-    * ``held_out``: :class:`aerocal.heldout.HeldOutConfig`, the k-fold test of thermal slopes.
+    * ``decision``: :class:`aerocal.certificates.review.DecisionConfig`, the thresholds of the decision rule.
+    * ``held_out``: :class:`aerocal.calibrate.heldout.HeldOutConfig`, the k-fold test of thermal slopes.
     * ``null_draws`` (40): random per-image focal hypotheses whose statistics measure how optimistic the
       formal sigmas are on this block (:func:`aerocal.diagnose.engine.overdispersion`); the certificate's
       calibrated t values and the review's sigma of f are scaled by it (0: formal statistics only).
@@ -118,7 +120,7 @@ class Calibration:
     held_out: dict[str, HeldOutComparison]
     review: Review
     overdispersion: float = 1.0
-    #: standard deviation (px) of each nominal value held (:func:`aerocal.decision.nominal_sigma`)
+    #: standard deviation (px) of each nominal value held (:func:`aerocal.certificates.review.nominal_sigma`)
     held_sigmas: dict[str, float] = dataclasses.field(default_factory=dict)
     overdispersion_measured: bool = True
 

@@ -1,9 +1,8 @@
 """The camera identity and nominal camera of a flight folder's ``camera.json``.
 
-The identity itself is :class:`aerocal.camera_identity.CameraIdentity` (re-exported here with
-:data:`NO_SERIAL` and :func:`is_shared_identity`); ingest writes its ``camera_id`` form into the ``images``
-table: ``"make|model|serial|lens"`` with empty parts where unknown and ``|`` inside a part written as ``/``.
-``camera.json`` (written by the simulator, or by hand)::
+The identity is :class:`aerocal.certificates.identity.CameraIdentity`; ingest writes its ``camera_id`` form
+into the ``images`` table: ``"make|model|serial|lens"`` with empty parts where unknown and ``|`` inside a part
+written as ``/``. ``camera.json`` (written by the simulator, or by hand)::
 
     {"identity": {"make": ..., "model": ..., "serial": ..., "lens": ...},
      "camera": {fields of aerocal.camera.Camera: width, height, f, cx, cy, k1, ...}}
@@ -15,26 +14,16 @@ import json
 from pathlib import Path
 
 from aerocal.camera import Camera
-from aerocal.camera_identity import IDENTITY_PARTS, NO_SERIAL, CameraIdentity, is_shared_identity
-from aerocal.certificate import validate_camera
+from aerocal.certificates.document import validate_camera
+from aerocal.certificates.identity import IDENTITY_PARTS, CameraIdentity
 from aerocal.ingest.problems import ProblemLog
 
 #: ``images.camera_id`` of an image nothing identifies (kept as earlier flights' tables hold it)
 UNKNOWN_CAMERA_ID = "unknown|unknown||"
 MAX_JSON_BYTES = 4 * 1024 * 1024
 
-#: the parts as image metadata records them (``None`` where absent): :meth:`CameraIdentity.from_parts`
-identity_of = CameraIdentity.from_parts
 
-__all__ = [
-    "MAX_JSON_BYTES",
-    "NO_SERIAL",
-    "UNKNOWN_CAMERA_ID",
-    "CameraIdentity",
-    "identity_of",
-    "is_shared_identity",
-    "read_camera_json",
-]
+__all__ = ["MAX_JSON_BYTES", "UNKNOWN_CAMERA_ID", "read_camera_json"]
 
 
 def read_camera_json(path: str | Path, problems: ProblemLog) -> tuple[CameraIdentity | None, Camera | None]:

@@ -1,7 +1,7 @@
 """The certificate document schema, ``aerocal.certificate/1``: the one definition of a valid document.
 
 :class:`CertificateDocument` (pydantic v2, strict: no coercion of text to numbers, no unknown fields) is what
-the engine (:mod:`aerocal.certificate`), the certificate store (:mod:`storage.certificates`) and the exchange
+the engine (:mod:`aerocal.certificates.document`), the certificate store (:mod:`storage.certificates`) and the exchange
 formats (:mod:`aerocal.formats`) validate a document with. :func:`validate_document` runs it and turns the
 first failure into a :class:`CertificateError` of one line: the path of the field (``model.params.f``,
 ``correlation.matrix[0][1]``), what was expected, what was found and the fix::
@@ -47,7 +47,8 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from aerocal.camera import PARAM_NAMES, PARAM_UNITS
-from aerocal.decision import ACCEPTED, REJECTED, STATUSES
+from aerocal.certificates.errors import CertificateError
+from aerocal.certificates.review import ACCEPTED, REJECTED, STATUSES
 
 #: The schema identifier written into, and required from, every certificate document.
 SCHEMA = "aerocal.certificate/1"
@@ -75,10 +76,6 @@ _HEX32 = r"^[0-9a-f]{32}$"
 _SHA256 = r"^[0-9a-f]{64}$"
 _DATE = re.compile(r"^\d{4}-\d{2}-\d{2}$")
 _ONE_LINE = re.compile(r"^[^|\x00-\x1f\x7f]*$")
-
-
-class CertificateError(ValueError):
-    """A certificate document or object is malformed; the message names the field path and the fix."""
 
 
 # =============================================================================== messages
@@ -438,7 +435,7 @@ class ProvenanceSection(_Section):
 
 
 class ReviewSection(_Section):
-    """``review``: the verdict of the calibration's review (:class:`aerocal.decision.Review`)."""
+    """``review``: the verdict of the calibration's review (:class:`aerocal.certificates.review.Review`)."""
 
     status: Annotated[Literal[STATUSES], Expect(" or ".join(f'"{x}"' for x in STATUSES),  # type: ignore[valid-type]
                                                 "write the verdict of the calibration's review")]
@@ -498,7 +495,7 @@ class CameraSection(_Section):
 
 
 class CertificateDocument(_Section):
-    """A certificate document of schema ``aerocal.certificate/1`` (see :mod:`aerocal.certificate`)."""
+    """A certificate document of schema ``aerocal.certificate/1`` (see :mod:`aerocal.certificates.document`)."""
 
     schema_: Annotated[Literal[SCHEMA], Field(alias="schema"),  # type: ignore[valid-type]
                        Expect(f'"{SCHEMA}"', "this aerocal reads certificate schema 1 only; re-export the certificate "
@@ -674,7 +671,7 @@ def _expectation(node: _Node) -> Expect:
     for base, default in _DEFAULTS:
         if isinstance(kind, type) and issubclass(kind, base):
             return Expect(default.expected + (" or null" if nullable else ""), default.fix)
-    return Expect("a valid value", "see the certificate schema in aerocal.certificate")
+    return Expect("a valid value", "see the certificate schema in aerocal.certificates.document")
 
 
 def _message(error: Any, doc: Any) -> str:

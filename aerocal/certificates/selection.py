@@ -1,6 +1,6 @@
 """Which certificate applies to a flight: the selection rules, pure Python over a list of candidates.
 
-:func:`choose_certificate` takes the certificates a store holds (:class:`aerocal.certificate.Certificate`
+:func:`choose_certificate` takes the certificates a store holds (:class:`aerocal.certificates.document.Certificate`
 objects, or :class:`Candidate` records of what the rules read, e.g. built from database rows), the flight's
 camera, date and sensor temperature range, and returns the one to use with the reason, or raises
 :class:`NoCertificateError` saying why none applies. The database store (:mod:`storage.certificates`) and an
@@ -14,7 +14,7 @@ Dates
 -----
 A certificate applies to flights on or after its calibration date: ``conditions.date`` (the date of the data
 it was computed from), or the issue date when the document has none
-(:attr:`aerocal.certificate.Certificate.calibration_date`). Using the date of the data rather than the issue
+(:attr:`aerocal.certificates.document.Certificate.calibration_date`). Using the date of the data rather than the issue
 time lets a certificate computed today from a 2016 flight serve a 2017 flight of the same camera.
 ``max_age_days`` limits the days between calibration and flight.
 
@@ -47,9 +47,9 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate import Certificate
-from aerocal.decision import ACCEPTED
+from aerocal.certificates.document import Certificate
+from aerocal.certificates.identity import CameraIdentity
+from aerocal.certificates.review import ACCEPTED
 
 #: how many leading characters of an id a pin must give at least when it is not a whole id
 MIN_PIN_PREFIX = 4
@@ -281,7 +281,7 @@ def choose_certificate(
 
     Args:
         candidates: the certificates to choose from (any camera: the others are passed over), as engine
-            :class:`~aerocal.certificate.Certificate` objects (their review gives the status) or
+            :class:`~aerocal.certificates.document.Certificate` objects (their review gives the status) or
             :class:`Candidate` records.
         camera: the flight's camera identity (or its key ``"make|model|serial|lens"``).
         flight_date: the flight's date (a date, datetime or ISO text).

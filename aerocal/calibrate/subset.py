@@ -186,27 +186,6 @@ def predict_io_sigmas(
     return sig
 
 
-def central_images(images: pa.Table, n: int) -> np.ndarray:
-    """Image ids of the ``n`` images whose recorded positions lie nearest the block's median position
-    (the first ``n`` ids when positions are missing).
-
-    A square of a block flown in parallel strips holds a stretch of every strip, so the sub-block spans
-    the flight's whole time and sensor-temperature range (what thermal and time hypotheses need) and
-    keeps the strips' overlaps; a corridor keeps its middle stretch.
-    """
-    ids = images.column("image_id").to_numpy()
-    if len(ids) <= n:
-        return ids
-    x = images.column("gnss_x").to_numpy(zero_copy_only=False).astype(float)
-    y = images.column("gnss_y").to_numpy(zero_copy_only=False).astype(float)
-    ok = np.isfinite(x) & np.isfinite(y)
-    if ok.sum() < n:
-        return np.sort(ids)[:n]
-    d = np.hypot(x - np.median(x[ok]), y - np.median(y[ok]))
-    d[~ok] = np.inf
-    return np.sort(ids[np.argsort(d, kind="stable")[:n]])
-
-
 def _empty_obs() -> pa.Table:
     return tables.empty("observations")
 

@@ -36,11 +36,11 @@ degrees Celsius; thermal slopes in pixels per degree Celsius; ``pixel_size_mm`` 
 Values that a certificate imported from a foreign format cannot know (date, image counts, quality
 figures) are ``null``.
 
-The document's schema is :class:`aerocal.certificate_schema.CertificateDocument`, the one definition the
+The document's schema is :class:`aerocal.certificates.schema.CertificateDocument`, the one definition the
 engine, the certificate store and the exchange formats validate with. :meth:`Certificate.from_dict` validates
 strictly: every malformed document raises :class:`CertificateError` with one line naming the field path
 (``model.params.f``), what was expected, what was found and how to fix it. The camera identity is
-:class:`aerocal.camera_identity.CameraIdentity` (re-exported here).
+:class:`aerocal.certificates.identity.CameraIdentity` (re-exported here).
 """
 
 from __future__ import annotations
@@ -67,12 +67,13 @@ from aerocal.camera import (
     ThermalModel,
     thermal_model_from_dict,
 )
-from aerocal.camera_identity import CameraIdentity
-from aerocal.certificate_schema import MAX_FOCAL_IN_SIDES as MAX_FOCAL_IN_SIDES  # re-exported
-from aerocal.certificate_schema import MAX_IMAGE_SIDE_PX as MAX_IMAGE_SIDE_PX  # re-exported
-from aerocal.certificate_schema import MAX_PIXEL_SIZE_MM as MAX_PIXEL_SIZE_MM  # re-exported
-from aerocal.certificate_schema import MAX_TERM_DISPLACEMENT as MAX_TERM_DISPLACEMENT  # re-exported
-from aerocal.certificate_schema import (
+from aerocal.certificates.identity import CameraIdentity
+from aerocal.certificates.review import ACCEPTED, Review
+from aerocal.certificates.schema import MAX_FOCAL_IN_SIDES as MAX_FOCAL_IN_SIDES  # re-exported
+from aerocal.certificates.schema import MAX_IMAGE_SIDE_PX as MAX_IMAGE_SIDE_PX  # re-exported
+from aerocal.certificates.schema import MAX_PIXEL_SIZE_MM as MAX_PIXEL_SIZE_MM  # re-exported
+from aerocal.certificates.schema import MAX_TERM_DISPLACEMENT as MAX_TERM_DISPLACEMENT  # re-exported
+from aerocal.certificates.schema import (
     SCHEMA,
     THERMAL_SLOPE_NAMES,
     CertificateDocument,
@@ -84,7 +85,6 @@ from aerocal.certificate_schema import (
     problem,
     validate_document,
 )
-from aerocal.decision import ACCEPTED, Review
 
 #: Fields left out of :meth:`Certificate.content_hash`: they identify an issue, not the calibration.
 HASH_EXCLUDED_FIELDS: tuple[str, ...] = ("id", "issued", "version", "supersedes")
@@ -125,7 +125,7 @@ def _freeze_seq(s: Iterable | None) -> tuple:
 class ParameterSignificance:
     """Significance test of one parameter: t = value / sigma, significant at the 95 % level, why a
     parameter was dropped from the model (``None`` when it was kept), and where it was measured, its gain on
-    data the fit did not use (:mod:`aerocal.heldout`: relative reduction of the held-out mean squared
+    data the fit did not use (:mod:`aerocal.calibrate.heldout`: relative reduction of the held-out mean squared
     residual, with its standard error) and its t calibrated against the null measured on the block (formal t over
     the square root of the overdispersion of pure-noise hypotheses: formal statistics are optimistic on real
     matches)."""
@@ -133,7 +133,8 @@ class ParameterSignificance:
     t: float
     significant: bool
     dropped: str | None = None
-    held_out_gain: float | None = None  # relative gain on held-out strips (aerocal.heldout), None: not measured
+    #: relative gain on held-out strips (aerocal.calibrate.heldout), None: not measured
+    held_out_gain: float | None = None
     held_out_sigma: float | None = None  # its standard error
     calibrated_t: float | None = None  # t over the square root of the block's measured overdispersion
     #: for a parameter held at its nominal value because the block could not determine it: the standard
@@ -361,7 +362,7 @@ class Quality:
         return d
 
 
-def code_version() -> str:
+def package_version() -> str:
     """The running aerocal version (package metadata), or ``"unknown"`` when it is not installed."""
     try:
         return importlib.metadata.version("aerocal")
@@ -375,7 +376,7 @@ class Provenance:
     of every input, keyed by a name the producer chooses (file name, table name)."""
 
     flow_run: str | None = None
-    code_version: str = field(default_factory=code_version)
+    code_version: str = field(default_factory=package_version)
     inputs: Mapping[str, str] = field(default_factory=FrozenMap)
 
     def __post_init__(self) -> None:
@@ -425,7 +426,7 @@ class Certificate:
 
     @property
     def status(self) -> str:
-        """"accepted" or "rejected" (:class:`aerocal.decision.Review`); a certificate without a review (made
+        """"accepted" or "rejected" (:class:`aerocal.certificates.review.Review`); a certificate without a review (made
         elsewhere and imported) counts as accepted once its values pass the import checks."""
         return self.review.status if self.review is not None else ACCEPTED
 
@@ -486,7 +487,7 @@ class Certificate:
 
     @classmethod
     def from_document(cls, document: CertificateDocument) -> Certificate:
-        """The certificate of an already validated document (:func:`aerocal.certificate_schema.validate_document`),
+        """The certificate of an already validated document (:func:`aerocal.certificates.schema.validate_document`),
         built without validating it a second time."""
         cert = object.__new__(cls)
         for name, value in _fields_of(document).items():
@@ -654,7 +655,7 @@ class Certificate:
 # =============================================================================== checks and document reading
 def validate_camera(camera: Camera) -> None:
     """Raise :class:`CertificateError` naming the field when ``camera`` holds a value no real frame camera
-    has (non-finite, or outside the bounds of :mod:`aerocal.certificate_schema`): a nominal camera from
+    has (non-finite, or outside the bounds of :mod:`aerocal.certificates.schema`): a nominal camera from
     ``camera.json`` gets the checks a certificate gets."""
     params = {n: float(getattr(camera, n)) for n in PARAM_NAMES}
     for n, x in params.items():
@@ -780,7 +781,7 @@ __all__ = [
     "Provenance",
     "Quality",
     "ThermalCalibration",
-    "code_version",
+    "package_version",
     "sigmas_and_correlation",
     "validate_camera",
 ]

@@ -35,6 +35,7 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, AdjustmentError, select_images
+from aerocal.adjust.strategy import central_images
 from aerocal.camera import Camera
 from aerocal.diagnose.attitude import AttitudeOffset, mean_rotation_covariance, offset_statistics
 from aerocal.diagnose.engine import DiagnoseConfig, diagnose
@@ -43,7 +44,6 @@ from aerocal.diagnose.hypotheses import velocities
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.diagnose.model import fit_baseline, image_strips, image_times_s
 from aerocal.geometry import small_rotation
-from aerocal.subset import central_images
 
 #: control GCPs the offset needs in the block (a translation of the datum is determined by three points)
 MIN_CONTROL = 3

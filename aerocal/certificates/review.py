@@ -5,7 +5,7 @@ certificate, naming an effect) asks three questions, and where the answer is no 
 model is kept and the reason said:
 
 1. **Is it determined on this block?** Before the self-calibration, the precision of f, cx and cy is
-   predicted from the block's geometry (:func:`aerocal.subset.predict_io_sigmas`: recorded poses, a tie
+   predicted from the block's geometry (:func:`aerocal.calibrate.subset.predict_io_sigmas`: recorded poses, a tie
    grid on the terrain plane, the GNSS and GCP weights). A parameter whose predicted sigma is large
    against the prior knowledge of it (the nominal camera) stays at the nominal value: a flat nadir block
    without GCPs cannot tell f from the flying height, and freeing it there gives f 2x off with a sigma
@@ -17,7 +17,7 @@ model is kept and the reason said:
    ``max_corner_distortion`` of their radius, thermal slopes below ``max_thermal_slope`` (relative to f per
    degC: ten times a non-athermalised germanium singlet's 5 um/degC on 39 mm).
 3. **Does it predict data the fit did not use?** A thermal slope is kept only when a k-fold over strips
-   (:mod:`aerocal.heldout`) shows a held-out gain beyond ``held_out_sigmas`` standard errors; check points
+   (:mod:`aerocal.calibrate.heldout`) shows a held-out gain beyond ``held_out_sigmas`` standard errors; check points
    the calibration block sees must agree with their predicted accuracy (rho below ``max_check_rho``).
 
 :func:`review_calibration` applies 2 and 3 to a finished self-calibration and returns a :class:`Review`:
@@ -134,7 +134,7 @@ def undetermined_io(predicted: dict[str, float], camera: Camera, config: Decisio
     and p1, p2 with an undetermined principal point (decentring distortion takes its error).
 
     ``predicted``: standard deviations (pixels) of the self-calibration's parameters on the block: predicted
-    from its geometry alone before the fit (:func:`aerocal.subset.predict_io_sigmas`), or the fit's own
+    from its geometry alone before the fit (:func:`aerocal.calibrate.subset.predict_io_sigmas`), or the fit's own
     calibrated by the block's overdispersion after it (``what`` names which, for the reason).
     """
     config = config or DecisionConfig()
