@@ -40,10 +40,9 @@ PARAM_UNITS: dict[str, str] = {
 
 
 #: Rows per pass of the element-wise distortion maths on long inputs (:meth:`Camera.distort`,
-#: :meth:`Camera.undistort`): the temporaries of a pass stay in the cache. Measured on 12 M points of the
-#: conte-city camera: distort 1.08 s in one pass against 0.15 s by 2^14 rows (0.41-0.47 s by 2^16-2^20),
-#: undistort 7.2-8.8 s against 2.1 s; 1.5 M points in one pass took 0.025 s, so the long pass is not the
-#: arithmetic but every temporary streamed through memory and faulted in afresh.
+#: :meth:`Camera.undistort`): the temporaries of a pass stay in the cache. What makes one long pass slow is
+#: not the arithmetic but every temporary streamed through memory and faulted in afresh
+#: (``benchmarks/history/engine_measurements.md``).
 ROW_CHUNK = 1 << 14
 
 
@@ -172,8 +171,8 @@ class Camera:
             return _by_rows(lambda t: self.undistort(t, iterations, tol), target).reshape(shape)
         x = target[:, 0].copy()
         y = target[:, 1].copy()
-        # each iteration on the points still moving only (6 M observations of a 12,800-image block: 2.4 s a
-        # call iterating on all of them until the slowest converged); long inputs go by ROW_CHUNK rows
+        # each iteration on the points still moving only, not on all of them until the slowest converged;
+        # long inputs go by ROW_CHUNK rows
         # A point beyond where the distortion polynomial can be inverted (far outside the image of a strongly
         # distorted camera) diverges: it stops at NaN, without overflow warnings, and is iterated no more.
         act = np.arange(len(x))
@@ -285,7 +284,7 @@ def to_pycolmap(camera: Camera, camera_id: int = 1, drop_skew: bool = False):
     k4..k6 = 0. Skew ``b2`` has no counterpart in any COLMAP model: a non-zero b2 raises unless
     ``drop_skew=True``, which discards it (and is then not a faithful conversion).
     """
-    # lazy: pycolmap costs ~0.7 s to import (measured) and every engine module imports aerocal.camera
+    # lazy: pycolmap is slow to import and every engine module imports aerocal.camera
     import pycolmap
 
     if camera.b2 != 0.0 and not drop_skew:

@@ -7,12 +7,15 @@ flight plan without effects on as many seeds, and what was named there. A single
 found; this says how often, which is what a test bound or an acceptance criterion must be set against.
 
 Run: ``python -m benchmarks.detection_rate_bench [--preset xt2-survey] [--wind 2.5,1]
-[--effect rolling_shutter=0.03 --effect gnss_time_offset=0.3] [--seeds 11] [--free 8]``.
+[--effect rolling_shutter=0.03 --effect gnss_time_offset=0.3] [--seeds 11] [--free 8] [--strips 6]``
+(``--strips``: the preset's plan with this many strips, the area widened by as many strip spacings: the rate
+against the block's size).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import numpy as np
@@ -22,6 +25,18 @@ from benchmarks.common import record
 
 def _named(summary: dict) -> dict[str, list[float]]:
     return {f["name"]: [float(v) for v in f["values"]] for f in summary.get("findings") or []}
+
+
+def with_strips(spec, n_strips: int):
+    """``spec`` flown with ``n_strips`` strips: the planned area widened across the strips by the spacing the
+    side overlap gives (the footprint's across-track width at the flying height x (1 - side overlap))."""
+    plan = spec.plan
+    across = spec.camera_nominal.height if plan.direction == "ew" else spec.camera_nominal.width
+    spacing = across / spec.camera_nominal.f * plan.height_agl_m * (1.0 - plan.side_overlap)
+    extra = spacing * (n_strips - plan.n_strips)
+    ew, ns = spec.area_m
+    area = (ew, ns + extra) if plan.direction == "ew" else (ew + extra, ns)
+    return spec.replace(plan=dataclasses.replace(plan, n_strips=n_strips), area_m=area)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -38,10 +53,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--effect", action="append", default=None, help="NAME=VALUE[,VALUE], repeatable")
     ap.add_argument("--seeds", type=int, default=11, help="flights with the effects (seeds 101, 102, ...)")
     ap.add_argument("--free", type=int, default=8, help="effect-free flights (seeds 201, 202, ...)")
+    ap.add_argument("--strips", type=int, default=0, help="strips of the plan (0: the preset's)")
     args = ap.parse_args(argv)
     effects = dict(parse_effect(text) for text in (args.effect or ["rolling_shutter=0.03", "gnss_time_offset=0.3"]))
     wind = tuple(float(v) for v in args.wind.split(","))
     spec = PRESETS[args.preset].flown(wind)
+    if args.strips:
+        spec = with_strips(spec, args.strips)
 
     def run(seed: int, hidden: dict) -> tuple[dict[str, list[float]], float]:
         t0 = time.perf_counter()
@@ -58,7 +76,8 @@ def main(argv: list[str] | None = None) -> None:
         print(f"effect-free seed {seed} ({took:.0f} s): {free[seed]}", flush=True)
 
     n = len(with_effects)
-    lines = [f"{args.preset} in a wind {wind} m/s, observations mode, the product's own calibration; hidden: "
+    size = f"{spec.plan.n_strips} strips of {spec.plan.images_per_strip} images"
+    lines = [f"{args.preset} ({size}) in a wind {wind} m/s, observations mode, the product's own calibration; hidden: "
              f"{', '.join(f'{k} {v}' for k, v in effects.items())}; seeds 101-{100 + n}", "",
              "| effect | named | within 25 % | estimates mean +- std | hidden |", "|---|---|---|---|---|"]
     for name, value in effects.items():

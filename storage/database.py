@@ -91,6 +91,13 @@ class Database:
         """Close every pooled connection."""
         self.engine.dispose()
 
+    def __enter__(self) -> Database:
+        """``with connect(url) as db:``: the pooled connections are closed when the block ends, however."""
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.dispose()
+
 
 def default_sqlite_path() -> Path:
     """``$XDG_DATA_HOME/aerocal/aerocal.db``, with ``XDG_DATA_HOME`` defaulting to ``~/.local/share``."""

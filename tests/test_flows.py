@@ -302,7 +302,7 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
     assert again.reused and again.outputs == matched.outputs
     from aerocal.pipeline import runner as runner_module
 
-    monkeypatch.setattr(runner_module, "code_version", lambda: "another version of the code")
+    monkeypatch.setattr(runner_module, "source_digest", lambda: "another version of the code")
     other = match_step(runner, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
     assert not other.reused, "a step cached by other code was reused"
 

@@ -384,9 +384,9 @@ def adjust(
 
     final = None  # the least-squares result with the final tie sigma, when it is already at hand
     if first is not None and config.estimate_tie_sigma:
-        # the robust pass's residuals estimate the tie sigma only as well as that pass converged (seneca's
-        # calibration, nominal camera 23 px off in f: x3.9 after 15 robust iterations, 0.29 after the least
-        # squares): re-estimate from the least-squares residuals until the factor is within TIE_SIGMA_TOLERANCE
+        # the robust pass's residuals estimate the tie sigma only as well as that pass converged (a nominal
+        # camera far off in f leaves it far off): re-estimate from the least-squares residuals until the factor
+        # is within TIE_SIGMA_TOLERANCE
         for _ in range(TIE_SIGMA_ROUNDS):
             trial = run(dataclasses.replace(config, adaptive=False))
             factor = float(np.sqrt(_tie_variance_factor(trial, observations)))
@@ -540,7 +540,7 @@ def screened_rows(
     place have NaN residuals and NaN weights), and that still share their track with another such row.
 
     Keeping the robustly down-weighted and unplaced observations gave a re-adjustment of real seneca a
-    sigma0 of 32 where the block adjustment had 1.02.
+    sigma0 many times the block adjustment's (``benchmarks/history/engine_measurements.md``).
     """
     residuals = np.asarray(residuals, dtype=float).reshape(-1, 2)
     weight = np.asarray(obs_weight, dtype=float)
@@ -651,8 +651,8 @@ def _intersect_left_out(
 def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
     """``start`` with the poses and tie points of the robust pass ``first`` where it has them.
 
-    The least-squares adjustment after the blunders are removed then starts next to its solution (the
-    818-image city block: 5 iterations instead of 10, ~7 s each). The IO keeps its starting value: a
+    The least-squares adjustment after the blunders are removed then starts next to its solution and needs
+    fewer iterations. The IO keeps its starting value: a
     parameter the adaptive selection drops must stay at the nominal or certificate value, not at the
     robust pass's estimate.
     """
@@ -664,9 +664,8 @@ def warm_start(block: Block, start: State, poses: pa.Table, points: pa.Table) ->
     ``points`` tables, world coordinates) where they have them; IO, the recorded observations and their
     weights are unchanged. A tie point the ``points`` table lacks is intersected again from the poses so set
     (where its rays meet in front of the cameras): left where the recorded GNSS/IMU put it, it is metres off
-    the adjusted poses. On real seneca 1251 of 66,601 tracks were missing from the block adjustment's points;
-    from the records they gave the least-squares re-adjustment of the diagnosis a start at sigma0 87, and
-    2.5 % of its tie observations, 80 % of two images', stayed beyond the 99.9 % point in its end state."""
+    the adjusted poses: on real seneca such tracks, started from the records, left some of the diagnosis
+    re-adjustment's tie observations beyond the blunder threshold (``benchmarks/history/engine_measurements.md``)."""
     st = start.copy()
     where = {int(k): n for n, k in enumerate(block.image_ids.tolist())}
     pid = poses.column("image_id").to_numpy()

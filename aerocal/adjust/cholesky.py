@@ -2,12 +2,11 @@
 
 The reduced camera system of a block is symmetric positive definite once GNSS/attitude priors or ground
 control fix the datum. SuperLU (scipy), which the adjustment used alone before, is an LU factorisation: it
-stores ``L`` and ``U`` and does twice a Cholesky's work, and it runs on one core. PARDISO (mtype 2, real
-symmetric positive definite) factorises the upper triangle as ``L L^T`` with supernodes on both cores, in
-its own METIS nested-dissection order. Measured on the conte-city plans' first fixed-IO systems (Jacobi
-scaled, the machine shared with one other job): 3200 images (19,200 unknowns) 0.16 s against 0.68 s for
-SuperLU in aerocal's METIS order (:func:`aerocal.adjust.solver.camera_ordering`), 12,800 images 1.04 s against
-4.4-5.4 s; the solutions equal to 3e-14 relative.
+stores ``L`` and ``U`` and does twice a Cholesky's work, and it runs in one thread. PARDISO (mtype 2, real
+symmetric positive definite) factorises the upper triangle as ``L L^T`` with supernodes on every core, in
+its own METIS nested-dissection order: several times faster than SuperLU in aerocal's METIS order
+(:func:`aerocal.adjust.solver.camera_ordering`) on city-scale systems, with the same solutions to rounding
+(``benchmarks/history/engine_measurements.md``).
 
 The library comes from the ``mkl`` wheel (x86-64; ``AEROCAL_MKL_RT`` names another ``libmkl_rt`` to load
 first). Where it is missing, :func:`available` is False and the adjustment keeps SuperLU; a system PARDISO
@@ -78,8 +77,7 @@ def _upper_triangle(A, pattern: tuple | None = None) -> tuple:
     returned as it is, with the indices it holds, when ``A`` has the same one: only ``data`` is new.
 
     A symmetric CSC matrix's arrays are its CSR arrays too, so the triangle is a mask over its entries
-    instead of scipy's ``triu`` through COO (25,600-image reduced camera system, 13.7 M entries: its COO to
-    CSR conversion alone took 0.15 s a call in the adjustment's profile)."""
+    instead of scipy's ``triu`` through COO, whose conversion back to CSR copies the whole matrix."""
     A = A if sp.issparse(A) and A.format in ("csr", "csc") else sp.csr_matrix(A)
     if not A.has_canonical_format:
         A = A.copy()
@@ -123,9 +121,8 @@ class PardisoCholesky:
     def refactor(self, A) -> bool:
         """Factorise ``A`` in place of the factor held, keeping the analysis (ordering and symbolic factor)
         when ``A`` has the held matrix's pattern (the reduced camera systems of one block, step after step):
-        PARDISO's numerical phase alone. 25,600-image conte-city block (153,600 unknowns, 13.7 M entries):
-        analysis 0.9 s, numerical factorisation 1.9 s. Returns False, the held factor unchanged, when the
-        pattern differs."""
+        PARDISO's numerical phase alone (the analysis is a large share of a factorisation). Returns False, the
+        held factor unchanged, when the pattern differs."""
         indptr, indices, data, pattern = _upper_triangle(A, self._pattern)
         if pattern is not self._pattern:
             return False

@@ -105,7 +105,7 @@ def triangulate_check_points(block: Block, solution: Solution, scale: bool = Tru
     var0 = solution.sigma0**2 if scale else 1.0
     # the camera term G B Cov(cams) B^T G^T = V^T S^-1 V with V = (G B)^T scattered onto the camera-side
     # unknowns: three solves per check point, all in one multi-column solve, instead of the ~6 x (images
-    # seeing it) columns of the inverse (3200-image conte-city block, 51 check points: 8.6 s -> 0.5 s)
+    # seeing it) columns of the inverse
     good = np.flatnonzero(ok)
     n_camera = solution.cov_camera.shape[0]
     V = np.zeros((n_camera, 3 * len(good)))

@@ -21,11 +21,10 @@ are: the per-observation blocks (the bulk: ~1.5 kB per observation) and the Schu
 :class:`SubBlock` actor each, in parallel); the caller holds the reduced camera system (~36 numbers per pair
 of images sharing points) and the block's arrays.
 
-Measured against eliminating each sub-block's interior images too and solving only the boundary images'
-dense system (the textbook nested dissection): on 800 conte-city images in 2 sub-blocks the dense
-interior-boundary solves (SuperLU, 534 right-hand sides) took 2.9 s of a 16 s adjustment (in-process
-profile), and on 2 Dask workers that design took 14.8 s against the single solve's 11.8 s; summing the sparse
-shares instead, the same block took 9.5 s against 14.8 s (``benchmarks/partition_bench.py``).
+Summing the sub-blocks' sparse shares was measured against eliminating each sub-block's interior images too and
+solving only the boundary images' dense system (the textbook nested dissection), whose dense interior-boundary
+solves made it slower than the single adjustment (``benchmarks/partition_bench.py``; the figures:
+``benchmarks/history/engine_measurements.md``).
 """
 
 from __future__ import annotations

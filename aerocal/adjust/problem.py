@@ -62,11 +62,9 @@ class AdjustConfig:
       the tracks with the most rays, a few per cell of a grid over every image), then intersect the
       others with the adjusted poses and IO held fixed, so the points table and the residuals still cover
       every track. Default ``None`` (every track adjusted); the flow thins the block adjustment of
-      matched flights (``ProcessConfig.matched_tie_thinning``). On the 100 central frames of the rendered conte-city
-      flight, 4 tracks per cell of 8 x 6 keep 27 % of the observations: the self-calibration of the
-      44-image sub-block takes 4.5 s instead of 11.5 s and the fixed-IO block 3.7 s instead of 6.2 s (the
-      intersection of the other tracks included); check-point RMSE 0.385 / 0.473 / 2.169 m (E / N / Up)
-      against 0.391 / 0.476 / 2.186 m with every track; sigma of f 1.41 px against 1.35 px.
+      matched flights (``ProcessConfig.matched_tie_thinning``). On a rendered block, 4 tracks per cell of 8 x 6
+      kept about a quarter of the observations at the same check-point accuracy and in about half the time
+      (``benchmarks/history/engine_measurements.md``).
     * ``max_iterations`` / ``tolerance`` / ``step_tolerance``: Levenberg-Marquardt stops when the relative
       decrease of the cost falls below ``tolerance`` (default 1e-10), when the step of the camera-side
       unknowns (poses, IO, slopes) is below ``step_tolerance`` (default 1e-3) of their standard deviation
@@ -177,8 +175,7 @@ def _col(table: pa.Table, name: str, what: str) -> np.ndarray:
 
 def unique_ids(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``np.unique(ids, return_inverse=True)`` for int64 ids; ids within a range of a few times their number
-    (the track ids of matching and simulation) by a presence mask instead of a sort (not timed alone: the
-    np.unique calls of a 25,600-image adjustment took 3.2 s in all before)."""
+    (the track ids of matching and simulation) by a presence mask instead of a sort."""
     ids = np.asarray(ids, dtype=np.int64)
     if not len(ids):
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
@@ -267,7 +264,7 @@ def build_block(
     sorted_ids = image_ids[id_order]
 
     def image_index(ids: np.ndarray, what: str) -> np.ndarray:
-        # a sorted search, not a dict lookup per row (1.5 M observations of 12,800 images: 0.12 s against 0.16 s)
+        # a sorted search, not a dict lookup per row
         ids = np.asarray(ids, dtype=np.int64)
         if not N:
             out = np.full(len(ids), -1, dtype=np.int64)
@@ -321,8 +318,7 @@ def build_block(
     # tie points numbered, and their observations stored, along a reverse Cuthill-McKee order of the images
     # (:func:`point_visit_rank`): the adjustment's per-observation passes then read and write each point's
     # and each image's rows in sequence. In the order of their track ids, the points of a simulated block lie
-    # at random across it, and every pair of a point's observations writes far from the last (3200-image
-    # conte-city block: one elimination pass 1.17 s in track-id order, 0.33 s in this one)
+    # at random across it, and every pair of a point's observations writes far from the last
     o_row = np.arange(len(o_pt))
     if n_tie:
         rank = point_visit_rank(image_graph(o_img, o_pt, N, n_tie), o_img, o_pt, n_tie)

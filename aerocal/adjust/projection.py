@@ -236,16 +236,16 @@ def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarr
     observation's pose and point in place instead of gathering (M, 3, 3) rotations first.
 
     ``dtemp_img`` (N,): each image's temperature minus the reference; ``R`` (N, 3, 3), ``C`` (N, 3), ``X``
-    (P, 3). Measured on the 800-image conte-city block (382k observations): 0.19 s a call with Jacobians
-    through :func:`project`'s batched numpy products (~40 % of an adjustment iteration); the agreement with
-    :func:`project` is checked in ``tests/test_adjust_core.py``.
+    (P, 3). It replaces :func:`project`'s batched numpy products, which were a large share of an adjustment
+    iteration (``benchmarks/history/engine_measurements.md``); the agreement with :func:`project` is checked
+    in ``tests/test_adjust_core.py``.
     ``d_rot_out`` (M, 2, k >= 3) and ``d_point_out`` (M, 2, 3), C-contiguous float64: arrays to write the
     Jacobians into (``d_rot`` into the first 3 columns of the last axis) instead of new ones, e.g. the
     adjustment's image blocks of the last iteration (:func:`aerocal.adjust.schur_kernels.jacobian_blocks`).
     ``scale`` (M,) and ``Hpp`` (P, 3, 3, zeroed by the caller), with ``d_rot_out`` (M, 2, 6): the loop also
     does :func:`aerocal.adjust.schur_kernels.jacobian_blocks`' work (the returned ``d_rot`` and ``d_point``
     are then the scaled blocks, ``d_rot_out`` the whole image block, ``Hpp`` summed): one pass over the
-    observations less (25,600 images: 0.47 s a step)"""
+    observations less."""
     M = len(image)
     uv, depth = np.empty((M, 2)), np.empty(M)
     shape = (M, 2, 3) if jacobians else (0, 2, 3)

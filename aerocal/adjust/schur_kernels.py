@@ -4,21 +4,20 @@ Eliminating the points of a bundle adjustment (Schur complement) leaves, for eve
 a common point ``p``, the 6 x 6 block ``- W_a Hpp_p^-1 W_b^T`` (``W_m = Ji_m^T Jx_m``, observation ``a`` in
 the first image, ``b`` in the second), summed over the points. The 800-image conte-city block (382k
 observations, 123k points) has 878k such pairs (unordered, each observation with itself included).
-numpy formed them as batched 6 x 3 by 3 x 6 products (~0.1 GFLOP/s on these shapes), with gathers and a
-sort of the pair keys every iteration: 1.4 s a call. This is the loop of Ceres' ``SchurEliminator``, here
+numpy formed them as batched 6 x 3 by 3 x 6 products, slow on such small shapes, with gathers and a sort of
+the pair keys every iteration. This is the loop of Ceres' ``SchurEliminator``, here
 compiled by numba: one pass over the points, each unordered pair once (the mirrored block is its
 transpose), written in place into a block layout found once per block (:func:`image_pair_layout`) by a
 binary search of the pair's row; the per-observation sums (each image's own ``J^T J`` and ``J^T r``, the
-points' gradients and inverse blocks) in the same pass. Measured on that block: 0.22 s in one thread, 0.08 s
-in two (outputs touched first); the whole fixed-IO adjustment 2.4 s with the compiled projection beside it
-(21.5 s with the numpy pair sums), against pycolmap's 6.3 s on the same problem
-(``benchmarks/colmap_ba_bench.py``, ``benchmarks/RESULTS.md``). The agreement with the general sparse
-products is checked in ``tests/test_adjust_core.py``.
+points' gradients and inverse blocks) in the same pass. The measurements that justified it are in
+``benchmarks/history/engine_measurements.md``; the comparison with pycolmap's bundle adjustment on the same
+problem is ``benchmarks/colmap_ba_bench.py``. The agreement with the general sparse products is checked in
+``tests/test_adjust_core.py``.
 
 The points are visited in an order that keeps the blocks being written few (:func:`point_visit_rank`):
 visited by their index, the points of a simulated or matched block jump across it, and every pair writes
-to rows far from the last (3200-image conte-city block: 1.17 s a pass; 0.33 s visited along a reverse
-Cuthill-McKee order of the images).
+to rows far from the last, out of the cache; visited along a reverse Cuthill-McKee order of the images, the
+pairs write to few blocks at a time.
 
 Conventions: observations are rows of the block's observation tables; ``order`` lists them grouped by point,
 the points in the visiting order ``visit`` (``pstart[q]:pstart[q + 1]`` are point ``visit[q]``'s); image blocks
@@ -65,8 +64,8 @@ def _counting_order(keys, starts, out):  # pragma: no cover - compiled
 
 def stable_order(keys: np.ndarray, n_keys: int) -> np.ndarray:
     """``np.argsort(keys, kind="stable")`` for integer ``keys`` in ``[0, n_keys)``, by counting (one pass, no
-    comparison sort): 12.4 M random keys in 4.6 M values, 0.67 s against 2.0 s for numpy's stable argsort (the
-    argsorts of a 25,600-image adjustment took 4.1 s in all before)."""
+    comparison sort), several times faster than numpy's stable argsort on an adjustment's keys
+    (``benchmarks/history/engine_measurements.md``)."""
     keys = np.ascontiguousarray(keys, dtype=np.int64)
     starts = np.zeros(n_keys + 1, dtype=np.int64)
     np.cumsum(np.bincount(keys, minlength=n_keys), out=starts[1:])
@@ -252,10 +251,10 @@ def jacobian_blocks(point: np.ndarray, Ji: np.ndarray, Jx: np.ndarray, scale: np
     On entry ``Ji`` (M, 2, 6) holds d(uv)/dw in its first 3 columns and ``Jx`` (M, 2, 3) d(uv)/dX (both as
     :func:`aerocal.adjust.projection.project_observations` writes them with ``d_rot_out=Ji``,
     ``d_point_out=Jx``); on return ``Ji`` is the image's block in its (w, C) columns (``d(uv)/dC = -d(uv)/dX``)
-    and ``Jx`` the point's, both scaled. On 382k observations in point order numpy's strided products and its
-    batched (3 x 2) by (2 x 3) ones with a sparse sum took ~0.1 s, this loop ~0.01 s. Written in place of the
-    projection's own arrays: no (M, 2, 3) array more per iteration (0.6 GB at 25,600 images), and the same
-    arrays serve every iteration (:meth:`aerocal.adjust.solver.Problem.residuals`)."""
+    and ``Jx`` the point's, both scaled. One compiled pass instead of numpy's strided products and batched
+    (3 x 2) by (2 x 3) ones with a sparse sum. Written in place of the projection's own arrays: no (M, 2, 3)
+    array more per iteration, and the same arrays serve every iteration
+    (:meth:`aerocal.adjust.solver.Problem.residuals`)."""
     f8 = np.float64
     if not (Ji.dtype == f8 and Jx.dtype == f8 and Ji.flags.c_contiguous and Jx.flags.c_contiguous):
         raise ValueError("Ji and Jx must be C-contiguous float64 arrays")
@@ -284,9 +283,9 @@ def points_from_images(layout: PairLayout, image: np.ndarray, Ji: np.ndarray, Jx
                        dc_images: np.ndarray) -> np.ndarray:
     """``Hcp^T dc`` of the image columns (P, 3): per point, the sum over its observations of ``W_m^T dc_i``
     with ``W_m = Ji_m^T Jx_m`` (``dc_images`` (N, 6)): the back-substitution's product, in the points' order
-    (numpy's gathered products and per-point bincounts: 25 ms on 382k observations, this loop ~3 ms). ``W`` is
-    formed here from the Jacobian blocks, not kept from the elimination: (M, 6, 3) was 1.8 GB at 25,600 images,
-    allocated afresh every step."""
+    (one compiled pass instead of numpy's gathered products and per-point bincounts). ``W`` is formed here from
+    the Jacobian blocks, not kept from the elimination: an (M, 6, 3) array would be allocated afresh every
+    step."""
     out = np.zeros((len(layout.pstart) - 1, 3))
     f8 = np.float64
     _points_from_images(layout.order, layout.pstart, layout.visit, np.ascontiguousarray(image, dtype=np.int64),
@@ -308,7 +307,7 @@ class Reduction:
 
 
 #: Threads that share :func:`reduce_points` (the compiled pass releases the GIL): each sums its own points'
-#: pairs into a copy of the blocks, added up after (800-image conte-city block: 0.22 s in one, 0.08 s in two).
+#: pairs into a copy of the blocks, added up after (``benchmarks/history/engine_measurements.md``).
 REDUCE_THREADS = min(4, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1)
 
 
@@ -329,7 +328,7 @@ def reduce_points(layout: PairLayout, image: np.ndarray, Ji: np.ndarray, Jx: np.
             layout.indptr, layout.indices)
     n = max(1, min(threads or REDUCE_THREADS, P // 256 + 1))
     # shared by the threads, so touched here first: page faults of fresh memory in two threads at once wait on
-    # each other (two threads took 0.16 s on 382k observations with untouched outputs, 0.08 s touched; one 0.11 s)
+    # each other, and two threads on untouched outputs were slower than one
     new = np.empty if n == 1 else lambda shape: np.full(shape, 0.0)
     Hpp_inv, gpp = new((P, 3, 3)), new((P, 3))
     work = np.cumsum(np.diff(layout.pstart) ** 2)
@@ -400,8 +399,8 @@ def global_image_coupling(image: np.ndarray, point: np.ndarray, Tg: np.ndarray, 
     """(N, ng, 6): per image, the sum over its observations of ``Tg[point] W_m^T`` (``Tg`` (P, ng, 3), the
     points' ``Hcp_g Hpp^-1``; ``W_m = Ji_m^T Jx_m`` formed from the Jacobian blocks), the global-image part of
     ``Hcp Hpp^-1 Hcp^T``. It replaced
-    numpy einsums over (M, ng, 6) and their per-image sums; with :func:`global_blocks` and the compiled IO
-    Jacobians, the 800-image conte-city self-calibration (8 IO parameters free) went from 13.1 s to 5.4 s."""
+    numpy einsums over (M, ng, 6) and their per-image sums (with :func:`global_blocks` and the compiled IO
+    Jacobians it more than halved a self-calibration's time: ``benchmarks/history/engine_measurements.md``)."""
     out = np.zeros((n_images, Tg.shape[1], 6))
     _global_image_coupling(np.ascontiguousarray(image, dtype=np.int64), np.ascontiguousarray(point, dtype=np.int64),
                            np.ascontiguousarray(Tg, dtype=np.float64), np.ascontiguousarray(Ji, dtype=np.float64),

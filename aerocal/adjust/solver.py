@@ -4,10 +4,10 @@ Why our own solver rather than pyceres: the adjustment needs, besides the soluti
 camera-side normal matrix (IO, thermal slopes and poses) to give the IO covariance and the *marginal*
 covariance of check points; with the Schur complement both fall out of the solve at no extra cost, and
 every residual (tie points, GCPs, GNSS and attitude priors, thermal focal) is evaluated vectorised in
-numpy instead of one Python ``pyceres.CostFunction`` call per observation (~10 us each). Measured on
-``conte-calibration`` (15.5k observations, 44 images, IO free): 4-8 iterations, 0.5-1.7 s in all on a
-loaded 2-core machine. The analytic Jacobians are checked against central differences and the IO sigmas
-against the scatter of estimates over 20 simulated seeds (``tests/test_adjust_core.py``).
+numpy instead of one Python ``pyceres.CostFunction`` call per observation, whose call overhead would dominate
+(measurements: ``benchmarks/history/engine_measurements.md``). The analytic Jacobians are checked against
+central differences and the IO sigmas against the scatter of estimates over 20 simulated seeds
+(``tests/test_adjust_core.py``).
 The tie-point projection is isolated in :func:`aerocal.adjust.projection.project` so that a C++ path
 (``pycolmap.cost_functions``) can replace it for city-scale blocks.
 
@@ -157,7 +157,7 @@ class ObsView:
     within a point, the points in their visiting order, :func:`point_visit_rank`): the order of the rows of
     :class:`ObsBlocks`. The compiled passes over them (:mod:`aerocal.adjust.schur_kernels`,
     :func:`project_observations`) then read each point's observations and the point itself in sequence
-    instead of at random (the fixed-IO solve of the 800-image conte-city block: 3.8 s -> 3.4 s, warm)."""
+    instead of at random, so that they come from the cache rather than from memory."""
 
     order: np.ndarray  # (M,) the block's rows in this order
     image: np.ndarray  # (M,) int64
@@ -228,7 +228,7 @@ class Problem:
     def _buffer(self, name: str, shape: tuple[int, ...]) -> np.ndarray:
         """A float64 array of ``shape`` kept for the next call (its content is not kept): the per-observation
         blocks of the Jacobian are formed again at every step of an adjustment, and new arrays of that size
-        cost page faults on every call (25,600 images: 1.8 GB of them a step)."""
+        cost page faults on every call."""
         a = self._work.get(name)
         if a is None or a.shape != shape:
             self._work.pop(name, None)
@@ -245,8 +245,7 @@ class Problem:
         if self._view is None:
             b = self.b
             G = image_graph(b.obs_image, b.obs_point, b.n_images, b.n_points)
-            # formed again rather than carried on the Block: 0.04 s for the graph and 0.004 s for the order on
-            # the 3200-image conte-city block (1.5 M observations)
+            # formed again rather than carried on the Block: both cost little next to one step
             self._graph = G, point_visit_rank(G, b.obs_image, b.obs_point, b.n_points)
             self._view = ObsView.by_point(b, self._graph[1])
         return self._view
@@ -278,8 +277,7 @@ class Problem:
         :func:`schur_complement` needs, without the sparse matrices' indices (~0.5 kB per observation), and
         ``res_px`` and ``w`` are in point order (:class:`ObsView`; :meth:`in_block_order` puts them back):
         an adjustment's steps need neither, and each (M,)-sized array a step does not form saves its page
-        faults (~1.2 s per GB on this VM, 0.1 GB per (M,) array at 25,600 images). Otherwise ``res_px`` and
-        ``w`` are in the block's order."""
+        faults. Otherwise ``res_px`` and ``w`` are in the block's order."""
         b, lay = self.b, self.layout
         if jac and sparse:
             view, pair_layout = None, None
@@ -355,8 +353,8 @@ class Problem:
         if not jac:
             return cost, res_out, w_out
         # ---- Jacobian (rows scaled by sqrt of the robust weight for IRLS)
-        # (M,)-sized temporaries are formed only where they differ from what is at hand: at 6 M observations
-        # each fresh (M, 2) array cost ~0.1-0.3 s a call in page faults on this VM
+        # (M,)-sized temporaries are formed only where they differ from what is at hand: each fresh one costs
+        # page faults on every call
         M = len(i)
         sw = np.sqrt(w) * inv_sigma if robust else inv_sigma
         Jg = np.concatenate([d_io[:, :, lay.io_free], d_slope[:, :, lay.slope_free]], axis=2) * sw[:, None, None]
@@ -567,7 +565,7 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
     else:
         Hcp_g = np.zeros((0, P, 3))
         # the system is symmetric (each image pair's block is written with its transpose, the image's own
-        # block is symmetric), so its CSR arrays are its CSC arrays: no conversion (0.14 s a step at 25,600)
+        # block is symmetric), so its CSR arrays are its CSC arrays: no conversion
         S = sp.csc_matrix((S_ii.data, S_ii.indices, S_ii.indptr), shape=S_ii.shape)
 
     def hcp_t(dc: np.ndarray) -> np.ndarray:
@@ -596,10 +594,8 @@ def _structured_schur(Hpp, lam: float, b: ObsBlocks):
 def _sum_by(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """``out[k]``: the sum of ``values[index == k]`` for (M, c) values: (n, c).
 
-    Few columns: one ``np.bincount`` per column; more: one sparse (n, M) indicator product for all of them.
-    Measured on 1.5 M rows into 3200 groups: 3 columns 0.05 s by bincount, 0.14 s by the product; 6 columns
-    0.15 / 0.14 s; 36 columns 0.86 / 0.26 s (on a 60-image block with IO free the bincounts were 0.96 s of a
-    4.4 s adjustment)."""
+    Few columns: one ``np.bincount`` per column; more: one sparse (n, M) indicator product for all of them,
+    the cheaper of the two beyond three columns (``benchmarks/history/engine_measurements.md``)."""
     values = np.asarray(values, dtype=float)
     if values.shape[1] <= 3:
         return np.stack([np.bincount(index, weights=values[:, c], minlength=n) for c in range(values.shape[1])], 1)
@@ -643,8 +639,8 @@ def camera_ordering(S, n_global: int) -> np.ndarray:
 
 
 def jacobi_scaled(S, d: np.ndarray):
-    """``D^-1 S D^-1`` for ``D = diag(d)``, in ``S``'s sparse format (CSR or CSC), by scaling its entries (the
-    two sparse products it replaces took 1.2 s on the 25,600-image reduced camera system, 13.7 M entries)."""
+    """``D^-1 S D^-1`` for ``D = diag(d)``, in ``S``'s sparse format (CSR or CSC), by scaling its entries
+    instead of two sparse products, each of which forms a new matrix."""
     inv = 1.0 / d
     major = np.repeat(inv, np.diff(S.indptr))  # the row (CSR) or column (CSC) of each entry, scaled
     out = S.copy()
@@ -658,16 +654,14 @@ def factorise(S, n_global: int | None = None, earlier=None) -> tuple:
     ``D = diag(d)`` and ``f.solve`` applying ``F^-1``; ``f`` is ``None`` when ``S`` is exactly singular.
 
     First choice: the Cholesky factor by MKL PARDISO (:mod:`aerocal.adjust.cholesky`; ``S`` is symmetric
-    positive definite once GNSS/attitude priors or GCPs fix the datum), on both cores: 12,800 images,
-    1.0-1.3 s against 4.4-5.4 s for the SuperLU factor below, one solve 0.025 s against 0.05 s.
+    positive definite once GNSS/attitude priors or GCPs fix the datum), multi-threaded and several times
+    faster than the SuperLU factor below on city-scale blocks (``benchmarks/history/engine_measurements.md``).
     Where MKL is missing, or PARDISO finds ``S`` not positive definite: SuperLU (scipy) with no pivoting
     off the diagonal, so the factor keeps the fill of a sparse Cholesky. Its order: with ``n_global``
     (``S`` laid out as :class:`Layout`'s camera side), :func:`camera_ordering`; else SuperLU's symmetric
-    minimum-degree ordering of ``S + S^T``. Measured on conte-city plans, one SuperLU factorisation of the
-    fixed-IO system: 3200 images 0.91 s (9.8 M entries in L + U) by nested dissection against 1.11 s (10.6 M)
-    by minimum degree, 12,800 images 6.1 s (51.9 M) against 14.0 s (60.4 M); minimum degree itself against
-    scipy's default COLAMD, whole adjustments: 800 images 16.8 s against 14.6 s, 2745 images 57.0 s against
-    68.5 s; the dense matrix and LAPACK solve it replaces took 17.9 s / 2.0 GB at 800 images.
+    minimum-degree ordering of ``S + S^T``. Nested dissection leaves less fill than minimum degree on large
+    blocks, and a sparse factor replaces a dense matrix whose size grows with the square of the images
+    (measurements: ``benchmarks/history/engine_measurements.md``).
 
     ``earlier``: a factor an earlier call returned for a system of the same pattern (the steps of one
     adjustment); PARDISO's analysis of it is kept and only the numbers are factorised again (the factor
@@ -702,19 +696,19 @@ def factorise(S, n_global: int | None = None, earlier=None) -> tuple:
     return lu, d
 
 
-#: Reduced camera systems with fewer unknowns are factorised at every step (800 images, 4800 unknowns: a
-#: SuperLU factorisation takes 0.08 s); from this size on :class:`ReducedSolver` reuses the first factor.
+#: Reduced camera systems with fewer unknowns are factorised at every step (their factorisation is cheap);
+#: from this size on :class:`ReducedSolver` reuses the first factor.
 REUSE_MIN_UNKNOWNS = 6000
 #: Relative error, in the system's energy norm, at which the preconditioned conjugate gradients stop. A
 #: Levenberg-Marquardt step needs no exact solution of its damped system (an inexact Newton step: Ceres'
-#: iterative Schur solver stops at 1e-1 by default). 12,800-image conte-city block, IO fixed: 5-6 iterations a
-#: step at 1e-3 against 11-12 at 1e-6 (solves 2.2 s against 3.7 s), the same 5 steps, poses equal to 1e-9 m,
-#: sigma0 and the check points' errors to all printed digits
+#: iterative Schur solver stops at 1e-1 by default). At 1e-3 an adjustment takes the same steps to the same
+#: poses, sigma0 and check-point errors as at 1e-6, in about half the iterations
+#: (``benchmarks/history/engine_measurements.md``)
 REUSE_TOLERANCE = 1e-3
 #: Conjugate-gradient iterations after which the system is factorised again (each costs one solve with the
-#: old factor: 3200 images 0.025 s, against 1.0 s for a SuperLU factorisation; with PARDISO's Cholesky the
-#: factorisation takes 0.16-0.27 s and a solve 0.004 s there, 1.0-1.3 s and 0.025 s at 12,800 images, so the
-#: reuse now saves less: the bound was not measured again)
+#: old factor, a small fraction of a factorisation). The bound was set against SuperLU's factorisation;
+#: PARDISO's cheaper Cholesky makes the reuse save less, and the bound was not measured again
+#: (``benchmarks/history/engine_measurements.md``)
 REUSE_MAX_ITERATIONS = 20
 
 
@@ -812,8 +806,8 @@ def inverse_spd(S: np.ndarray) -> np.ndarray:
     """Inverse of a symmetric positive (semi)definite matrix, Jacobi-scaled; pseudo-inverse if singular.
 
     Small systems use SuperLU (see above); from a few hundred unknowns LAPACK's Cholesky inverse (potrf +
-    potri) wins by far: 300 images (1800 unknowns) 5.7 s with SuperLU on an identity right-hand side,
-    0.2 s with potri, same result to 1e-10 relative.
+    potri) gives the same result far faster than SuperLU on an identity right-hand side
+    (``benchmarks/history/engine_measurements.md``).
     """
     d = np.sqrt(np.maximum(np.diag(S), 1e-300))
     Ss = S / d[:, None] / d[None, :]
@@ -844,9 +838,8 @@ class SparseInverse:
 
     The reduced camera system of a block is sparse (an image couples only with the images it shares
     points with), so one sparse factorisation (:func:`factorise`, Jacobi-scaled) and a solve for the columns
-    a caller needs beats forming the dense inverse: conte-city, 818 images (4908 unknowns), the dense
-    Cholesky inverse alone took 33 s on the loaded 2-core machine; with this class the whole adjustment
-    took 33 s instead of 59 s there (11-14 s on the idle machine, benchmarks/RESULTS.md).
+    a caller needs beats forming the dense inverse, whose cost grows with the cube of the unknowns
+    (measurements: ``benchmarks/history/engine_measurements.md``).
     Indexing works like a dense array for ``[a:b, a:b]`` and ``[np.ix_(rows, cols)]``; ``dense()`` forms
     the whole inverse when it is really wanted.
     """
@@ -855,8 +848,7 @@ class SparseInverse:
         """``earlier``: a factor of a system of ``S``'s pattern (:meth:`ReducedSolver.spend`), whose analysis
         serves (:func:`factorise`)."""
         # factorised, not solved by conjugate gradients on a step's factor (:class:`ReducedSolver`): each of
-        # their iterations would solve for every column asked (3200 images, 51 check points, 153 columns: the
-        # whole adjustment took 40.4 s that way against 23.0 s factorising, measured beside another job)
+        # their iterations would solve for every column asked, which costs more than one factorisation
         self.n = S.shape[0]
         self._lu, self.d = factorise(S, n_global, earlier=earlier)
         self._dense = None
@@ -872,9 +864,7 @@ class SparseInverse:
         missing = [int(c) for c in cols if int(c) not in self._cols]
         if missing and (len(self._cols) + len(missing)) * self.n * 8 > CACHE_BYTES:
             # the cached columns are whole columns (n each): 50 check points seen in ~8 images each ask for
-            # ~2400 columns, 1.5 GB at 12,800 images (76,800 rows); keep only what this call asks for (the
-            # partitioned 12,800-image benchmark's caller peaked at 3.6 GB before this and the scattering of
-            # the sub-blocks, 2.9 GB after)
+            # ~2400 columns, 1.5 GB at 12,800 images (76,800 rows); keep only what this call asks for
             asked = set(cols.tolist())
             self._cols = {c: v for c, v in self._cols.items() if c in asked}
         if missing:
@@ -993,7 +983,7 @@ def solve(problem: Problem, start: State) -> Solution:
         # second projection of every observation (a rejected one re-linearises at the current state). The
         # points the step brought too close to a camera are found from the same projection's depths and,
         # when there are any (rarely), put back and the candidate linearised again (one projection without
-        # Jacobians a step less: 25,600 images, 0.4-1.0 s each)
+        # Jacobians a step less)
         cand_lin = problem.residuals(cand, jac=True, sparse=False)
         if problem.hold_close_points(st, cand, problem.last_depth):
             cand_lin = None

@@ -19,11 +19,10 @@ def pixels_to_rays(
     image: np.ndarray | None = None,
 ) -> np.ndarray:
     """Unit viewing rays in the world frame (M, 3) of pixels ``uv`` (M, 2) seen by frames ``R`` (M, 3, 3),
-    or with ``image`` (M,) by frames ``R[image]`` (``R`` per image: no (M, 3, 3) gather, 0.9 GB at 12.4 M
-    rows); ``dtemp``: each row's temperature difference from the thermal model's reference (scalar or (M,)).
+    or with ``image`` (M,) by frames ``R[image]`` (``R`` per image: no (M, 3, 3) gather); ``dtemp``: each
+    row's temperature difference from the thermal model's reference (scalar or (M,)).
 
-    By :data:`aerocal.camera.ROW_CHUNK` rows, as the camera's distortion maths (25,600-image block, 12.4 M
-    rays: two calls took 11.4 s in one pass, 2.3-2.6 s by rows)."""
+    By :data:`aerocal.camera.ROW_CHUNK` rows, as the camera's distortion maths, for the same reason."""
     dtemp = np.broadcast_to(np.asarray(dtemp, dtype=float), (len(uv),))
     out = np.empty((len(uv), 3))
     cam = Camera(width=1, height=1, f=1.0, cx=0.0, cy=0.0, k1=io[3], k2=io[4], k3=io[5], p1=io[6], p2=io[7])
@@ -51,7 +50,7 @@ def triangulate_linear(
     (at least two rays and a normal matrix with condition number below 1e8).
     """
     # sums over each point's rays of (I - d d^T) and (I - d d^T) c, by one bincount per component (np.add.at
-    # on (M, 3, 3) blocks took 2.5 s a call on 6 M rays)
+    # on (M, 3, 3) blocks is unbuffered and slow)
     count = np.bincount(point_idx, minlength=n_points).astype(float)
     A = np.zeros((n_points, 3, 3))
     for u in range(3):
@@ -137,8 +136,8 @@ def placed_by_rays(
 
     On a rendered 129-frame city block one two-ray point the adjustment handed back lay 320 km off the
     block and 9,700 km deep (a residual of 0.17 px), and the DSM gridded with it had 8 x 8 cells of 635 m.
-    Compiled (numba), one pass over the observations: 12 M of them, grouped by point, took 2.7 s
-    (7 s in random order), against 14 s with numpy's ``bincount`` and ``minimum.at`` (measured under load).
+    Compiled (numba), one pass over the observations, grouped by point: several times faster than numpy's
+    ``bincount`` and ``minimum.at`` (``benchmarks/history/engine_measurements.md``).
     """
     X = np.ascontiguousarray(X, dtype=float)
     axis = np.ascontiguousarray(np.asarray(R, dtype=float)[:, 2])

@@ -18,7 +18,7 @@ The GNSS time lag (camera clock against the receiver's) is tested in the same ad
 it moves each position along its own track, so strips flown in opposite directions determine it. A lag beyond
 ``MIN_Z`` of its calibrated sigmas, and within its physical size, is removed from the recorded positions
 (``position - velocity x lag``, the velocity from the recorded track, :func:`track_velocities`). Unmodelled,
-the real seneca lag (-0.34 s at ~12 m/s, 4 m along the track) sits in the calibration's GNSS residuals.
+a lag sits in the calibration's GNSS residuals.
 The image-side effects that mimic a lag (:data:`TIME_LAG_RIVALS`: a rolling-shutter readout) are tested beside
 it; a lag the diagnosis cannot tell apart from one of them is reported and not removed. So is the principal point
 of IO held fixed: its error moves each footprint along the track as a lag does, so the fixed IO's uncertainty (a

@@ -238,9 +238,9 @@ def self_calibrate(
         result = adjust(sub_images, sub_obs, camera, cfg, gcps, sub_gobs)
         if result.converged:
             return result
-        # the adaptive selection's last adjustment can stop in a slow tail (seneca, 29 images: 50 iterations,
-        # then 16 from a better start with f 0.06 px away); a certificate needs the optimum, so adjust the
-        # selected model again with a longer budget, and let the review reject it if that fails too
+        # the adaptive selection's last adjustment can stop in a slow tail (as on the real seneca calibration
+        # block); a certificate needs the optimum, so adjust the selected model again with a longer budget, and
+        # let the review reject it if that fails too
         longer = dataclasses.replace(cfg, free=result.config.free, thermal=result.config.thermal, adaptive=False,
                                      max_iterations=3 * cfg.max_iterations,
                                      marginal_over=_dropped_io(result, cfg))
@@ -386,8 +386,8 @@ def certificate_from_calibration(
 
     The sigmas written are the calibrated ones (formal x the square root of the block's measured
     overdispersion, recorded in ``quality.overdispersion``), and a parameter is marked significant only when
-    its calibrated t is: on seneca's real matches after a Huber screening the formal sigmas were 16x too
-    small (a k1 of -0.0301 +- 0.0007 where the block supports +- 0.011); after the Cauchy one 2.85x."""
+    its calibrated t is: on the real seneca flight's matches the formal sigmas were several times too small
+    (``benchmarks/history/engine_measurements.md``)."""
     cal = calibration.result
     sub_images = select_images(images, calibration.image_ids)
     sub_gobs = select_images(gcp_observations, calibration.image_ids) if gcp_observations is not None else None

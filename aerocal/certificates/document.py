@@ -324,8 +324,8 @@ class Quality:
     block's measured overdispersion.
 
     ``overdispersion``: how many times larger than chi-square the statistics of pure-noise hypotheses were on
-    the calibration block (:func:`aerocal.diagnose.engine.overdispersion`; seneca's real matches: 8.1, 270 after a
-    Huber screening; the rendered city 1.0). Where
+    the calibration block (:func:`aerocal.diagnose.engine.overdispersion`; about 1 on a rendered block, well above 1
+    on the real seneca flight's matches: ``benchmarks/history/engine_measurements.md``). Where
     it is recorded, the certificate's ``sigmas`` (and its thermal sigmas) are *calibrated*: the formal sigmas of
     the adjustment times the square root of ``max(overdispersion, 1)``, the precision the block supports;
     ``significance[...].t`` stays the formal t. ``None`` (documents written before it was recorded, imported

@@ -15,7 +15,8 @@ Method
    measurements with the baseline and with the extended model.
 
 6. Confirm: the formal statistics assume the a-priori sigmas are right up to the variance factor. On
-   real blocks correlated matching errors make them optimistic (on the seneca flight ~40x). So the
+   real blocks correlated matching errors make them optimistic, many times over on the real seneca flight
+   (``benchmarks/history/engine_measurements.md``). So the
    statistics of pure-noise hypotheses (a focal length varying with a random number per image) are
    measured on the extended model (:func:`overdispersion`), and a named effect that is not significant
    once its statistic is divided by their excess is withdrawn, with a note. :func:`permutation_null`
@@ -84,8 +85,9 @@ def physical_verdict(e: Evidence, camera: Camera, ctx: hyp.Context, sigma_scale:
     sigma, times ``sigma_scale``, is large against its plausible size) or "beyond physical size" (its estimate
     exceeds any real instrument's, e.g. a lever arm of tens of metres: a symptom of another cause).
     ``sigma_scale``: the square root of the block's measured overdispersion where the sigmas are reported
-    calibrated (the real seneca block with the nominal camera: phi 407, a boresight of 3.65 +- 13.6 deg had been
-    called beyond physical size and a GNSS lag of -0.34 +- 1.3 s consistent with zero: neither is determined)."""
+    calibrated (on the real seneca block with the nominal camera a boresight had been called beyond physical
+    size and a GNSS lag consistent with zero, where neither is determined once the sigmas are calibrated:
+    ``benchmarks/history/engine_measurements.md``)."""
     if not e.estimate:
         return None
     # a switch (refraction: 1 = on) is determined only when its sigma is small against on: the rendered
@@ -641,7 +643,7 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
     s0 = float(baseline.solution.sigma0)
     if s0 > MISFIT_SIGMA0:
         # a baseline that does not fit its own weights makes every figure below describe the misfit, not the
-        # flight (the real seneca block: sigma0 32 against its block adjustment's 1.02)
+        # flight (as on the real seneca block, whose sigma0 was many times its block adjustment's)
         notes.insert(0, f"the diagnosis baseline does not fit its weights (sigma0 {s0:.3g}, above {MISFIT_SIGMA0:g}): "
                         "its statistics, the recorded-EO checks and the twin describe that misfit (mismatches or "
                         "wrong sigmas), not the flight; do not rely on them")
@@ -1018,8 +1020,8 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
     and removed first (:func:`aerocal.adjust.bundle.adjust`, which also estimates the tie observations'
     sigma), then the clean block is diagnosed by least squares: a systematic effect is looked for in the
     data, not in the mismatches. A block of more than ``config.max_images`` images is diagnosed on its
-    central sub-block (:func:`central_images`; the 818-image city flight took over 7 minutes whole, as
-    every accepted effect is refitted several times), and a note says so. ``adjust_config.tie_thinning`` is
+    central sub-block (:func:`central_images`: every accepted effect is refitted several times, so a whole
+    city-scale block costs many block adjustments), and a note says so. ``adjust_config.tie_thinning`` is
     ignored: a systematic effect is looked for in every track.
     """
     config = config or DiagnoseConfig()
@@ -1043,7 +1045,7 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
         adjust_config = dataclasses.replace(adjust_config, robust_loss="none")
     # every track, not the thinned ones (AdjustConfig.tie_thinning): on the 818-frame city flight a radial
     # term the certificate lacked came out at 0.60 +- 0.15 from every track and 0.87 +- 0.22 from the
-    # thinned ones (sigma x 1.5, so less power against smaller effects), for 18 s against 4 s
+    # thinned ones (sigma x 1.5, so less power against smaller effects)
     adjust_config = dataclasses.replace(adjust_config, tie_thinning=None)
     base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations, start)
     result = diagnose_baseline(base, config, io)

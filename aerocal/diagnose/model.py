@@ -98,9 +98,8 @@ def fit_baseline(images: pa.Table, observations: pa.Table, camera: Camera, confi
     """Adjust the block with ``config`` (the model whose shortcomings the diagnosis looks for).
 
     ``start``: the (poses, points) tables of an adjustment of the same block to start from instead of the
-    recorded GNSS/IMU. From the records, real seneca (166 images, consumer GNSS, 5 deg attitude) stopped
-    unconverged after the 50-iteration cap at sigma0 24.6, half its observations beyond the blunder threshold,
-    where its block adjustment had converged at 1.01.
+    recorded GNSS/IMU: from consumer-grade records a block can stop unconverged at the iteration cap where its
+    block adjustment converged (real seneca: ``benchmarks/history/engine_measurements.md``).
     """
     block0 = build_block(images, observations, gcps, gcp_observations, config)
     block, state = initial_state(block0, camera)

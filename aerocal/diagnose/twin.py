@@ -92,7 +92,7 @@ PER_IMAGE = ("per_image_scale", "per_image_row_field", "per_image_column_field")
 #: the injected variance the adjustment leaves in the residuals, pooled over the rounds so far)
 EXTENSION_ROUNDS = 3
 #: iterations of a twin's adjustment (it starts at its truth; on real seneca the statistics after 3 iterations are
-#: within 1 % of those after 8, at half the time)
+#: within 1 % of those after 8)
 TWIN_ITERATIONS = 3
 #: largest per-frame focal jitter (relative standard deviation) taken as physically possible: 0.2 % of f, the
 #: same bound as the largest thermal drift per degC (DecisionConfig.max_thermal_slope). It is an assumption,
@@ -458,8 +458,8 @@ def make_twin(base: Baseline, seed: int, extensions: dict[str, float] | None = N
     if len(b.control_ids):
         control = st.X[b.n_tie :] + rng.normal(0.0, 1.0, b.control_xyz.shape) * b.control_sigma
     block = dataclasses.replace(b, obs_uv=uv, gnss=gnss, R_rec=R_rec, control_xyz=control)
-    # it starts at its own truth: a few iterations reach its optimum (the real block's budget would cost minutes
-    # on a real block of 166 images)
+    # it starts at its own truth: a few iterations reach its optimum (the real block's budget would multiply the
+    # time of every twin)
     quick = dataclasses.replace(cfg, max_iterations=min(cfg.max_iterations, TWIN_ITERATIONS))
     sol = solve(Problem(block, quick, base.solution.t0), st.copy())
     return dataclasses.replace(base, block=block, solution=sol)

@@ -58,7 +58,7 @@ def read_raw(path: str | Path) -> np.ndarray:
             img = np.ascontiguousarray(img[:, :, [2, 1, 0]])
         return img
     if kind == "tiff":
-        # lazy: tifffile costs ~0.1 s to import, and every `import aerocal.ingest` would pay it
+        # lazy: tifffile is slow to import, and every `import aerocal.ingest` would pay it
         import tifffile
 
         try:

@@ -20,9 +20,9 @@ Progress = Callable[[int, int], None]
 #: Environment of the worker processes (Dask's ``distributed.nanny.pre-spawn-environ``): one BLAS/OpenMP
 #: thread each, as Dask sets by default, but glibc's malloc left alone. Dask's default
 #: ``MALLOC_TRIM_THRESHOLD_=65536`` also freezes glibc's mmap threshold at 128 kB, so every numpy temporary
-#: above it (a 256 x 256 float64 tile plane, a descriptor distance matrix) is mapped and zeroed afresh:
-#: measured on an orthomosaic tile (5 frames, 256 x 256 px) 0.184 s with the variable set against 0.057 s
-#: without (one core, same process). A cluster started elsewhere (``--dask ADDRESS``) should unset it too.
+#: above it (a 256 x 256 float64 tile plane, a descriptor distance matrix) is mapped and zeroed afresh, which
+#: made an orthomosaic tile several times slower (``benchmarks/history/engine_measurements.md``). A cluster
+#: started elsewhere (``--dask ADDRESS``) should unset it too.
 WORKER_ENVIRONMENT = {"MALLOC_TRIM_THRESHOLD_": None, "OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1,
                       "OPENBLAS_NUM_THREADS": 1}
 
@@ -35,7 +35,7 @@ def local_client(n_workers: int = 2, threads_per_worker: int = 1) -> Iterator[ob
     ``cv2.setNumThreads(1)``), and the GIL does not serialise the Python parts. No dashboard. The worker
     processes get :data:`WORKER_ENVIRONMENT`.
     """
-    # lazy: dask + distributed cost ~1.2 s to import (measured); only runs on a cluster need them
+    # lazy: dask + distributed are slow to import; only runs on a cluster need them
     import dask
     from distributed import Client, LocalCluster
 
@@ -73,8 +73,7 @@ def _quiet_teardown(client: object) -> None:
 
     Scaling to no workers first (:func:`_close_workers`) was not enough: a heartbeat that found its stream
     closed while the scheduler retired the worker still logged "Failed to communicate with scheduler during
-    heartbeat" with a traceback on the user's terminal (seen in a full test run on a loaded machine, in
-    an `aerocal process` of the fuzz tests)."""
+    heartbeat" with a traceback on the user's terminal (seen in an `aerocal process` of the fuzz tests)."""
     try:
         client.run(_stop_heartbeat)  # type: ignore[attr-defined]
     except Exception:  # teardown of workers that may already be gone: closing still runs
@@ -85,9 +84,8 @@ def _close_workers(cluster: object) -> None:
     """Scale ``cluster`` to no workers and wait until they are gone, so that the scheduler closes after them.
 
     Closed the other way round, a worker whose heartbeat finds the scheduler gone logs "Failed to communicate
-    with scheduler during heartbeat" with a traceback on the user's terminal (seen at the end of the match step
-    of a successful run of real seneca, on an idle machine). Retiring the workers through the client instead
-    printed two INFO lines per worker."""
+    with scheduler during heartbeat" with a traceback on the user's terminal, at the end of a successful match
+    step. Retiring the workers through the client instead printed two INFO lines per worker."""
     try:
         cluster.scale(0)  # type: ignore[attr-defined]
         deadline = time.monotonic() + WORKER_CLOSE_TIMEOUT_S
@@ -115,7 +113,7 @@ def single_threaded_opencv() -> None:
     if _WORKER_READY:
         return
     try:
-        # lazy: distributed costs ~1.2 s to import (measured); a serial run must not pay it
+        # lazy: distributed is slow to import; a serial run must not pay it
         from distributed import get_worker
 
         get_worker()
@@ -150,7 +148,7 @@ def run_all(
             if progress is not None:
                 progress(done, total)
         return results
-    # lazy: distributed costs ~1.2 s to import (measured); only the Dask path needs it
+    # lazy: distributed is slow to import; only the Dask path needs it
     from distributed import as_completed
 
     futures = [client.submit(fn, *a, pure=False) for a in args]  # type: ignore[attr-defined]

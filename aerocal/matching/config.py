@@ -83,9 +83,9 @@ class MatchConfig:
     matcher:
         ``"exact"`` (default): true nearest neighbours by brute force, the squared distances of all
         descriptor pairs from one float32 matrix product (BLAS). ``"flann"``: OpenCV FLANN randomised
-        KD-trees, approximate. Measured on rendered 640x480 thermal frames (1700 SIFT features each, one
-        core): exact 20 ms per pair, FLANN (4 trees, 64 checks) 100 ms, with 99 % of FLANN's matches
-        found again and 0.3 % more in all; at 6400 x 3000 features (seneca) 0.31 s against 0.38 s.
+        KD-trees, approximate. Exact is the default because it was faster than FLANN at the feature counts of
+        aerial frames and finds nearly all of FLANN's matches and slightly more in all
+        (``benchmarks/history/engine_measurements.md``).
     flann_trees, flann_checks:
         FLANN forest size and leaves checked per query (defaults 4 and 64; ``matcher="flann"`` only).
     seed:
@@ -103,9 +103,9 @@ class MatchConfig:
         Pairs with fewer putative matches are not verified; pairs with fewer inliers are dropped
         (default 15).
     pairs_per_task:
-        Pairs matched by one Dask task (default 4). A task costs ~2 ms, matching a pair 0.02-0.5 s
-        (1500-8000 features per image, one core): small batches keep the workers evenly loaded (with
-        ``matcher="flann"`` an image's index is built once per batch).
+        Pairs matched by one Dask task (default 4). A task's overhead is small against matching a pair: small
+        batches keep the workers evenly loaded (with ``matcher="flann"`` an image's index is built once per
+        batch).
     sigma_px:
         A-priori standard deviation of a tie-point measurement written into the observations, pixels
         (default 0.5).

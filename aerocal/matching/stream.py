@@ -6,12 +6,8 @@ split again per image and sent back to the cluster before the first pair is matc
 while the last images finish. Here a pair's matching task depends on the detection tasks of its two images
 and starts as soon as both are done; each image's features are sent to the caller once (for the table) and
 dropped from the cluster when the last pair that needs them is matched, so the workers hold the features of
-the images in flight, not of the whole flight.
-
-Measured on the rendered 818-frame ``conte-city`` flight (640x480 thermal, 3418 footprint pairs, 2 workers):
-69.5 s against 74.6 s for the two phases in one script; the match step of ``aerocal process`` alone, runs
-alternated, 76.3 and 72.0 s against 77.6 and 78.7 s. The work itself is 61 s of it (from SIFT's 95 ms per
-frame and a pair's 13 ms, each measured on one core).
+the images in flight, not of the whole flight. On a rendered city flight the stream was slightly faster than
+the two phases (``benchmarks/history/engine_measurements.md``).
 """
 
 from __future__ import annotations
@@ -74,7 +70,7 @@ def detect_and_match(
         return kp, match_pairs_detailed(pairs, kp, mcfg, client, None if progress is None else
                                         (lambda d, t: progress(n + d, n + t)))
 
-    # lazy: distributed costs ~1.2 s to import (measured); only the Dask path needs it
+    # lazy: distributed is slow to import; only the Dask path needs it
     from distributed import as_completed
 
     detected = {i: client.submit(_detect_image_task, i, s, loader, fcfg, pure=False)  # type: ignore[attr-defined]

@@ -108,9 +108,9 @@ def _exact_matches(desc1: np.ndarray, desc2: np.ndarray, ratio: float, mutual: b
 
     Small sets use one distance matrix for both directions: a column's nearest row is found through its
     minimum (a column-wise argmin walks the matrix with a stride and costs as much as the product), and a
-    column's second-nearest by masking the mutual pairs. Written for this project on numpy's BLAS;
-    measured against OpenCV's ``BFMatcher.knnMatch`` (4x slower per direction at 1700 x 1700 features)
-    and FLANN (see :class:`MatchConfig`).
+    column's second-nearest by masking the mutual pairs. Written for this project on numpy's BLAS, faster than
+    OpenCV's ``BFMatcher.knnMatch`` and FLANN (see :class:`MatchConfig`;
+    ``benchmarks/history/engine_measurements.md``).
     """
     a = np.ascontiguousarray(desc1, dtype=np.float32)
     b = np.ascontiguousarray(desc2, dtype=np.float32)

@@ -44,9 +44,9 @@ class MatchStepConfig:
     candidate footprints (0.1); ``dask_workers`` of the local cluster when no address is given (2);
     flights without a recorded position and attitude for every image are matched exhaustively (all
     pairs) up to ``exhaustive_max_images`` (150, ~11,000 pairs). Flights of at most
-    ``serial_max_megapixels`` (10) in all are matched in this process without a local cluster: 16 rendered
-    640 x 480 frames (4.9 MP) took 5.8 s serially and 11.3 s on a fresh 2-worker cluster, whose start and
-    worker imports cost ~8 s (crossover near 13 MP on this 2-core machine)."""
+    ``serial_max_megapixels`` (10) in all are matched in this process without a local cluster: a fresh
+    cluster's start and worker imports cost more than the work for small flights
+    (``benchmarks/history/engine_measurements.md``)."""
 
     enhance: EnhanceConfig | None = None
     features: FeatureConfig | None = None
@@ -90,9 +90,8 @@ class BlockStepConfig:
     on the Dask cluster (``dask_workers`` local workers, 2, when no scheduler address is given), at least one
     per worker and each of at most about ``partition_max_images`` (3200) images (:mod:`aerocal.adjust.partition`:
     the same solution as one adjustment, the observations' memory and the point eliminations spread over the
-    workers). Measured on conte-city plans, IO fixed, 2 local workers: 800 images 9.5 s (+0.7 s to start the
-    cluster) against 14.8 s, 3200 images 45 s against 61 s, largest process 1.2 GB against 2.1 GB
-    (``benchmarks/partition_bench.py``)."""
+    workers). From 800 images the partitioned adjustment on 2 local workers was faster than the single one, with
+    a smaller largest process (``benchmarks/partition_bench.py``, ``benchmarks/history/engine_measurements.md``)."""
 
     adjust: AdjustConfig = field(default_factory=AdjustConfig)
     thermal_correction: bool = True
@@ -140,21 +139,16 @@ class ProcessConfig:
       can make a tie point's normal matrix singular); observations given by the flight keep the adjustment
       configurations' own loss. Cauchy rather than Huber because a mismatch keeps a Huber influence that
       grows with its size, and with the IO free it bends the weakest parameters before the screening judges
-      the residuals: on the real seneca flight (29-image calibration block, 23,515 tie observations) the
-      Huber pass left a model without k3 that needed three restarts of 50 iterations, an overdispersion of
-      270 and f, cx, cy undetermined; the Cauchy pass converged at once (28 s against 79 s), kept k3, measured
-      8.1, and determined cx 897.3 +- 4.1 and cy 658.6 +- 4.5 px (the full flight: 898.7, 658.7). On the
-      rendered conte-city flight the Huber certificate held k3 -202 +- 1.6 (the true lens has none) and the
-      diagnosis named a radial_k3 of 3.65; after a Cauchy pass every parameter is within 0.8 of its sigma
-      of the truth and nothing is named (``benchmarks/RESULTS.md``).
+      the residuals: on the real seneca flight the Huber pass left f, cx and cy undetermined and on the
+      rendered conte-city flight a k3 the true lens lacks, where the Cauchy pass recovered the lens
+      (``benchmarks/history/engine_measurements.md``).
     * ``matched_tie_thinning``: :class:`aerocal.adjust.thinning.ThinningConfig` of the full-block
       adjustment when the observations come from image matching (default: its defaults, 4 tracks per cell
       of 8 x 6 per image; ``None``: every track adjusted). The tracks left out are intersected afterwards
       from the adjusted poses, so the DSM still gets every tie point (``AdjustConfig.tie_thinning``).
       The self-calibration and the diagnosis adjust every track: on the real seneca flight the thinned
-      calibration sub-block lost the focal length's temperature slope (t 0.7 instead of 7.0) and its
-      certificate moved 43 px in f; a certificate serves many flights, so its precision is worth the
-      seconds (33 s against 10 s there, same machine, idle).
+      calibration sub-block lost the focal length's temperature slope, and a certificate serves many flights,
+      so its precision is worth the extra time (``benchmarks/history/engine_measurements.md``).
     * ``diagnose``: :class:`aerocal.diagnose.engine.DiagnoseConfig` (``None``: its defaults, the reference
       temperature from the certificate's thermal model).
     * ``extend``: the effects the diagnosis names become the block's model (default True): the block is adjusted

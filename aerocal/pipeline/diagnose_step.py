@@ -29,8 +29,8 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
 
     With the block adjustment's result (``adjusted``), the observations its blunder screening rejected (weight
     0 in its ``obs_weight``) are left out and the diagnosis adjusts by least squares at once, instead of
-    screening the same block again (a robust pass and a least-squares re-adjustment of the whole block: on the
-    818-image city flight the block adjustment that does this took 180 s).
+    screening the same block again (a robust pass and a least-squares re-adjustment of the whole block, the
+    cost of a second block adjustment).
 
     ``thermal_correction``: the block adjustment corrected the measurements with the certificate's linear thermal
     model; the diagnosis does too. Without it, a Daakir corridor processed with a certificate holding the

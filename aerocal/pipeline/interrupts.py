@@ -2,7 +2,7 @@
 
 A KeyboardInterrupt raised while Python runs a finalizer or a weakref callback (SQLAlchemy's, at garbage
 collection) is printed as "Exception ignored in ..." and lost: the run went on to the end and exited 0
-(Ctrl-C 0.1 s into an ``aerocal process`` run, 2 times in 2). Runners call :func:`check_interrupted` before
+(reproduced with a Ctrl-C early in an ``aerocal process`` run). Runners call :func:`check_interrupted` before
 every step.
 """
 
@@ -22,9 +22,8 @@ def interrupt_handler(signum: int, frame: object) -> None:
     """SIGINT: note it, then raise KeyboardInterrupt as Python's default handler does.
 
     A KeyboardInterrupt raised while Python runs a finalizer or a weakref callback (SQLAlchemy's, at garbage
-    collection) is printed as "Exception ignored in ..." and lost: the run went on to the end and exited 0
-    (Ctrl-C 0.1 s into an ``aerocal process`` run, 2 times in 2). The note makes the next step boundary raise it
-    again."""
+    collection) is printed as "Exception ignored in ..." and lost: the run went on to the end and exited 0.
+    The note makes the next step boundary raise it again."""
     _INTERRUPTED.set()
     raise KeyboardInterrupt
 
@@ -50,7 +49,7 @@ def interrupts_noted() -> Iterator[None]:
         yield
     except Exception as exc:
         # Ctrl-C landing inside a library's own bookkeeping can come out as that library's error (Prefect's
-        # "Task run is not set", 0.1 s into a run on a loaded machine): still the user's interrupt
+        # "Task run is not set" for a Ctrl-C early in a run): still the user's interrupt
         if _INTERRUPTED.is_set():
             raise KeyboardInterrupt from exc
         raise

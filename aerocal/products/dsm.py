@@ -330,11 +330,9 @@ def _fill(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
     The values of ``scipy.interpolate.griddata`` (linear, then nearest), computed differently: the data cells
     lie on the grid, so each Delaunay triangle is rasterised over the hole cells it covers
     (:func:`_raster_triangles`) instead of locating every hole cell in the triangulation, and the nearest data
-    cell outside the hull comes from the distance transform's indices. Measured on the rendered 818-frame city
-    (2064 x 2690 cells, 257,924 with data): 3.0 s against 3.7 s for ``griddata`` on an idle machine (4.4 s
-    against 7.1 s with another job on the second core), of which Delaunay takes 2.4 s in both. Inside the
-    hull the heights agree to 3e-13 m; of the 65,720 cells outside it, 466 took the other one of two equally
-    near data cells."""
+    cell outside the hull comes from the distance transform's indices; faster than ``griddata``, with the same
+    heights inside the hull to rounding, and outside it the same but where two data cells are equally near
+    (``benchmarks/history/engine_measurements.md``)."""
     rr, cc = np.nonzero(has)
     if not (~has).any():
         return heights

@@ -4,13 +4,12 @@
 pixel of the ground point (the full Brown + affinity camera model), whether it falls inside the frame, its
 distance to the principal point (the nadir score) and the border taper. numpy formed these with ~20
 full-tile float64 temporaries per frame (the ground points, the camera-frame points, the distortion terms,
-the masks); measured on a 129-frame conte-city block (208 tiles of 256 x 256, 1184 frame-tile pairs, cProfile)
-the tiles took 11.6 s, and 4.7 s with this loop (2.1 s of it). Here it is one pass over the pixels per frame,
-compiled by numba, with the operations of :meth:`aerocal.camera.Camera.project` in the same order;
+the masks), most of a tile's time (``benchmarks/history/engine_measurements.md``). Here it is one pass over the
+pixels per frame, compiled by numba, with the operations of :meth:`aerocal.camera.Camera.project` in the same order;
 ``tests/test_mosaic.py`` checks it against that numpy path (:func:`aerocal.products.mosaic._frame_view_numpy`, still
 used for the thermal models that correct measurements) on a strongly distorted affine camera: scores to
-1e-9, maps to 1e-3 px (float32). The whole mosaic of that block took 6.9 s instead of 15.5 s; 3 of its 13 M
-pixels differ by 1 DN (a sum rounded the other way).
+1e-9, maps to 1e-3 px (float32); in a whole mosaic a handful of pixels came out 1 DN apart from that path's (a
+sum rounded the other way).
 
 Conventions: ``e`` (cols,) and ``n`` (rows,) are the world E, N of the tile's pixel centres, ``h``
 (rows, cols) the DSM heights (NaN: none); ``R`` is world-to-camera, ``C`` the projection centre; ``io``

@@ -5,7 +5,8 @@ The tool the science tests with, never a part of processing (no processing modul
 sensor temperature (:mod:`sensors`) and the catalogue effects hidden in the data; :mod:`observations` writes
 image measurements directly, :mod:`raycast` and :mod:`rendered_frames` render the frames a camera would record,
 :mod:`faults` spoils a folder the way field data is spoiled, and :mod:`measured` reads a preset's flight
-plan, attitudes, times and temperatures from real images. The truth is written beside the data (``truth.json``) for tests and studies to judge with.
+plan, attitudes, times and temperatures from real images. The truth is written beside the data
+(``truth.json``) for tests and studies to judge with.
 
 Entry points: :func:`simulate_flight` (in memory) and :func:`write_flight` (a flight folder).
 """

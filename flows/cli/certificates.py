@@ -72,12 +72,9 @@ def certificates_list(
     from storage.certificates import list_certificates
 
     with user_errors():
-        db = open_database(database_url)
-        try:
+        with open_database(database_url) as db:
             with db.session() as session:
                 rows = list_certificates(session, camera)
-        finally:
-            db.dispose()
     if not rows:
         console.print("no certificates" + (f" for cameras matching {camera!r}" if camera else ""))
         return
@@ -121,13 +118,10 @@ def certificates_show(
     from storage.certificates import get_certificate
 
     with user_errors():
-        db = open_database(database_url)
-        try:
+        with open_database(database_url) as db:
             with db.session() as session:
                 cert = get_certificate(session, certificate_id)
                 doc = cert.document
-        finally:
-            db.dispose()
     if as_json:
         console.print_json(json.dumps(doc))
         return
@@ -194,13 +188,10 @@ def certificates_export(
     from storage.certificates import get_certificate
 
     with user_errors():
-        db = open_database(database_url)
-        try:
+        with open_database(database_url) as db:
             with db.session() as session:
                 cert = get_certificate(session, certificate_id)
                 doc = cert.document
-        finally:
-            db.dispose()
     with user_errors(out):
         if fmt is ExportFormat.json:
             write_json_atomic(out, doc)
@@ -232,7 +223,7 @@ def _read_document(path: Path, fmt: str | None, identity: dict[str, str]) -> dic
     doc: Any = None
     if fmt == "json" or (fmt is None and path.suffix.lower() == ".json"):
         doc = json.loads(path.read_text(encoding="utf-8"))
-        is_ours = isinstance(doc, dict) and str(doc.get("schema", "")).startswith("aerocal.certificates.document")
+        is_ours = isinstance(doc, dict) and str(doc.get("schema", "")).startswith("aerocal.certificate/")
         if fmt == "json" and not is_ours:
             raise ValueError("not an aerocal certificate document (no 'schema': 'aerocal.certificate/1')")
         if not is_ours:
@@ -285,11 +276,8 @@ def certificates_import(
         fail(f"{file}: no such file; check the path", BAD_INPUT)
     with user_errors(file):
         doc = _read_document(file, fmt.value if fmt else None, identity)
-        db = open_database(database_url)
-        try:
+        with open_database(database_url) as db:
             with db.session() as session:
                 cert = issue_certificate(session, doc)
-        finally:
-            db.dispose()
     superseded = f", supersedes {cert.supersedes}" if cert.supersedes else ""
     console.print(f"stored certificate {cert.id}: {cert.camera.label} version {cert.version}{superseded}")

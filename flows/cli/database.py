@@ -28,7 +28,8 @@ db_app = typer.Typer(
 
 
 def open_database(url: str | None, migrated: bool = True):  # -> storage.database.Database
-    """Connect to the database at ``url`` (default: :func:`storage.database.database_url`).
+    """Connect to the database at ``url`` (default: :func:`storage.database.database_url`); use it as
+    ``with open_database(url) as db:`` so that its connections are closed when the command ends.
 
     With ``migrated``, the database must exist at the newest schema. A command that only reads never creates
     a SQLite file (a mistyped path, or no database configured yet, is said, not made).
@@ -51,7 +52,11 @@ def open_database(url: str | None, migrated: bool = True):  # -> storage.databas
             )
     db = connect(url)
     if migrated:
-        require_current(db)
+        try:
+            require_current(db)
+        except BaseException:
+            db.dispose()
+            raise
     return db
 
 
@@ -93,13 +98,10 @@ def db_upgrade(
     from storage import migrations
 
     with user_errors():
-        db = open_database(database_url, migrated=False)
-        try:
+        with open_database(database_url, migrated=False) as db:
             before = migrations.current(db)
             migrations.upgrade(db, revision)
             after = migrations.current(db)
-        finally:
-            db.dispose()
     console.print(f"database {db.masked_url}: {before or 'empty'} -> {after or 'empty'}")
 
 
@@ -119,15 +121,12 @@ def db_downgrade(
     from storage import migrations
 
     with user_errors():
-        db = open_database(database_url, migrated=False)
-        try:
+        with open_database(database_url, migrated=False) as db:
             before = migrations.current(db)
             if not yes and not typer.confirm(f"migrate {db.masked_url} from {before} down to {revision}?"):
                 fail("downgrade cancelled; pass --yes to skip the question")
             migrations.downgrade(db, revision)
             after = migrations.current(db)
-        finally:
-            db.dispose()
     console.print(f"database {db.masked_url}: {before or 'empty'} -> {after or 'empty'}")
 
 
@@ -143,11 +142,8 @@ def db_current(database_url: str | None = DATABASE_URL_OPTION) -> None:
     from storage import migrations
 
     with user_errors():
-        db = open_database(database_url, migrated=False)
-        try:
+        with open_database(database_url, migrated=False) as db:
             revision = migrations.current(db)
-        finally:
-            db.dispose()
         head = migrations.head()
     if revision is None:
         console.print(f"database {db.masked_url}: empty (head is {head}); run `aerocal db upgrade`")

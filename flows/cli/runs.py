@@ -44,16 +44,13 @@ def runs_list(
     from storage.runs import list_runs, reap_dead_runs
 
     with user_errors():
-        db = open_database(database_url)
-        try:
+        with open_database(database_url) as db:
             with db.session() as session:
                 # a run whose process is gone is not "running": recorded as failed, and said
                 dead = [f"run {r.id}: {r.error}" for r in reap_dead_runs(session)]
                 session.commit()
                 rows = list_runs(session, limit=limit, kind=kind)
                 flights = {row.id: row.flight.name if row.flight else "-" for row in rows}
-        finally:
-            db.dispose()
     for line in dead:
         err_console.print(line)
     if not rows:
@@ -94,12 +91,9 @@ def runs_show(
     from storage.provenance import provenance
 
     with user_errors():
-        db = open_database(database_url)
-        try:
+        with open_database(database_url) as db:
             with db.session() as session:
                 prov = provenance(session, run_id)
-        finally:
-            db.dispose()
     if as_json:
         console.print_json(json.dumps(prov.to_dict()))
         return
