@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench clean
+.PHONY: demo test lint bench papers clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +35,11 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
+
+# the seed papers' set-ups simulated against their measured numbers (about an hour on 2 cores): the committed
+# report studies/results/paper_setups.md, each study's own report, figures and numbers beside it
+papers: $(STAMP)
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(BIN)/python -m studies.paper_setups --out studies/results
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

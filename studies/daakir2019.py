@@ -252,13 +252,13 @@ def product_config(thermal: tuple[str, ...] | None = None, correction: bool = Tr
     config = ProcessConfig(extend=False)
     if thermal is not None:
         cal = config.calibration
-        config.calibration = dataclasses.replace(cal, adjust=dataclasses.replace(cal.adjust, thermal=tuple(thermal)))
+        config = dataclasses.replace(config, calibration=dataclasses.replace(
+            cal, adjust=dataclasses.replace(cal.adjust, thermal=tuple(thermal))))
     block = dataclasses.replace(config.block, thermal_correction=correction)
     if relative:
         block = dataclasses.replace(block, adjust=_relative_config())
-        config.use_flight_sigmas = False
-    config.block = block
-    return config
+        config = dataclasses.replace(config, use_flight_sigmas=False)
+    return dataclasses.replace(config, block=block)
 
 
 def calibration_flight(seed: int, field: dict | None = None, spec: FlightSpec | None = None,

@@ -19,10 +19,10 @@ import pyarrow.compute as pc
 
 from aerocal import tables
 from aerocal.adjust.covariance import (
-    accuracy_ratio,
     correlation,
     global_covariance,
     global_names,
+    rho_per_axis,
     t_critical,
     t_values,
     triangulate_check_points,
@@ -299,7 +299,7 @@ def _result(
         check_errors=err,
         check_sigma=np.sqrt(var),
         check_rmse=rmse,
-        rho=accuracy_ratio(err, var),
+        rho=rho_per_axis(err, var),
         config=config,
         crs=block.crs,
         obs_weight=weight,

@@ -132,7 +132,7 @@ def triangulate_check_points(block: Block, solution: Solution, scale: bool = Tru
     return CheckPoints(block.check_ids, out_xyz, out_cov, n_obs)
 
 
-def accuracy_ratio(errors: np.ndarray, variances: np.ndarray) -> np.ndarray:
+def rho_per_axis(errors: np.ndarray, variances: np.ndarray) -> np.ndarray:
     """Per axis rho = RMSE / sqrt(mean predicted variance) over the rows with finite values."""
     e = np.asarray(errors, dtype=float)
     v = np.asarray(variances, dtype=float)

@@ -94,7 +94,7 @@ def build_gcp_tables(
     ids = sorted(chosen)
     xyz = np.full((len(ids), 3), np.nan)
     for k, gid in enumerate(ids):
-        xyz[k] = _to_flight(chosen[gid][0], chosen[gid][1].crs, flight_crs)
+        xyz[k] = to_flight_crs(chosen[gid][0], chosen[gid][1].crs, flight_crs)
     usable = np.all(np.isfinite(xyz), axis=1)
     for k in np.flatnonzero(~usable):
         point, f = chosen[ids[k]]
@@ -109,7 +109,7 @@ def build_gcp_tables(
         ref_point, ref_file = chosen[point.gcp_id]
         if point.gcp_id not in flight_xyz:
             continue
-        other = _to_flight(point, f.crs, flight_crs)
+        other = to_flight_crs(point, f.crs, flight_crs)
         d = float(np.linalg.norm(other - flight_xyz[point.gcp_id]))
         if not np.isfinite(d) or d > cfg.gcp_conflict_stop_m:
             # two files disagree by more than any survey: one of them is wrong, and only the user knows which
@@ -189,7 +189,9 @@ def build_gcp_tables(
     return gcps, obs
 
 
-def _to_flight(point: GcpCoordinate, src: str, dst: str) -> np.ndarray:
+def to_flight_crs(point: GcpCoordinate, src: str, dst: str) -> np.ndarray:
+    """``point``'s X, Y, Z (metres) in ``dst`` from its file's CRS ``src`` (heights are kept as they are); NaN
+    where the transformation fails."""
     if src == dst:
         return np.array([point.x, point.y, point.z], dtype=float)
     try:

@@ -13,6 +13,7 @@ from typing import Any
 
 from aerocal.adjust import AdjustConfig, ThinningConfig
 from aerocal.adjust.control import ControlScreeningConfig
+from aerocal.adjust.problem import ROBUST_LOSSES
 from aerocal.calibrate.self_calibration import CalibrationConfig
 from aerocal.diagnose.engine import DiagnoseConfig
 from aerocal.enhance import EnhanceConfig
@@ -125,7 +126,7 @@ class ReportStepConfig:
     measured_within_m: float = 2.0
 
 
-@dataclass
+@dataclass(frozen=True)
 class ProcessConfig:
     """Everything :func:`aerocal.pipeline.process` can be told (defaults documented per step class).
 
@@ -171,6 +172,14 @@ class ProcessConfig:
     matched_robust_loss: str = "cauchy"
     matched_tie_thinning: ThinningConfig | None = field(default_factory=ThinningConfig)
     extend: bool = True
+
+    def __post_init__(self) -> None:
+        if self.matched_robust_loss not in ROBUST_LOSSES:
+            raise ValueError(f"ProcessConfig.matched_robust_loss {self.matched_robust_loss!r} unknown; valid: "
+                             f"{', '.join(ROBUST_LOSSES)}")
+        age = self.max_certificate_age_days
+        if age is not None and not age > 0:
+            raise ValueError(f"ProcessConfig.max_certificate_age_days must be positive days or None, got {age}")
 
     def to_json(self) -> dict:
         """The configuration as plain JSON (what a run records)."""

@@ -33,6 +33,8 @@ from aerocal.certificates.document import validate_camera
 from aerocal.certificates.identity import CameraIdentity
 from aerocal.ingest import ingest_folder
 from aerocal.ingest.inferred import certificate_identity
+from aerocal.ingest.problems import Problem, ProblemLog
+from aerocal.ingest.sidecars import sidecar_problems
 from aerocal.io import file_sha256
 from aerocal.matching.ground import flying_height
 from aerocal.pipeline.runner import table_sha256
@@ -107,6 +109,31 @@ class FlightDataset(Protocol):
 def observations_mode(flight_dir: str | Path) -> bool:
     """True when the folder holds measured image observations (``observations/observations.parquet``)."""
     return (Path(flight_dir) / "observations" / "observations.parquet").is_file()
+
+
+def observations_report(folder: str | Path) -> tuple[list[tuple[str, str]], list[Problem]]:
+    """What ``aerocal ingest`` says of an observations-mode folder: the same reading as processing
+    (:meth:`FolderDataset.read`): its tables (rows per table, CRS) and the problems of the files beside them
+    (:func:`aerocal.ingest.sidecars.sidecar_problems`); a table that cannot be read is a problem that stops
+    processing. Returns (summary rows, problems)."""
+    folder = Path(folder)
+    rows: list[tuple[str, str]] = [("mode", "observations (processed from observations/*.parquet)")]
+    found = ProblemLog()
+    tabs = {}
+    for kind in OBSERVATION_TABLES:
+        path = folder / "observations" / f"{kind}.parquet"
+        try:
+            tabs[kind] = tables.read(path, kind)
+            rows.append((f"{kind} rows", str(tabs[kind].num_rows)))
+        except (OSError, ValueError, pa.ArrowException) as exc:
+            found.blocker(path, f"cannot be read ({exc}); write the table again (`aerocal match`)")
+    if not (folder / "camera.json").is_file():
+        found.blocker(folder / "camera.json", "missing; write the camera identity and nominal model there")
+    if "images" in tabs and "gcps" in tabs:
+        crs = (tabs["images"].schema.metadata or {}).get(b"aerocal.crs", b"").decode() or None
+        rows.append(("CRS", crs or "-"))
+        found.extend(sidecar_problems(folder, tabs["images"], tabs["gcps"], crs))
+    return rows, found.as_list()
 
 
 def blocking_report(result) -> str:
@@ -193,7 +220,15 @@ class FolderDataset:
             raise FlightInputError(f"{cam_path} is missing; write the camera identity and nominal model there")
         cam_doc = with_shared_identity(camera_document(cam_path))
         crs = (tabs["images"].schema.metadata or {}).get(b"aerocal.crs", b"").decode() or meta.get("crs")
-        return IngestedFlight(tabs, cam_doc, meta, crs, "observations")
+        found = sidecar_problems(self.folder, tabs["images"], tabs["gcps"], crs)
+        blocking = [p for p in found if p.stops_processing]
+        if blocking:
+            lines = [f"{self.folder}: cannot be processed ({len(blocking)} problem(s); `aerocal ingest FOLDER` "
+                     "shows the whole report):"] + [f"  - {p}" for p in blocking[:20]]
+            if len(blocking) > 20:
+                lines.append(f"  ... and {len(blocking) - 20} more")
+            raise FlightInputError("\n".join(lines))
+        return IngestedFlight(tabs, cam_doc, meta, crs, "observations", [str(p) for p in found])
 
     def _read_images(self, settings: IngestSettings) -> IngestedFlight:
         res = ingest_folder(self.folder, gcp_file=settings.gcp_file, eo_file=settings.eo_file, crs=settings.crs)

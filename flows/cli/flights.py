@@ -166,12 +166,23 @@ def print_problems(result: Any, out: Console, warnings: bool = True, limit: int 
 
 
 def stop_if_not_processable(flight_dir: Path) -> None:
-    """Run ingest's checks on an image-mode flight before any server starts; on a blocking problem print
-    ingest's errors and exit 2 (bad input)."""
+    """Run ingest's checks on a flight (those of ``aerocal ingest``) before any server starts; on a blocking
+    problem print them and exit 2 (bad input)."""
     # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
     from aerocal.ingest import ingest_folder
 
     if (flight_dir / "observations" / "observations.parquet").is_file():
+        # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
+        from aerocal.pipeline.dataset import observations_report
+
+        with user_errors():
+            blocking = [p for p in observations_report(flight_dir)[1] if p.stops_processing]
+        if blocking:
+            err_console.print(f"[red]error:[/red] {flight_dir} cannot be processed: {len(blocking)} problem(s) stop "
+                              "processing (nothing was processed or stored):", markup=True)
+            for p in blocking[:20]:
+                err_console.print(str(p), markup=False)
+            raise typer.Exit(BAD_INPUT)
         return
     with user_errors():
         with console.status(f"checking {flight_dir} ..."):
@@ -207,6 +218,9 @@ def ingest(
 
     if not folder.exists():
         fail(f"{folder}: no such folder; give a flight folder or a folder of images", BAD_INPUT)
+    if (folder / "observations" / "observations.parquet").is_file():
+        _ingest_observations_folder(folder)
+        return
     with user_errors():
         with console.status(f"ingesting {folder} ..."):
             result = ingest_folder(folder, gcp_file=list(gcp) or None, eo_file=eo, crs=crs)
@@ -226,6 +240,31 @@ def ingest(
             markup=True,
         )
     if result.errors:
+        raise typer.Exit(BAD_INPUT)
+
+
+def _ingest_observations_folder(folder: Path) -> None:
+    """``aerocal ingest`` of an observations-mode folder: what processing reads of it, and the files beside its
+    tables that disagree with them; exit 2 when anything stops processing."""
+    # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
+    from aerocal.pipeline.dataset import observations_report
+
+    with user_errors():
+        rows, problems = observations_report(folder)
+    table = Table(title=f"ingest of {folder}", show_header=False)
+    for item, value in rows:
+        table.add_row(item, value)
+    console.print(table)
+    for p in problems:
+        console.print(str(p), markup=False)
+    blocking = [p for p in problems if p.stops_processing]
+    if blocking:
+        err_console.print(
+            f"[red]{len(blocking)} problem(s) stop `aerocal process`[/red] (marked 'stops processing'); "
+            "fix them and ingest again",
+            markup=True,
+        )
+    if any(p.severity == "error" for p in problems):
         raise typer.Exit(BAD_INPUT)
 
 
@@ -394,7 +433,7 @@ def calibrate(
         from flows.process import calibrate_camera
 
         cfg = ProcessConfig()
-        cfg.calibration = dataclasses.replace(cfg.calibration, **settings)
+        cfg = dataclasses.replace(cfg, calibration=dataclasses.replace(cfg.calibration, **settings))
         with run_status(f"calibrating from {flight_dir}"):
             summary = calibrate_camera(
                 flight_dir, out, cfg, conceal_password(database_url), str(artifact_root) if artifact_root else None,
