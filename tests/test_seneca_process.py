@@ -28,6 +28,11 @@ from aerocal.certificates.document import Certificate
 from aerocal.effects import CATALOGUE
 
 SENECA = Path(__file__).resolve().parents[2] / "shared" / "data" / "seneca" / "images"
+#: the quick block's certificate when it was judged right: parameter -> (value, calibrated sigma, cap on the
+#: tolerance), in pixels or the Brown coefficient's units
+PINNED = {"cx": (902.4, 3.7, 12.0), "cy": (661.7, 4.0, 12.0), "k1": (-0.0385, 0.0017, 0.006)}
+#: the GNSS time lag on the whole quick block then (s): estimate, sigma; "consistent with zero", not named
+PINNED_LAG_S = (-0.448, 0.404)
 
 
 @pytest.fixture(scope="module")
@@ -111,6 +116,18 @@ def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_serve
     # ... and the block it was tested on (the calibration block and the whole block give other sigmas), with the IO
     # the calibration of this very flight estimated free again
     assert lag.get("block", "").startswith("the whole ") and "-image block, IO free (" in lag["block"], lag
+    # pinned: what the product measured on this block when it was judged right (the certificate's calibrated
+    # sigmas; a change beyond 3 of them, or beyond the cap, is a changed answer to explain, not noise). f is not
+    # pinned: the block holds it at the nominal value with a calibrated sigma of 7.5 px against a 6.2 px limit,
+    # a decision the assertions above already bound either way
+    for name, (value, sigma, cap) in PINNED.items():
+        assert name in cert.estimated, f"{name} was estimated when pinned: {text}"
+        tol = min(3.0 * max(sigma, cert.sigmas[name]), cap)
+        assert abs(getattr(cert.camera, name) - value) <= tol, f"{name} {getattr(cert.camera, name)}: {text}"
+    assert cert.thermal is None, f"no thermal slope had a held-out gain on these 29 images: {text}"
+    assert not diagnosis["effects"] and not summary["findings"], diagnosis["summary"]
+    assert lag["status"] == "consistent with zero", lag
+    assert abs(lag["estimate"][0] - PINNED_LAG_S[0]) <= min(3.0 * PINNED_LAG_S[1], 1.0), lag
     # the twin: real statistics against the simulation's, and what differs is named with its cause
     twin = diagnosis["twin"]
     print("twin:", twin["summary"])
