@@ -79,7 +79,10 @@ def test_an_xt2_survey_off_the_drone_processes_with_aerocal_process_alone(tmp_pa
     f, f_true = cert["model"]["params"]["f"], truth["camera_true"]["f"]
     sigma_f = (cert.get("sigmas") or {}).get("f")
     nominal = 13.0 / 0.017
-    assert f == pytest.approx(nominal, abs=1e-6) or abs(f - f_true) <= 3 * sigma_f, (f, sigma_f, f_true)
+    # an estimated f carries a sigma within 1 % of f (the review's bound), so 3 sigma stays within 3 % of it: the
+    # tolerance cannot grow with a sigma the product should not have certified
+    assert f == pytest.approx(nominal, abs=1e-6) or (abs(f - f_true) <= 3 * sigma_f and sigma_f <= 0.01 * nominal), (
+        f, sigma_f, f_true)
 
     # the flight's facts came from the images, and say so
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())["summary"]

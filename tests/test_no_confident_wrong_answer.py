@@ -106,6 +106,7 @@ def test_a_corridor_is_calibrated_whole_and_says_why(tmp_path, prefect_server):
     truth = json.loads((tmp_path / "flight" / "truth.json").read_text())
     assert cert.status == "accepted", cert.review
     assert abs(cert.camera.f - truth["camera_true"]["f"]) < 4 * cert.sigmas["f"], f"seed {seed}: {cert.camera}"
+    assert cert.sigmas["f"] <= 0.01 * cert.camera.f, f"seed {seed}: {cert.sigmas}"  # the review's bound
     diagnosis = _cli("diagnose", summary["out_dir"], "--json")
     assert diagnosis.exit_code == 0, diagnosis.output
 

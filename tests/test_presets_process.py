@@ -65,6 +65,8 @@ def test_preset_runs_through_process_and_diagnose(preset, max_images, effect, tm
         assert any("GNSS offset" in n for n in calibration["review"]["notes"]), calibration["review"]
     elif "f" in cert.estimated:
         assert abs(cert.camera.f - truth["camera_true"]["f"]) < 4 * cert.sigmas["f"], f"{preset} seed {seed}"
+        # an accepted certificate's sigma of f is within 1 % of f (the review's bound): 4 sigma cannot grow past it
+        assert cert.sigmas["f"] <= 0.01 * cert.camera.f, f"{preset} seed {seed}: {cert.sigmas}"
     else:
         assert "not determined" in cert.significance["f"].dropped, cert.significance
 
