@@ -136,6 +136,20 @@ def observations_report(folder: str | Path) -> tuple[list[tuple[str, str]], list
     return rows, found.as_list()
 
 
+def sidecar_blockers(folder: str | Path) -> list[Problem]:
+    """The problems that stop processing among the files beside an observations-mode folder's tables
+    (:func:`aerocal.ingest.sidecars.sidecar_problems`); none when its images or gcps table cannot be read (the
+    reader of the flight says that)."""
+    folder = Path(folder)
+    try:
+        images = tables.read(folder / "observations" / "images.parquet", "images")
+        gcps = tables.read(folder / "observations" / "gcps.parquet", "gcps")
+    except (OSError, ValueError, pa.ArrowException):
+        return []
+    crs = (images.schema.metadata or {}).get(b"aerocal.crs", b"").decode() or None
+    return [p for p in sidecar_problems(folder, images, gcps, crs) if p.stops_processing]
+
+
 def blocking_report(result) -> str:
     """The message of a flight that cannot be processed: every blocking problem of ingest, one per line."""
     lines = [f"{result.sources.get('images', 'flight')}: cannot be processed ({len(result.blocking)} problem(s); "

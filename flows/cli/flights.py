@@ -173,10 +173,11 @@ def stop_if_not_processable(flight_dir: Path) -> None:
 
     if (flight_dir / "observations" / "observations.parquet").is_file():
         # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
-        from aerocal.pipeline.dataset import observations_report
+        from aerocal.pipeline.dataset import sidecar_blockers
 
         with user_errors():
-            blocking = [p for p in observations_report(flight_dir)[1] if p.stops_processing]
+            # the files beside the tables; a missing table or camera.json is the flow's own one-line error
+            blocking = sidecar_blockers(flight_dir)
         if blocking:
             err_console.print(f"[red]error:[/red] {flight_dir} cannot be processed: {len(blocking)} problem(s) stop "
                               "processing (nothing was processed or stored):", markup=True)
