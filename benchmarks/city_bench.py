@@ -128,8 +128,9 @@ def end_to_end(folder: Path, work: Path, dask_address: str | None = None) -> tup
     t0 = time.perf_counter()
     run = process(folder, certificate="none", out_dir=work / "run", dask_address=dask_address)
     seconds = time.perf_counter() - t0
-    write_json_atomic(work / "run" / "run.json", run.summary)
-    return run.summary, seconds
+    summary = run.summary.to_json()
+    write_json_atomic(work / "run" / "run.json", summary)
+    return summary, seconds
 
 
 def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int]:

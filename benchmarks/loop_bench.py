@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from aerocal.pipeline import ProcessConfig, process
+from aerocal.pipeline import ProcessConfig, RunSummary, StepStatus, process
 from aerocal.simulate import PRESETS, simulate_flight
 from aerocal.simulate.simulator import as_dataset
 from benchmarks.common import peak_rss_mb, record
@@ -31,22 +31,22 @@ from benchmarks.common import peak_rss_mb, record
 LOOP_STEPS = ("diagnose", "extend", "recalibrate", "adjust_extended", "diagnose_extended")
 
 
-def _rows(summary: dict) -> list[str]:
-    steps = summary["steps"]
-    base = steps["adjust"]["seconds"]
+def _rows(summary: RunSummary) -> list[str]:
+    steps = summary.steps
+    base = steps["adjust"].seconds
     lines = ["| step | time | / first adjustment |", "|---|---|---|",
              f"| adjust (baseline) | {base:.1f} s | 1.00 |"]
-    for name in LOOP_STEPS:
-        if name in steps and steps[name]["status"] == "computed":
-            t = steps[name]["seconds"]
-            lines.append(f"| {name} | {t:.1f} s | {t / max(base, 1e-9):.2f} |")
-    loop = sum(steps[n]["seconds"] for n in LOOP_STEPS if n in steps and steps[n]["status"] == "computed")
+    computed = [n for n in LOOP_STEPS if n in steps and steps[n].status is StepStatus.COMPUTED]
+    for name in computed:
+        t = steps[name].seconds
+        lines.append(f"| {name} | {t:.1f} s | {t / max(base, 1e-9):.2f} |")
+    loop = sum(steps[n].seconds for n in computed)
     lines.append(f"| the loop in all | {loop:.1f} s | {loop / max(base, 1e-9):.2f} |")
-    slow = [n for n in LOOP_STEPS if n in steps and steps[n].get("seconds", 0.0) > 60.0]
+    slow = [n for n in LOOP_STEPS if n in steps and steps[n].seconds > 60.0]
     lines += ["", f"- target (each step <= 60 s on 2 cores): {'met' if not slow else 'not met: ' + ', '.join(slow)}",
-              f"- found: {'; '.join(f['name'] + ' ' + str(f['values']) for f in summary.get('findings') or [])}",
-              f"- diagnosis: {summary.get('diagnosis')}",
-              f"- after the extension: {summary.get('diagnosis_after_extension')}"]
+              f"- found: {'; '.join(f.name + ' ' + str(list(f.values)) for f in summary.findings)}",
+              f"- diagnosis: {summary.diagnosis}",
+              f"- after the extension: {summary.diagnosis_after_extension}"]
     return lines
 
 
@@ -98,12 +98,12 @@ def xt2() -> None:
             run = process(folder, ProcessConfig(), certificates=store)
             took = time.perf_counter() - t0
             s = run.summary
-            found = "; ".join(f"{f['name']} {', '.join(f'{v:.4g}' for v in f['values'])} +- "
-                              f"{', '.join(f'{v:.2g}' for v in f['sigmas'] if v is not None)} ({f['found_by']})"
-                              for f in s.get("findings") or []) or "nothing"
+            found = "; ".join(f"{f.name} {', '.join(f'{v:.4g}' for v in f.values)} +- "
+                              f"{', '.join(f'{v:.2g}' for v in f.sigmas if v is not None)} ({f.found_by})"
+                              for f in s.findings) or "nothing"
             cert = run.json("certificate")
             lines.append(f"| seed {seed} | {', '.join(f'{k} {v[0]}' for k, v in effects.items()) or '-'} | {found} | "
-                         f"{s.get('diagnosis_after_extension') or '-'} | v{cert.get('version')} "
+                         f"{s.diagnosis_after_extension or '-'} | v{cert.get('version')} "
                          f"{', '.join(cert.get('effects') or {}) or ''} | {took:.0f} s |")
     lines += ["", f"- peak memory {peak_rss_mb():.0f} MB"]
     record("The loop across two flights of a camera, rendered xt2-survey", lines)

@@ -269,7 +269,7 @@ def main(argv: list[str] | None = None) -> None:
             t0 = time.perf_counter()
             config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES)))
             run = process(folder, config, certificate="none", out_dir=work / "run")
-            summary = run.summary
+            summary = run.summary.to_json()
             keep(run, work)
             measured = {"summary": summary, "wall_s": time.perf_counter() - t0, "peak_main_mb": peak_rss_mb(),
                         "peak_children_mb": children_peak_mb(),

@@ -15,6 +15,7 @@ The folder of each flight is kept as a small JSON artifact per campaign (kind ``
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import uuid
@@ -27,7 +28,7 @@ from prefect.client.schemas.schedules import CronSchedule
 from prefect.deployments.runner import EntrypointType
 from sqlalchemy.engine import make_url
 
-from aerocal.pipeline import FolderDataset, ProcessConfig
+from aerocal.pipeline import FolderDataset, ProcessConfig, RunSummary
 from aerocal.pipeline.certificates import identity_of
 from aerocal.pipeline.ingest_step import ingest_step
 from aerocal.pipeline.runner import JsonOutput
@@ -159,6 +160,14 @@ def list_campaigns(database_url: str | None = None) -> list[dict[str, Any]]:
         ]
 
 
+@dataclasses.dataclass(frozen=True)
+class CampaignRun:
+    """A campaign processed: its name and the flights' run summaries in date order."""
+
+    campaign: str
+    runs: tuple[RunSummary, ...]
+
+
 @flow(name="run-campaign", validate_parameters=False)
 def run_campaign(
     campaign: str,
@@ -167,7 +176,7 @@ def run_campaign(
     artifact_root: str | None = None,
     dask_address: str | None = None,
     config: ProcessConfig | None = None,
-) -> dict[str, Any]:
+) -> CampaignRun:
     """Process every flight of ``campaign`` in date order, one ``process_flight`` sub-flow each, with the
     certificate chosen automatically (made once per camera, then reused). Run folders go to
     ``out_dir/<flight name>`` (default: beside each flight folder)."""
@@ -204,7 +213,7 @@ def run_campaign(
                 campaign,
             )
         )
-    return {"campaign": campaign, "runs": runs}
+    return CampaignRun(campaign, tuple(runs))
 
 
 def campaign_deployment_name(campaign: str) -> str:

@@ -1,10 +1,11 @@
 """The demo: a small simulated thermal flight with one hidden effect, processed end to end.
 
 :func:`demo` simulates ``conte-calibration`` (the NEC TS9260 thermal camera over a synthetic city) in
-observations mode with a hidden focal-length temperature effect, renders a handful of frames near the
-block centre so that the orthomosaic has pixels, and runs :func:`flows.process.process_flight` with every
-step: ingest, orient, self-calibration with the certificate stored, full-block adjustment with fixed IO
-and thermal correction, DSM and orthomosaic, assessment, diagnosis and the HTML report.
+observations mode with a hidden effect (a 10 ms rolling-shutter readout, :class:`DemoConfig`), renders a handful
+of frames near the block centre so that the orthomosaic has pixels, and runs :func:`flows.process.process_flight`
+with every step: ingest, orient, self-calibration with the certificate stored, full-block adjustment with fixed
+IO and thermal correction, assessment, diagnosis, the block extended by what the diagnosis names, DSM and
+orthomosaic, and the HTML report.
 
 Everything goes under the output folder: the flight, the run folder, the SQLite database and the artifact
 store (unless ``AEROCAL_DATABASE_URL`` / ``AEROCAL_ARTIFACT_ROOT`` are set), and Prefect's home (set by
@@ -23,7 +24,7 @@ import numpy as np
 from prefect import flow
 
 from aerocal.effects import CATALOGUE
-from aerocal.pipeline import ProcessConfig
+from aerocal.pipeline import ProcessConfig, RunSummary
 from aerocal.simulate import get_preset, simulate_flight, write_flight
 from aerocal.simulate.rendered_frames import render_flight_images
 from aerocal.simulate.simulator import spec_summary
@@ -77,21 +78,33 @@ def simulate_demo_flight(folder: Path, config: DemoConfig) -> dict[str, Any]:
     return spec_summary(sim)
 
 
+@dataclasses.dataclass(frozen=True)
+class DemoSummary:
+    """What the demo hands on: the processing ``run``'s summary, the ``simulated`` flight's figures
+    (:func:`aerocal.simulate.simulator.spec_summary`: preset, images, GSD, CRS, effects), the ``hidden`` effects in
+    words and the ``flight_dir`` it wrote."""
+
+    run: RunSummary
+    simulated: dict[str, Any]
+    hidden: str
+    flight_dir: str
+
+
 @flow(name="demo", validate_parameters=False)
 def demo(
     out: str | Path = "demo-output",
     config: DemoConfig | None = None,
     database_url: str | None = None,
     artifact_root: str | None = None,
-) -> dict[str, Any]:
-    """Simulate the demo flight under ``out/flight`` and process it into ``out/run``; returns the run's
-    summary with the simulated flight's figures under ``simulated``."""
+) -> DemoSummary:
+    """Simulate the demo flight under ``out/flight`` and process it into ``out/run``; returns the run's summary
+    with the simulated flight's figures."""
     config = config or DemoConfig()
     out = Path(out).resolve()
     env = demo_environment(out)
     flight = out / "flight"
     simulated = simulate_demo_flight(flight, config)
-    summary = process_flight(
+    run = process_flight(
         flight,
         out / "run",
         "auto",
@@ -99,7 +112,4 @@ def demo(
         database_url or env["database_url"],
         artifact_root or env["artifact_root"],
     )
-    summary["simulated"] = simulated
-    summary["hidden"] = config.hidden
-    summary["flight_dir"] = str(flight)
-    return summary
+    return DemoSummary(run, simulated, config.hidden, str(flight))

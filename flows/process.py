@@ -12,16 +12,16 @@ lineage; the run folder gets the report, the products and ``provenance.json``.
 
 from __future__ import annotations
 
+import dataclasses
 import traceback
 import uuid
 from pathlib import Path
-from typing import Any
 
 from prefect import flow
 from prefect.runtime import flow_run
 
 from aerocal.io import write_json_atomic
-from aerocal.pipeline import FlightInputError, ProcessConfig, process
+from aerocal.pipeline import FlightInputError, ProcessConfig, RunSummary, process
 from aerocal.pipeline.interrupts import was_interrupted
 from flows.environment import resolve_storage
 from storage.provenance import provenance
@@ -56,7 +56,7 @@ def _run_flow(
     dask_address: str | None,
     campaign: str | None,
     calibrate_only: bool,
-) -> dict[str, Any]:
+) -> RunSummary:
     flight_dir = Path(flight_dir).resolve()
     if not flight_dir.is_dir():
         raise FlowInputError(f"{flight_dir} is not a folder; give a flight folder (images/ or observations/)")
@@ -88,10 +88,10 @@ def _run_flow(
         finish_run(session, ctx.run_id, "completed")
         session.commit()
         prov = provenance(session, ctx.run_id).to_dict()
-    summary = run.summary
-    summary["storage"] = where.describe()
-    summary["files"]["provenance"] = str(write_json_atomic(out / "provenance.json", prov))
-    summary["files"]["run"] = str(write_json_atomic(out / "run.json", summary))
+    summary = dataclasses.replace(run.summary, storage=where.describe())
+    summary = summary.with_files(provenance=str(write_json_atomic(out / "provenance.json", prov)))
+    summary = summary.with_files(run=str(out / "run.json"))
+    write_json_atomic(out / "run.json", summary.to_json())
     # a failed run's traceback left in a folder this run completed in would sit beside outputs it does not
     # describe; the failed run and its error stay in the database
     (out / FAILURE_LOG).unlink(missing_ok=True)
@@ -130,9 +130,9 @@ def process_flight(
     artifact_root: str | None = None,
     dask_address: str | None = None,
     campaign: str | None = None,
-) -> dict[str, Any]:
-    """Process one flight end to end; returns the run's summary (run id, certificate and reason, steps
-    computed or reused, output SHA-256s, files written, diagnosis, accuracy verdict).
+) -> RunSummary:
+    """Process one flight end to end; returns the run's :class:`~aerocal.pipeline.RunSummary` (run id, certificate
+    and reason, steps computed or reused, output SHA-256s, files written, diagnosis, accuracy verdict).
 
     ``certificate``: ``"auto"`` (the stored certificate that applies, else self-calibrate and store one),
     ``"none"`` (always self-calibrate), ``"nominal"`` (the flight's nominal camera, not calibrated) or a
@@ -161,7 +161,7 @@ def calibrate_camera(
     database_url: str | None = None,
     artifact_root: str | None = None,
     dask_address: str | None = None,
-) -> dict[str, Any]:
+) -> RunSummary:
     """Calibrate the camera of a (calibration) flight: ingest, match, orient, sub-block, self-calibration;
     the certificate is issued to the store and written to ``out_dir/certificate.json``."""
     return _run_flow(

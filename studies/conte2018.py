@@ -236,7 +236,7 @@ def product_runs(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
     out: dict = {}
     run = process(as_dataset(cal, "conte-calibration"), certificates=store, calibrate_only=True)
     out["CAL"] = certificate_row(run)
-    certs = {"CAL": run.summary["certificate_id"]}
+    certs = {"CAL": run.summary.certificate_id}
     for year, sim in years.items():
         ds = as_dataset(sim, f"conte-city-{year}")
         ds.gcps = as_checks(sim.gcps)  # GNSS-only: the city blocks' GCPs are check points
@@ -251,7 +251,7 @@ def product_runs(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
                 log(f"  seed {seed} {model.name} aerocal process {name} {year}: refused ({exc})")
                 continue
             if name == "STR2":
-                certs[f"STR2 {year}"] = run.summary["certificate_id"]
+                certs[f"STR2 {year}"] = run.summary.certificate_id
             row = {**certificate_row(run), **_block_row(sim, run)}
             out[f"{name} {year}"] = row
             log(f"  seed {seed} {model.name} aerocal process {name} {year}: DoD {row['dod']:+.2f} m, CP "
@@ -269,10 +269,10 @@ def _block_row(sim, run) -> dict:
     # what the diagnosis named: before the block was extended by it, when it was
     diag = run.json("diagnosis_before_extension" if "diagnosis_before_extension" in run.outputs else "diagnosis")
     return {"dod": float(np.mean(pts.column("Z").to_numpy() - sim.tie.points[tid, 2])),
-            "cp_mean": float(np.mean(n)), "cp_std": float(np.std(n)), "diagnosis": run.summary.get("diagnosis"),
+            "cp_mean": float(np.mean(n)), "cp_std": float(np.std(n)), "diagnosis": run.summary.diagnosis,
             "effects": {e["name"]: [float(np.ravel(e["magnitude"])[0]), float(np.ravel(e["sigma"])[0])]
                         for e in diag.get("effects") or []},
-            "twin": run.summary.get("twin")}
+            "twin": run.summary.twin}
 
 
 def sweep(cfg: StudyConfig, seed: int, log=print) -> list[dict]:

@@ -315,8 +315,8 @@ def _corridor_row(sim, run) -> dict:
     diag = run.json("diagnosis")
     res = product_residuals(sim, run)
     return {**stats(res), "n": int(len(res)), "thermal_correction": bool(adj.get("thermal_correction")),
-            "converged": bool(adj.get("converged", True)), "reason": run.summary["certificate_reason"],
-            "diagnosis": run.summary.get("diagnosis"),
+            "converged": bool(adj.get("converged", True)), "reason": run.summary.certificate_reason,
+            "diagnosis": run.summary.diagnosis,
             "effects": {e["name"]: {"magnitude": [float(v) for v in np.ravel(e["magnitude"])],
                                     "sigma": [float(v) for v in np.ravel(e["sigma"])], "units": e.get("units"),
                                     "alternatives": list(e.get("alternatives") or [])}

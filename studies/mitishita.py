@@ -241,10 +241,10 @@ def _product_row(sim, run) -> dict:
     ids, _, C = poses_arrays(run.table("poses"))
     im = sim.images
     rec = dict(zip(im.column("image_id").to_pylist(), im.column("gnss_z").to_numpy(), strict=True))
-    lag = [n for n in run.summary.get("recorded_eo_corrections") or [] if "time lag" in n]
+    lag = [n for n in run.summary.recorded_eo_corrections or [] if "time lag" in n]
     return {**_summary([e]), "centre_dz": float(np.mean(C[:, 2] - np.array([rec[int(i)] for i in ids]))),
-            "certificate": run.summary["certificate_id"], "reason": run.summary["certificate_reason"],
-            "diagnosis": run.summary.get("diagnosis"), "lag": lag[0] if lag else "",
+            "certificate": run.summary.certificate_id, "reason": run.summary.certificate_reason,
+            "diagnosis": run.summary.diagnosis, "lag": lag[0] if lag else "",
             "boresight": (run.json("diagnosis").get("recorded_eo") or {}).get("boresight") or {}}
 
 

@@ -48,7 +48,7 @@ def certificate_row(run) -> dict:
     length (px), what it estimated, its review's verdict and words."""
     cert = run.json("certificate")
     review = cert.get("review") or {}
-    return {"certificate": run.summary["certificate_id"], "reason": run.summary["certificate_reason"],
+    return {"certificate": run.summary.certificate_id, "reason": run.summary.certificate_reason,
             "f": float(cert["model"]["params"]["f"]), "estimated": list(cert.get("estimated") or []),
             "status": review.get("status", "nominal"), "notes": list(review.get("notes") or []),
             "problems": list(review.get("problems") or [])}

@@ -62,7 +62,7 @@ def process(work: Path, quick: bool) -> Path:
     folder, _ = build_flight(work, quick)
     config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES)))
     run = pipeline.process(folder, config, certificate="none", out_dir=run_dir)
-    write_json_atomic(run_dir / "run.json", run.summary)
+    write_json_atomic(run_dir / "run.json", run.summary.to_json())
     return run_dir
 
 

@@ -44,30 +44,31 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
     monkeypatch.delenv("AEROCAL_ARTIFACT_ROOT", raising=False)
     out = tmp_path / "demo"
     config = DemoConfig()
-    summary = demo(out, config)
-    assert summary["hidden"] == "rolling_shutter = 0.01 s", summary["hidden"]
+    result = demo(out, config)
+    summary = result.run
+    assert result.hidden == "rolling_shutter = 0.01 s", result.hidden
 
     # everything under the output folder, Prefect's home included
     assert (out / "aerocal.db").is_file() and (out / "artifacts").is_dir()
     assert os.environ["PREFECT_HOME"] == str((out / "prefect").resolve())
-    statuses = {k: v["status"] for k, v in summary["steps"].items()}
+    statuses = summary.step_status()
     assert all(statuses[s] == "computed" for s in ("ingest", "calibrate", "adjust", "diagnose", "extend",
                                                    "recalibrate", "adjust_extended", "mosaic", "report")), statuses
 
     # the readout, found by the diagnosis with a gain on held-out images, within 25 % of the hidden 10 ms
-    found = [f for f in summary["findings"] if f["name"] == "rolling_shutter"]
-    assert found and found[0]["found_by"] == "diagnosis", f"seed {config.seed}: {summary['findings']}"
-    assert abs(found[0]["values"][0] - 0.010) < 0.0025, f"seed {config.seed}: {found[0]}"
-    assert "held-out gain +" in found[0]["evidence"], found[0]
-    ext = summary["model_extension"]
+    found = summary.finding("rolling_shutter")
+    assert found and found.found_by == "diagnosis", f"seed {config.seed}: {summary.findings}"
+    assert abs(found.values[0] - 0.010) < 0.0025, f"seed {config.seed}: {found}"
+    assert "held-out gain +" in found.evidence, found
+    ext = summary.model_extension
     before, after = ext["before"]["check_points"], ext["after"]["check_points"]
     rmse = [float(np.sqrt(sum(v**2 for v in c["rmse_m"].values()))) for c in (before, after)]
     assert rmse[1] < rmse[0], f"seed {config.seed}: check points {rmse[0]:.3f} m before, {rmse[1]:.3f} m after"
-    assert summary["diagnosis_after_extension"] == "no systematic effect found", summary["diagnosis_after_extension"]
+    assert summary.diagnosis_after_extension == "no systematic effect found", summary.diagnosis_after_extension
 
     # the products come from the extended block
-    with rasterio.open(summary["files"]["orthomosaic"]) as ds:
-        assert ds.crs.to_string() == summary["simulated"]["crs"]
+    with rasterio.open(summary.files["orthomosaic"]) as ds:
+        assert ds.crs.to_string() == result.simulated["crs"]
         band = ds.read(1)
         coverage = float(np.mean(band != ds.nodata))
     assert coverage > 0.2, f"orthomosaic covers {coverage:.0%} of its grid"

@@ -91,6 +91,6 @@ def test_a_principal_point_error_is_not_removed_as_a_gnss_time_lag():
     seed = 1
     sim = simulate_flight("mitishita-block", seed=seed)  # true cy 0.83 px from the nominal one, no lag
     run = process(as_dataset(sim), certificate="nominal")
-    notes = [n for n in run.summary["recorded_eo_corrections"] if "time lag" in n]
+    notes = [n for n in run.summary.recorded_eo_corrections if "time lag" in n]
     assert notes and "removed" not in notes[0], f"seed {seed}: {notes}"
     assert run.json("adjustment")["recorded_eo_corrections"]["time_offset_s"] is None

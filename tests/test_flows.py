@@ -57,24 +57,24 @@ def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path
         flight, out, "none", database_url=storage_url, artifact_root=str(tmp_path / "art")
     )
 
-    computed = {k for k, v in summary["steps"].items() if v["status"] == "computed"}
+    computed = {k for k, v in summary.steps.items() if v.status == "computed"}
     assert {"ingest", "orient", "calibrate", "adjust", "mosaic", "assess", "diagnose", "report"} <= computed
-    assert summary["steps"]["match"]["status"] == "skipped", summary["steps"]["match"]
+    assert summary.steps["match"].status == "skipped", summary.steps["match"]
     db = connect(storage_url)
     with db.session() as session:
-        run = get_run(session, summary["run_id"])
+        run = get_run(session, summary.run_id)
         assert run.status == "completed", run.error
-        cert = get_certificate(session, summary["certificate_id"])
+        cert = get_certificate(session, summary.certificate_id)
         assert cert.camera.model == "TS9260" and cert.version >= 1
-        assert "self-calibration" in summary["certificate_reason"]
-        prov = provenance(session, summary["run_id"]).to_dict()
+        assert "self-calibration" in summary.certificate_reason
+        prov = provenance(session, summary.run_id).to_dict()
         # inputs: the flight's manifest; outputs: every step output; certificate with reason; configuration
         input_kinds = {a["kind"] for a in prov["inputs"]}
         assert "flight-manifest" in input_kinds, input_kinds
         out_shas = {a["sha256"] for a in prov["outputs"]}
-        missing = {n for n, sha in summary["outputs"].items() if sha not in out_shas and n != "certificate"}
+        missing = {n for n, sha in summary.outputs.items() if sha not in out_shas and n != "certificate"}
         assert not missing, f"outputs not recorded on the run: {missing}"
-        assert prov["certificate"]["id"] == summary["certificate_id"]
+        assert prov["certificate"]["id"] == summary.certificate_id
         assert "self-calibration" in prov["certificate"]["reason"]
         conf = prov["configuration"]
         assert conf["certificate"] == "none"
@@ -89,20 +89,20 @@ def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path
 
         store = ArtifactStore(tmp_path / "art")
         for name in ("dsm", "report", "poses", "diagnosis"):
-            kinds = {a.kind for a in ancestors(session, store.get(session, summary["outputs"][name]))}
+            kinds = {a.kind for a in ancestors(session, store.get(session, summary.outputs[name]))}
             assert "flight-manifest" in kinds, f"{name} has no lineage to the flight: {kinds}"
-        adjustment = _json(store, session, summary["outputs"]["adjustment"])
+        adjustment = _json(store, session, summary.outputs["adjustment"])
     db.dispose()
 
     # the run folder: report, DSM in the flight CRS, certificate, provenance
-    files = summary["files"]
+    files = summary.files
     assert "<html" in (out / "report.html").read_text()[:200].lower()
     check_report_shows_every_figure(out)
     with rasterio.open(files["dsm"]) as ds:
         assert ds.crs.to_epsg() == 32632
         assert ds.read(1).size > 100
     stored = Certificate.from_json((out / "certificate.json").read_text())
-    assert stored.id == summary["certificate_id"]
+    assert stored.id == summary.certificate_id
     # conditions count the control points the calibration used (check points are held out)
     from aerocal import tables
 
@@ -115,13 +115,13 @@ def test_process_flight_end_to_end(prefect_server, flight, storage_url, tmp_path
     assert stored.conditions.n_images == 20
     dropped = {n: s.dropped for n, s in stored.significance.items() if s.dropped}
     assert all(not why.startswith("dropped") for why in dropped.values()), dropped
-    assert json.loads((out / "provenance.json").read_text())["run_id"] == summary["run_id"]
+    assert json.loads((out / "provenance.json").read_text())["run_id"] == summary.run_id
 
     # the adjusted block is as good as its noise: sigma0 near 1 and check points inside a loose bound
     assert 0.7 < adjustment["sigma0"] < 1.4, adjustment["sigma0"]
-    rho = summary["accuracy"]["rho"]
+    rho = summary.accuracy["rho"]
     assert all(r is not None and r < 2.5 for r in rho.values()), f"seed {SEED}: rho {rho}"
-    assert isinstance(summary["diagnosis"], str) and summary["diagnosis"]
+    assert isinstance(summary.diagnosis, str) and summary.diagnosis
 
 
 class _Report(HTMLParser):
@@ -244,19 +244,19 @@ def test_crashed_run_resumes_after_the_last_completed_step(prefect_server, fligh
         first_id = first.id
 
     summary = process_flight(flight, tmp_path / "run", "none", database_url=url, artifact_root=art)
-    steps = summary["steps"]
+    steps = summary.steps
     for step in ("ingest", "orient", "calibrate"):
-        assert steps[step]["status"] == "reused", (step, steps[step])
-        assert steps[step]["computed_by"] == first_id
-    assert steps["adjust"]["status"] == "computed"
+        assert steps[step].status == "reused", (step, steps[step])
+        assert steps[step].computed_by == first_id
+    assert steps["adjust"].status == "computed"
     with db.session() as session:
         runs = {r.id: r for r in list_runs(session, kind="process_flight")}
-        second = runs[summary["run_id"]]
+        second = runs[summary.run_id]
         assert second.status == "completed"
         assert "ingest (reused)" in second.timings and "ingest" not in second.timings
         assert "calibrate (reused)" in second.timings and "adjust" in second.timings
         # the certificate made before the crash is the one the resumed run uses
-        assert second.certificate_id == summary["certificate_id"]
+        assert second.certificate_id == summary.certificate_id
     db.dispose()
 
 

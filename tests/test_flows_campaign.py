@@ -41,23 +41,20 @@ def test_second_flight_reuses_the_first_flights_certificate(campaign):
     from storage.provenance import provenance
 
     result = run_campaign("seneca", str(campaign["root"] / "runs"), campaign["url"], campaign["artifacts"])
-    first, second = result["runs"]
-    assert first["flight"] == "flight-1" and second["flight"] == "flight-2"
-    assert "calibrate" in first["steps"] and "calibrate" not in second["steps"], (
-        first["steps"],
-        second["steps"],
-    )
-    assert second["certificate_id"] == first["certificate_id"]
+    first, second = result.runs
+    assert first.flight == "flight-1" and second.flight == "flight-2"
+    assert "calibrate" in first.steps and "calibrate" not in second.steps, (first.steps, second.steps)
+    assert second.certificate_id == first.certificate_id
     db = connect(campaign["url"])
     with db.session() as session:
-        prov1 = provenance(session, first["run_id"]).to_dict()
-        prov2 = provenance(session, second["run_id"]).to_dict()
+        prov1 = provenance(session, first.run_id).to_dict()
+        prov2 = provenance(session, second.run_id).to_dict()
     db.dispose()
     assert "self-calibration" in prov1["certificate"]["reason"]
-    assert prov2["certificate"]["id"] == first["certificate_id"]
+    assert prov2["certificate"]["id"] == first.certificate_id
     assert "newest applicable certificate" in prov2["certificate"]["reason"], prov2["certificate"]["reason"]
     # the certificate document the second run adjusted with is an input of its adjustment step
-    assert first["outputs"]["certificate"] == second["outputs"]["certificate"]
+    assert first.outputs["certificate"] == second.outputs["certificate"]
     assert (campaign["root"] / "runs" / "flight-2" / "report.html").is_file()
 
 

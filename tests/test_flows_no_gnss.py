@@ -48,13 +48,13 @@ def test_flight_without_gnss_is_oriented_by_sfm_and_georeferenced_on_control(pre
     url = f"sqlite:///{tmp_path / 'aerocal.db'}"
     out = tmp_path / "run"
     summary = process_flight(folder, out, "none", database_url=url, artifact_root=str(tmp_path / "art"))
-    orient = summary["steps"]["orient"]
-    print("orient:", orient.get("extra"))
-    assert orient["extra"]["method"] == "incremental", f"seed {SEED}: {orient}"
-    assert orient["extra"]["registered"] == N_IMAGES, f"seed {SEED}: {orient['extra']}"
+    orient = summary.steps["orient"]
+    print("orient:", orient.extra)
+    assert orient.extra["method"] == "incremental", f"seed {SEED}: {orient}"
+    assert orient.extra["registered"] == N_IMAGES, f"seed {SEED}: {orient.extra}"
 
     with connect(url).session() as session:
-        conf = provenance(session, summary["run_id"]).to_dict()["configuration"]
+        conf = provenance(session, summary.run_id).to_dict()["configuration"]
     for which in ("calibration_adjust", "block_adjust"):
         eff = conf["effective"][which]
         assert eff["gnss_sigma_m"] is None and eff["attitude_sigma_deg"] is None, (which, eff)
@@ -70,7 +70,7 @@ def test_flight_without_gnss_is_oriented_by_sfm_and_georeferenced_on_control(pre
     assert np.hypot(rmse[0], rmse[1]) < 1.0 * gsd, f"seed {SEED}: planimetric check RMSE {rmse[:2]} m"
     # the check points are as accurate as the adjustment says (loose band: a handful of check points)
     assert np.all((rho > 0.3) & (rho < 2.5)), f"seed {SEED}: rho {rho}"
-    with rasterio.open(summary["files"]["orthomosaic"]) as ds:
+    with rasterio.open(summary.files["orthomosaic"]) as ds:
         assert ds.crs.to_string() == sim.crs and ds.count >= 1
     # the diagnosis leaves out the blunders the block adjustment rejected instead of screening again
     selection = " ".join(adj.get("selection") or [])

@@ -21,8 +21,9 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from aerocal.pipeline import ProcessConfig, process
+from aerocal.pipeline import ProcessConfig, RunSummary, process
 from aerocal.pipeline.certificates import MemoryCertificates
+from aerocal.pipeline.findings import Finding
 from aerocal.simulate import PRESETS, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
 from aerocal.simulate.simulator import as_dataset
@@ -54,8 +55,8 @@ def run(spec, seed: int, effects: dict, store: MemoryCertificates | None = None,
     return process(as_dataset(sim, name=name), ProcessConfig(), certificates=store), store
 
 
-def found(summary: dict, name: str) -> dict | None:
-    return next((f for f in summary.get("findings") or [] if f["name"] == name), None)
+def found(summary: RunSummary, name: str) -> Finding | None:
+    return summary.finding(name)
 
 
 def along(estimate, truth) -> float:
@@ -96,17 +97,17 @@ WITH_CERTIFICATE = [
 def _check_found(fr, store, name, value, by, seed) -> None:
     s = fr.summary
     f = found(s, name)
-    assert f is not None, f"seed {seed}: hid {name}={value}; found {s.get('findings')}; diagnosis {s['diagnosis']}"
-    assert f["found_by"].startswith(by), f"seed {seed}: {f}"  # with "and diagnosis": the rest found afterwards
-    err = along(f["values"], value)
-    assert err < 0.25, f"seed {seed}: hid {name}={value}, found {f['values']} +- {f['sigmas']} ({err:.0%} off)"
-    assert "gain +" in f["evidence"] or f["found_by"] == "self-calibration", f"seed {seed}: {f}"
+    assert f is not None, f"seed {seed}: hid {name}={value}; found {s.findings}; diagnosis {s.diagnosis}"
+    assert f.found_by.startswith(by), f"seed {seed}: {f}"  # with "and diagnosis": the rest found afterwards
+    err = along(f.values, value)
+    assert err < 0.25, f"seed {seed}: hid {name}={value}, found {f.values} +- {f.sigmas} ({err:.0%} off)"
+    assert "gain +" in f.evidence or f.found_by == "self-calibration", f"seed {seed}: {f}"
     if by == "diagnosis":
         # the block was adjusted again with it, and its diagnosis does not name it again
-        ext = s["model_extension"]
+        ext = s.model_extension
         assert name in [t["name"] for t in ext["terms"]], f"seed {seed}: {ext}"
-        assert name not in (s["diagnosis_after_extension"] or ""), f"seed {seed}: {s['diagnosis_after_extension']}"
-        assert "adjust_extended" in s["steps"] and s["steps"]["adjust_extended"]["status"] == "computed"
+        assert name not in (s.diagnosis_after_extension or ""), f"seed {seed}: {s.diagnosis_after_extension}"
+        assert "adjust_extended" in s.steps and s.steps["adjust_extended"].status == "computed"
         if name in ("rolling_shutter", "affinity_skew", "thermal_principal_point", "thermal_rotation", "radial_k3"):
             # a camera term: the camera's next certificate carries it, with the flight that found it
             cert = fr.json("certificate")
@@ -126,15 +127,15 @@ def test_an_effect_a_self_calibration_absorbs_is_found_with_a_certificate_from_a
                                                                                               seed, by):
     _, store = run(flight(), seed + 100, {}, name="calibration flight")
     fr, store = run(flight(), seed, {name: value}, store, name="survey")
-    assert fr.summary["certificate_id"] == store.documents[0]["id"] or "extended" in fr.summary["certificate_reason"]
-    notes = " ".join(fr.summary.get("recorded_eo_corrections") or [])
+    assert fr.summary.certificate_id == store.documents[0]["id"] or "extended" in fr.summary.certificate_reason
+    notes = " ".join(fr.summary.recorded_eo_corrections)
     if name == "boresight" and "not told apart" in notes:
         # a tilt about the camera's x axis (across the track) moves the image as a GNSS lag moves the camera along
         # it; where the block fits both alike, what both readings agree on is removed and nothing else
         f = found(fr.summary, name)
-        assert f is not None and f["values"][0] == 0.0, f"seed {seed}: {f}; {notes}"
-        assert abs(f["values"][1] - value[1]) < 0.25 * abs(value[1]), f"seed {seed}: {f}"
-        assert not found(fr.summary, "gnss_time_offset"), f"seed {seed}: {fr.summary['findings']}"
+        assert f is not None and f.values[0] == 0.0, f"seed {seed}: {f}; {notes}"
+        assert abs(f.values[1] - value[1]) < 0.25 * abs(value[1]), f"seed {seed}: {f}"
+        assert not found(fr.summary, "gnss_time_offset"), f"seed {seed}: {fr.summary.findings}"
         return
     _check_found(fr, store, name, (1.0,) if value == "on" else value, by, seed)
 
@@ -161,7 +162,7 @@ def test_a_third_radial_term_is_held_by_the_self_calibrations_lens_model():
                                f"(the k3 term: {term:.2f} px); {p}"
     if "k3" not in cert["estimated"]:
         assert "corr(k2, k3)" in (cert["significance"]["k3"]["dropped"] or ""), cert["significance"]["k3"]
-    assert not fr.summary.get("findings"), f"seed {seed}: {fr.summary['findings']}"
+    assert not fr.summary.findings, f"seed {seed}: {fr.summary.findings}"
 
 
 def test_a_camera_term_from_one_flight_is_applied_on_the_next_which_names_nothing_for_it():
@@ -170,12 +171,12 @@ def test_a_camera_term_from_one_flight_is_applied_on_the_next_which_names_nothin
     flight's own diagnosis would (the first flight shows that it can)."""
     seed = 311
     first, store = run(conte(warming=False), seed, {"rolling_shutter": (0.010,)}, name="first")
-    assert found(first.summary, "rolling_shutter"), f"seed {seed}: {first.summary['diagnosis']}"
+    assert found(first.summary, "rolling_shutter"), f"seed {seed}: {first.summary.diagnosis}"
     second, _ = run(conte(warming=False), seed + 1, {"rolling_shutter": (0.010,)}, store, name="second")
     s = second.summary
-    assert s["certificate_id"] == store.documents[-1]["id"], f"seed {seed}: {s['certificate_reason']}"
+    assert s.certificate_id == store.documents[-1]["id"], f"seed {seed}: {s.certificate_reason}"
     assert second.json("adjustment")["camera_terms"], "the readout of the certificate is applied"
-    assert not s.get("findings"), f"seed {seed + 1}: found {s.get('findings')} with the readout applied"
+    assert not s.findings, f"seed {seed + 1}: found {s.findings} with the readout applied"
     rs = next(h for h in second.json("diagnosis")["hypotheses"] if h["name"] == "rolling_shutter" and h["round"] == 1)
     assert abs(rs["estimate"][0]) < 3 * rs["sigma"][0], f"seed {seed + 1}: residual readout {rs}"
 
@@ -184,8 +185,8 @@ def test_a_camera_term_from_one_flight_is_applied_on_the_next_which_names_nothin
 def test_an_effect_free_flight_names_nothing_and_is_not_extended(seed):
     fr, store = run(conte(warming=seed % 2 == 0), seed, {})
     s = fr.summary
-    assert not s.get("findings"), f"seed {seed}: found {s['findings']} on an effect-free flight"
-    assert "model_extension" not in s and len(store.documents) == 1, f"seed {seed}: {s['diagnosis']}"
+    assert not s.findings, f"seed {seed}: found {s.findings} on an effect-free flight"
+    assert s.model_extension is None and len(store.documents) == 1, f"seed {seed}: {s.diagnosis}"
 
 
 def test_a_recorded_yaw_offset_is_found_within_half_a_degree_and_removed():
@@ -197,8 +198,8 @@ def test_a_recorded_yaw_offset_is_found_within_half_a_degree_and_removed():
     seed = 331
     fr, _ = run(conte(warming=False), seed, {"boresight": (0.0, 0.0, 4.0)})
     f = found(fr.summary, "boresight")
-    assert f is not None and f["found_by"] == "recorded-EO check", f"seed {seed}: {fr.summary.get('findings')}"
-    assert abs(f["values"][2] - 4.0) < 0.5 and abs(f["values"][0]) < 0.5 and abs(f["values"][1]) < 0.5, f
+    assert f is not None and f.found_by == "recorded-EO check", f"seed {seed}: {fr.summary.findings}"
+    assert abs(f.values[2] - 4.0) < 0.5 and abs(f.values[0]) < 0.5 and abs(f.values[1]) < 0.5, f
     check = fr.json("diagnosis")["recorded_eo"]["attitude_offset"]
     assert check["status"] == "consistent with the adjusted attitudes", f"seed {seed}: {check}"
 
@@ -233,6 +234,6 @@ def test_a_readout_is_told_from_an_affinity_where_ingest_left_a_strips_first_fra
     fr = process(as_dataset(sim), ProcessConfig(), certificates=MemoryCertificates())
     s = fr.summary
     f = found(s, "rolling_shutter")
-    assert f is not None, f"seed {seed}: found {s.get('findings')}; diagnosis {s['diagnosis']}"
-    assert abs(f["values"][0] - 0.030) < 0.25 * 0.030, f"seed {seed}: {f}"
-    assert not found(s, "affinity_skew"), f"seed {seed}: {s['findings']}"
+    assert f is not None, f"seed {seed}: found {s.findings}; diagnosis {s.diagnosis}"
+    assert abs(f.values[0] - 0.030) < 0.25 * 0.030, f"seed {seed}: {f}"
+    assert not found(s, "affinity_skew"), f"seed {seed}: {s.findings}"

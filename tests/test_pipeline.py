@@ -36,7 +36,7 @@ import json, sys
 from aerocal.pipeline import process
 run = process({str(folder)!r}, certificate="none", out_dir={str(tmp_path / 'run')!r})
 heavy = sorted(m for m in ("prefect", "sqlalchemy", "distributed", "storage", "tasks", "flows") if m in sys.modules)
-print(json.dumps({{"heavy": heavy, "reason": run.summary["certificate_reason"], "files": run.files}}))
+print(json.dumps({{"heavy": heavy, "reason": run.summary.certificate_reason, "files": run.files}}))
 """
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=600,
                          env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
@@ -75,9 +75,9 @@ def test_a_dataset_in_memory_gives_the_folder_answer_and_a_store_is_reused(simul
     from_folder = process(folder, certificate="none", certificates=store)
     in_memory = process(as_dataset(sim, name=folder.name), certificates=store)
     assert len(store.documents) == 1
-    assert in_memory.summary["certificate_id"] == from_folder.summary["certificate_id"]
-    assert in_memory.summary["certificate_reason"].startswith("newest applicable certificate"), \
-        in_memory.summary["certificate_reason"]
+    assert in_memory.summary.certificate_id == from_folder.summary.certificate_id
+    assert in_memory.summary.certificate_reason.startswith("newest applicable certificate"), \
+        in_memory.summary.certificate_reason
     assert "calibrate" not in in_memory.steps and in_memory.steps["match"].skipped
     a, b = from_folder.table("poses"), in_memory.table("poses")
     for col in ("X", "Y", "Z"):

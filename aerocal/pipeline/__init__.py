@@ -9,7 +9,8 @@ store (the database).
 Modules: :mod:`~aerocal.pipeline.dataset` (where a flight's inputs come from), :mod:`~aerocal.pipeline.config`
 (typed settings per step), :mod:`~aerocal.pipeline.runner` (outputs, results, the in-memory runner),
 :mod:`~aerocal.pipeline.certificates` (the certificate store interface and the choice), one module per step
-(``*_step``), :mod:`~aerocal.pipeline.process`.
+(``*_step``), :mod:`~aerocal.pipeline.process` and what a run hands on, :mod:`~aerocal.pipeline.summary`
+(:class:`RunSummary`, read by the CLI, written as ``run.json``).
 """
 
 from aerocal.pipeline.certificates import CertificateStore, MemoryCertificates
@@ -17,6 +18,7 @@ from aerocal.pipeline.config import ProcessConfig
 from aerocal.pipeline.dataset import FlightDataset, FlightInputError, FolderDataset, MemoryDataset
 from aerocal.pipeline.process import EXPORTS, FlightRun, process
 from aerocal.pipeline.runner import LocalRunner, Runner, StepResult
+from aerocal.pipeline.summary import RunSummary, StepRecord, StepStatus
 
 __all__ = [
     "EXPORTS",
@@ -29,7 +31,10 @@ __all__ = [
     "MemoryCertificates",
     "MemoryDataset",
     "ProcessConfig",
+    "RunSummary",
     "Runner",
+    "StepRecord",
     "StepResult",
+    "StepStatus",
     "process",
 ]

@@ -56,6 +56,13 @@ class Finding:
         d["values"], d["sigmas"] = list(self.values), list(self.sigmas)
         return d
 
+    @classmethod
+    def from_dict(cls, doc: dict) -> Finding:
+        """A finding from :meth:`to_dict`'s form."""
+        return cls(doc["name"], tuple(float(v) for v in doc["values"]),
+                   tuple(None if s is None else float(s) for s in doc["sigmas"]), doc["units"], doc["found_by"],
+                   doc["applied"], doc["evidence"])
+
 
 #: the certificate's thermal slopes as catalogue effects
 _SLOPES = {"thermal_focal": ("df_dt",), "thermal_principal_point": ("dcx_dt", "dcy_dt")}

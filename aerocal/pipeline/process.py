@@ -55,6 +55,7 @@ from aerocal.pipeline.orient_step import INCREMENTAL, orient_step
 from aerocal.pipeline.progress import step_started
 from aerocal.pipeline.report_step import report_step
 from aerocal.pipeline.runner import JsonOutput, LocalRunner, Runner, StepResult
+from aerocal.pipeline.summary import GroundControlSummary, RunSummary
 
 #: files written into the run folder: output name of a step -> file name
 EXPORTS = {
@@ -108,11 +109,11 @@ class NoRecord:
 
 @dataclass
 class FlightRun:
-    """A processed flight: the run's ``summary`` (flight, certificate and why, steps, accuracy, diagnosis),
-    every step's result by name, the references of the outputs (name -> reference in the runner) and the files
-    written to ``out_dir`` (name -> path)."""
+    """A processed flight: the run's :class:`~aerocal.pipeline.summary.RunSummary` (flight, certificate and why,
+    steps, accuracy, diagnosis), every step's result by name, the references of the outputs (name -> reference
+    in the runner) and the files written to ``out_dir`` (name -> path)."""
 
-    summary: dict[str, Any]
+    summary: RunSummary
     steps: dict[str, StepResult]
     outputs: dict[str, str]
     files: dict[str, str] = field(default_factory=dict)
@@ -280,46 +281,47 @@ def process(
         for res in (adj, mos, ass, dia, rep):
             outputs.update({k: v for k, v in res.outputs.items() if not k.startswith("block_")})
 
-    summary: dict[str, Any] = {
-        "run_id": runner.run_id,
-        "flight": flight_doc["name"],
-        "mode": flight_doc["mode"],
-        "images_skipped_at_ingest": flight_doc.get("skipped_images") or [],
-        "ingest_problems": flight_doc.get("problems") or [],
-        "flight_facts": flight_doc.get("facts") or {},
-        "certificate_id": cert_id,
-        "certificate_reason": reason,
-        "ground_control": {"datum": ctl.extra.get("datum"), "demoted": ctl.extra.get("demoted", []),
-                           "lines": ctl.extra.get("lines", [])},
-        "steps": {name: res.info() for name, res in steps.items()},
-        "out_dir": None if out_dir is None else str(out_dir),
-        "outputs": outputs,
-    }
+    results: dict[str, Any] = {}
     if "diagnosis" in outputs:
         docs = runner.inputs({k: outputs[k] for k in ("diagnosis", "assessment", "adjustment")})
         diag, assess, adjustment = docs.json("diagnosis"), docs.json("assessment"), docs.json("adjustment")
-        if extension is not None:
-            summary["model_extension"] = extension
         first = runner.inputs({"a": before["adjust"]["adjustment"]}).json("a")
         calibration = (runner.inputs({"c": steps["calibrate"]["certificate"]}).json("c")
                        if "calibrate" in steps else None)
-        summary["findings"] = [f.to_dict() for f in run_findings(calibration, first, extension)]
-        summary.update({
+        results = {
+            "findings": tuple(run_findings(calibration, first, extension)),
+            "model_extension": extension,
             "diagnosis": extension["named"] if extension is not None else diag.get("summary"),
             "diagnosis_after_extension": diag.get("summary") if extension is not None else None,
             "recorded_eo": diag.get("recorded_eo"),
             # what the first adjustment removed from the records (the extended one tests them again, corrected)
-            "recorded_eo_corrections": (first.get("recorded_eo_corrections") or {}).get("notes"),
+            "recorded_eo_corrections": tuple((first.get("recorded_eo_corrections") or {}).get("notes") or ()),
             "twin": (diag.get("twin") or {}).get("summary"),
             "accuracy": assess.get("check_points"),
             "adjustment_converged": bool(adjustment.get("converged", True)),
             "adjustment_iterations": adjustment.get("iterations"),
-        })
+        }
     files = {}
     if out_dir is not None:
         files = {name: str(runner.export(outputs[name], Path(out_dir) / fname))
                  for name, fname in EXPORTS.items() if name in outputs}
-    summary["files"] = files
+    summary = RunSummary(
+        run_id=runner.run_id,
+        flight=flight_doc["name"],
+        mode=flight_doc["mode"],
+        certificate_id=cert_id,
+        certificate_reason=reason,
+        steps={name: res.record() for name, res in steps.items()},
+        images_skipped_at_ingest=tuple(flight_doc.get("skipped_images") or ()),
+        ingest_problems=tuple(flight_doc.get("problems") or ()),
+        flight_facts=dict(flight_doc.get("facts") or {}),
+        ground_control=GroundControlSummary(ctl.extra.get("datum"), tuple(ctl.extra.get("demoted", ())),
+                                            tuple(ctl.extra.get("lines", ()))),
+        out_dir=None if out_dir is None else str(out_dir),
+        outputs=outputs,
+        files=files,
+        **results,
+    )
     return FlightRun(summary, steps, outputs, files, given)
 
 

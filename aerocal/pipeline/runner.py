@@ -37,6 +37,7 @@ import pyarrow.parquet as pq
 
 from aerocal.io import atomic_path, file_sha256, plain_json
 from aerocal.pipeline.interrupts import check_interrupted
+from aerocal.pipeline.summary import StepRecord, StepStatus
 
 #: version of the cache-key recipe; changing it invalidates every stored step
 STEP_FORMAT = "aerocal.step/1"
@@ -107,18 +108,13 @@ class StepResult:
         """The same result with some outputs replaced (e.g. the screened ground control for later steps)."""
         return dataclasses.replace(self, outputs={**self.outputs, **outputs})
 
-    def info(self) -> dict[str, Any]:
-        """What a run records of the step: status (computed, reused, skipped), seconds, outputs, figures."""
+    def record(self) -> StepRecord:
+        """What a run records of the step (:class:`~aerocal.pipeline.summary.StepRecord`)."""
         if self.skipped:
-            return {"status": "skipped", "reason": self.extra["skipped"]}
-        return {
-            "status": "reused" if self.reused else "computed",
-            "computed_by": self.computed_by,
-            "seconds": round(self.seconds, 3),
-            "key": self.key,
-            "outputs": self.outputs,
-            **({"extra": self.extra} if self.extra else {}),
-        }
+            return StepRecord(StepStatus.SKIPPED, reason=self.extra["skipped"])
+        return StepRecord(StepStatus.REUSED if self.reused else StepStatus.COMPUTED, seconds=self.seconds,
+                          computed_by=self.computed_by, key=self.key, outputs=dict(self.outputs),
+                          extra=dict(self.extra))
 
 
 class StepInputs(Protocol):

@@ -87,7 +87,7 @@ def campaign_run(
                 str(artifact_root) if artifact_root else None,
                 dask,
             )
-    for summary in result["runs"]:
+    for summary in result.runs:
         print_run(summary)
 
 

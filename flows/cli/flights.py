@@ -11,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import typer
 from rich.console import Console
@@ -21,6 +21,10 @@ from flows.cli.console import console, err_console, print_key_values, run_status
 from flows.cli.errors import BAD_INPUT, FAILED, CommandInputError, fail, flow_errors, user_errors
 from flows.cli.options import ARTIFACT_ROOT_OPTION, DASK_OPTION, DATABASE_URL_OPTION
 from flows.environment import conceal_password, quiet_prefect
+
+if TYPE_CHECKING:  # the CLI's start-up imports no engine module (see the module docstring)
+    from aerocal.pipeline.findings import Finding
+    from aerocal.pipeline.summary import RunSummary
 
 #: ingest problems the run summary prints (errors first); `aerocal ingest` lists them all
 INGEST_LINES = 10
@@ -40,33 +44,33 @@ def default_run_dir(flight_dir: Path, out: Path | None) -> Path:
     return (out or flight_dir.with_name(flight_dir.name + "-processed")).resolve()
 
 
-def print_steps(summary: dict[str, Any]) -> None:
+def print_steps(summary: RunSummary) -> None:
     """The steps of a run: status (and why a step was skipped or reused), seconds, who computed it."""
-    table = Table(title=f"run {summary['run_id']} of {summary['flight']}")
+    table = Table(title=f"run {summary.run_id} of {summary.flight}")
     for col in ("step", "status", "seconds", "computed by"):
         table.add_column(col)
-    for name, step in summary["steps"].items():
+    for name, step in summary.steps.items():
         table.add_row(
             name,
-            step["status"] + (f" ({step['reason']})" if step.get("reason") else ""),
-            f"{step.get('seconds', 0):.2f}",
-            step.get("computed_by", "") or "",
+            step.status.value + (f" ({step.reason})" if step.reason else ""),
+            f"{step.seconds:.2f}",
+            step.computed_by or "",
         )
     console.print(table)
 
 
-def print_run(summary: dict[str, Any]) -> None:
+def print_run(summary: RunSummary) -> None:
     """A processing run's summary: steps, ingest problems, ground control, certificate, accuracy, diagnosis,
     recorded-EO checks, the twin's verdict and the files written."""
     print_steps(summary)
-    skipped = summary.get("images_skipped_at_ingest") or []
+    skipped = summary.images_skipped_at_ingest
     if skipped:
         # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
         from aerocal.ingest.problems import name_list
 
-        console.print(f"[yellow]{len(skipped)} image(s) skipped at ingest[/yellow]: {name_list(skipped)} "
+        console.print(f"[yellow]{len(skipped)} image(s) skipped at ingest[/yellow]: {name_list(list(skipped))} "
                       "(`aerocal ingest FOLDER` says why)")
-    problems = summary.get("ingest_problems") or []
+    problems = summary.ingest_problems
     errors = [p for p in problems if p.endswith("[error]")]
     warnings = [p for p in problems if p.endswith("[warning]")]
     shown = errors[:INGEST_LINES] + warnings[: max(0, INGEST_LINES - len(errors))]
@@ -77,61 +81,59 @@ def print_run(summary: dict[str, Any]) -> None:
             console.print(f"  {line}", markup=False, highlight=False)
         if len(problems) > len(shown):
             console.print(f"  ... and {len(problems) - len(shown)} more: `aerocal ingest FOLDER` lists them all")
-    for key, text in (summary.get("flight_facts") or {}).items():
+    for key, text in summary.flight_facts.items():
         if not text.startswith(("flight.json", "/")):  # inferred from the images: say so
             console.print(f"{key}: {text}")
-    control = summary.get("ground_control") or {}
-    if control.get("demoted"):
+    control = summary.ground_control
+    if control.demoted:
         console.print(f"[yellow]ground control demoted[/yellow] (neither control nor check point): "
-                      f"{', '.join(control['demoted'])}")
-    for line in control.get("lines") or []:
+                      f"{', '.join(control.demoted)}")
+    for line in control.lines:
         console.print(f"ground control: {line}")
-    console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
-    if summary.get("adjustment_converged") is False:
-        console.print(f"[yellow]the block adjustment did not converge[/yellow] ({summary.get('adjustment_iterations')} "
+    console.print(f"certificate: {summary.certificate_id} ({summary.certificate_reason})")
+    if summary.adjustment_converged is False:
+        console.print(f"[yellow]the block adjustment did not converge[/yellow] ({summary.adjustment_iterations} "
                       "iterations): its sigma0, residuals, products and diagnosis describe an unfinished solution")
     print_loop(summary)
-    if summary.get("recorded_eo"):
+    if summary.recorded_eo:
         # lazy: aerocal.report loads matplotlib, rasterio and Jinja2 (about 1 s); --help must not pay them
         from aerocal.report.wording import recorded_eo_text
 
-        console.print("recorded EO checks: " + recorded_eo_text(summary["recorded_eo"]))
-    if summary.get("recorded_eo_corrections"):
-        console.print("recorded positions in the block adjustment: " + "; ".join(summary["recorded_eo_corrections"]))
-    if summary.get("twin"):
-        console.print(f"twin (what the simulation gets wrong): {summary['twin']}")
-    for name, path in summary.get("files", {}).items():
+        console.print("recorded EO checks: " + recorded_eo_text(summary.recorded_eo))
+    if summary.recorded_eo_corrections:
+        console.print("recorded positions in the block adjustment: " + "; ".join(summary.recorded_eo_corrections))
+    if summary.twin:
+        console.print(f"twin (what the simulation gets wrong): {summary.twin}")
+    for name, path in summary.files.items():
         console.print(f"{name:>13}: {path}")
 
 
-def print_loop(summary: dict[str, Any]) -> None:
+def print_loop(summary: RunSummary) -> None:
     """What a run found and how its block changed, as ``aerocal process`` and ``aerocal demo`` print it: the check
     points' accuracy, the findings applied, the diagnosis, and the block before and after its extension."""
-    acc = summary.get("accuracy") or {}
+    acc = summary.accuracy or {}
     if acc.get("rho"):
         rho = ", ".join(f"{k} {v:.2f}" for k, v in acc["rho"].items() if v is not None)
         console.print(f"check points: rho {rho} -> {acc.get('verdict')}")
-    findings = summary.get("findings") or []
-    if findings:
+    if summary.findings:
         console.print("found and applied:", highlight=False)
-        for f in findings:
+        for f in summary.findings:
             console.print(f"  {finding_text(f)}", markup=False, highlight=False)
-    if summary.get("diagnosis"):
-        console.print(f"diagnosis: {summary['diagnosis']}", markup=False, highlight=False)
-    extension = summary.get("model_extension")
-    if extension:
-        for line in extension_lines(extension):
+    if summary.diagnosis:
+        console.print(f"diagnosis: {summary.diagnosis}", markup=False, highlight=False)
+    if summary.model_extension:
+        for line in extension_lines(summary.model_extension):
             console.print(f"  {line}", markup=False, highlight=False)
-        console.print(f"diagnosis of the extended block: {summary.get('diagnosis_after_extension')}", markup=False,
+        console.print(f"diagnosis of the extended block: {summary.diagnosis_after_extension}", markup=False,
                       highlight=False)
 
 
-def finding_text(finding: dict[str, Any]) -> str:
-    """A finding of the run (:class:`aerocal.pipeline.findings.Finding` as JSON) in one line."""
-    values = ", ".join(f"{v:.4g}" for v in finding["values"])
-    sigmas = ", ".join("?" if v is None else f"{v:.2g}" for v in finding["sigmas"])
-    return (f"{finding['name']} = {values} +- {sigmas} {finding['units']} (by the {finding['found_by']}; "
-            f"{finding['applied']}; {finding['evidence']})")
+def finding_text(finding: Finding) -> str:
+    """A finding of the run in one line, with where it went and its evidence."""
+    values = ", ".join(f"{v:.4g}" for v in finding.values)
+    sigmas = ", ".join("?" if v is None else f"{v:.2g}" for v in finding.sigmas)
+    return (f"{finding.name} = {values} +- {sigmas} {finding.units} (by the {finding.found_by}; "
+            f"{finding.applied}; {finding.evidence})")
 
 
 def extension_lines(extension: dict[str, Any]) -> list[str]:
@@ -370,7 +372,7 @@ def process(
                 dask,
             )
     if as_json:
-        console.print_json(json.dumps(summary, default=str))
+        console.print_json(json.dumps(summary.to_json(), default=str))
     else:
         print_run(summary)
 
@@ -440,10 +442,10 @@ def calibrate(
                 flight_dir, out, cfg, conceal_password(database_url), str(artifact_root) if artifact_root else None,
                 dask,
             )
-        cert = Certificate.from_json(Path(summary["files"]["calibration_certificate"]).read_text())
+        cert = Certificate.from_json(Path(summary.files["calibration_certificate"]).read_text())
     console.print(cert.render_text(correlation_threshold=0.9))
-    console.print(f"stored: {summary['certificate_id']} ({summary['certificate_reason']})")
-    console.print(f"certificate file: {summary['files']['calibration_certificate']}")
+    console.print(f"stored: {summary.certificate_id} ({summary.certificate_reason})")
+    console.print(f"certificate file: {summary.files['calibration_certificate']}")
     if cert.status != "accepted":
         console.print("[bold red]the calibration was REJECTED[/]: it is on record but will never be used; "
                       "see the review above")

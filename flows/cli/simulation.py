@@ -119,14 +119,15 @@ def demo(
 
         with run_status("simulating and processing the demo flight (about a minute)"):
             summary = demo_flow(out, DemoConfig(seed=seed))
-    print_key_values(f"demo: simulated thermal flight (hidden, and not told to processing: {summary['hidden']})",
-                     summary["simulated"])
-    steps = ", ".join(f"{k} {v['status']}" for k, v in summary["steps"].items())
+    run = summary.run
+    print_key_values(f"demo: simulated thermal flight (hidden, and not told to processing: {summary.hidden})",
+                     summary.simulated)
+    steps = ", ".join(f"{k} {v.status.value}" for k, v in run.steps.items())
     console.print(f"steps: {steps}")
-    console.print(f"certificate: {summary['certificate_id']} ({summary['certificate_reason']})")
-    print_loop(summary)
-    console.print(f"flight folder: {summary['flight_dir']}")
-    for name, path in summary["files"].items():
+    console.print(f"certificate: {run.certificate_id} ({run.certificate_reason})")
+    print_loop(run)
+    console.print(f"flight folder: {summary.flight_dir}")
+    for name, path in run.files.items():
         console.print(f"{name:>13}: {path}")
-    for key, value in summary["storage"].items():
+    for key, value in run.storage.items():
         console.print(f"{key:>13}: {value}")
