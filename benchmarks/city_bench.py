@@ -49,6 +49,7 @@ from aerocal.matching import (
     local_client,
     match_pairs_detailed,
 )
+from aerocal.matching.cluster import ExecutionConfig
 from aerocal.pipeline import process
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.match_step import frame_loader, match_images
@@ -126,7 +127,7 @@ def end_to_end(folder: Path, work: Path, dask_address: str | None = None) -> tup
     """The run summary of the whole flight through :func:`aerocal.pipeline.process` (``run.json`` written
     beside the products), and its seconds; on the Dask scheduler ``dask_address`` when given."""
     t0 = time.perf_counter()
-    run = process(folder, certificate="none", out_dir=work / "run", dask_address=dask_address)
+    run = process(folder, certificate="none", out_dir=work / "run", execution=ExecutionConfig(dask_address))
     seconds = time.perf_counter() - t0
     summary = run.summary.to_json()
     write_json_atomic(work / "run" / "run.json", summary)
@@ -142,7 +143,8 @@ def matching_workers(folder: Path, workers: int) -> tuple[float, float, int, int
     with local_client(n_workers=workers):
         pass  # cluster start-up is not part of the measurement below
     t1 = time.perf_counter()
-    kp, matches, _, _ = match_images(res.images, cam, res.gcps, flight, MatchStepConfig(dask_workers=workers))
+    kp, matches, _, _ = match_images(res.images, cam, res.gcps, flight, MatchStepConfig(),
+                                       ExecutionConfig(local_workers=workers))
     total = time.perf_counter() - t1
     return t1 - t0, total, kp.num_rows, matches.num_rows
 

@@ -21,6 +21,7 @@ from prefect import flow
 from prefect.runtime import flow_run
 
 from aerocal.io import write_json_atomic
+from aerocal.matching.cluster import ExecutionConfig
 from aerocal.pipeline import FlightInputError, ProcessConfig, RunSummary, process
 from aerocal.pipeline.interrupts import was_interrupted
 from flows.environment import resolve_storage
@@ -76,7 +77,7 @@ def _run_flow(
         run = process(flight_dir, config, certificate=certificate, out_dir=out, runner=StoreRunner(ctx),
                       certificates=DatabaseCertificates(ctx),
                       recorder=RunRecorder(ctx, {**record, "dask": dask_address}),
-                      dask_address=dask_address, calibrate_only=calibrate_only)
+                      execution=ExecutionConfig(dask_address), calibrate_only=calibrate_only)
     except BaseException as exc:
         status = "cancelled" if isinstance(exc, KeyboardInterrupt) or was_interrupted() else "failed"
         with ctx.database.session() as session:

@@ -92,6 +92,7 @@ def test_the_partitioned_adjustment_runs_on_the_separate_workers_with_the_single
                                                                                                  tmp_path):
     """A block cut into sub-blocks (forced below its size) adjusted on the separate-process workers: its poses
     are the single adjustment's within 1e-6 m, and the adjustment says how it was cut."""
+    from aerocal.matching.cluster import ExecutionConfig
     from aerocal.pipeline import LocalRunner, MemoryCertificates, process
     from aerocal.pipeline.config import BlockStepConfig, ProcessConfig
     from aerocal.simulate import simulate_flight, write_flight
@@ -103,7 +104,8 @@ def test_the_partitioned_adjustment_runs_on_the_separate_workers_with_the_single
     runner, store = LocalRunner(), MemoryCertificates()
     single = process(folder, certificate="none", runner=runner, certificates=store)
     cut = ProcessConfig(block=BlockStepConfig(partition_min_images=30, partition_max_images=15))
-    parted = process(folder, cut, certificate="auto", runner=runner, certificates=store, dask_address=address)
+    parted = process(folder, cut, certificate="auto", runner=runner, certificates=store,
+                     execution=ExecutionConfig(address))
     info = parted.json("adjustment")["partitioned"]
     assert info is not None and info["sub_blocks"] == 3, info
     a, b = single.table("poses"), parted.table("poses")
@@ -118,6 +120,7 @@ def test_a_worker_killed_during_the_partitioned_adjustment_leaves_the_solve_to_t
     and the adjustment says it was restarted and why. A cluster of its own (the kill leaves it one worker
     short)."""
     import aerocal.adjust.partition as partition
+    from aerocal.matching.cluster import ExecutionConfig
     from aerocal.pipeline import LocalRunner, MemoryCertificates, process
     from aerocal.pipeline.config import BlockStepConfig, ProcessConfig
     from aerocal.simulate import simulate_flight, write_flight
@@ -141,7 +144,7 @@ def test_a_worker_killed_during_the_partitioned_adjustment_leaves_the_solve_to_t
         monkeypatch.setattr(partition, "levenberg_marquardt", kill_then_iterate)
         cut = ProcessConfig(block=BlockStepConfig(partition_min_images=30, partition_max_images=15))
         parted = process(folder, cut, certificate="auto", runner=runner, certificates=store,
-                         dask_address=running.address)
+                         execution=ExecutionConfig(running.address))
     info = parted.json("adjustment")["partitioned"]
     assert killed and info["sub_blocks"] == 3, info
     assert info["restarted"] and "worker was lost" in info["restarted"] and "1 worker" in info["restarted"], info

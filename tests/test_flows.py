@@ -287,7 +287,7 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
         session.commit()
     runner, dataset = StoreRunner(ctx, prefect_tasks=False), FolderDataset(folder)
     ing = ingest_step(runner, dataset, runner.put(JsonOutput(dataset.manifest(), "flight-manifest")))
-    matched = match_step(runner, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
+    matched = match_step(runner, ing, MatchStepConfig(serial_max_megapixels=0.0))
     assert not matched.reused
     with ctx.database.session() as session:
         obs = ctx.store.read_table(ctx.store.get(session, matched["observations"]), "observations")
@@ -298,12 +298,12 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
     assert per_image.min() > 100, f"observations per image {per_image.tolist()}"
     track_len = np.bincount(obs.column("track_id").to_numpy())
     assert track_len[track_len > 0].min() >= 2
-    again = match_step(runner, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
+    again = match_step(runner, ing, MatchStepConfig(serial_max_megapixels=0.0))
     assert again.reused and again.outputs == matched.outputs
     from aerocal.pipeline import runner as runner_module
 
     monkeypatch.setattr(runner_module, "source_digest", lambda: "another version of the code")
-    other = match_step(runner, ing, MatchStepConfig(dask_workers=2, serial_max_megapixels=0.0))
+    other = match_step(runner, ing, MatchStepConfig(serial_max_megapixels=0.0))
     assert not other.reused, "a step cached by other code was reused"
 
 

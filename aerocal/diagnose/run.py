@@ -1,11 +1,15 @@
-"""Diagnose a flight folder: read its tables and declared sensor sigmas, adjust, diagnose."""
+"""Diagnose a flight's tables outside a processing run (``aerocal diagnose``), and read a run's stored diagnosis.
+
+The folder is read by the pipeline's flight reader (:func:`aerocal.pipeline.diagnose_step.diagnose_folder`), as
+``aerocal process`` reads it."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
-from aerocal import tables
+import pyarrow as pa
+
 from aerocal.adjust import AdjustConfig, corrected_to_t0
 from aerocal.camera import Camera
 from aerocal.diagnose.engine import DiagnoseConfig, Diagnosis, diagnose
@@ -20,31 +24,27 @@ class DiagnoseInputError(ValueError):
     """A flight folder lacks what the diagnosis needs; the message names the file and the fix."""
 
 
-def _read(folder: Path, kind: str, required: bool = True):
-    path = folder / "observations" / f"{kind}.parquet"
-    if not path.exists():
-        if required:
-            raise DiagnoseInputError(f"{path} is missing; run matching (or simulate in observations mode) first")
-        return None
-    try:
-        return tables.read(path, kind)
-    except tables.SchemaError as exc:
-        raise DiagnoseInputError(str(exc)) from exc
-
-
-def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
+def diagnose_tables(images: pa.Table, observations: pa.Table, gcps: pa.Table | None, gcp_obs: pa.Table | None,
+                    metadata: dict, camera: Camera | None, certificate: str | Path | None = None,
                     config: DiagnoseConfig | None = None) -> Diagnosis:
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DiagnoseInputError(f"{folder} is not a folder; give a processed flight folder")
-    images = _read(folder, "images")
-    observations = _read(folder, "observations")
-    gcps = _read(folder, "gcps", required=False)
-    gcp_obs = _read(folder, "gcp_observations", required=False)
-    meta_path = folder / "flight.json"
-    meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
-    h, v = meta.get("gnss_sigma_m", [0.10, 0.15])
-    imu = meta.get("imu_sigma_deg")
+    """Diagnose a flight's measured block as ``aerocal diagnose`` does, outside a processing run.
+
+    Args:
+        images, observations, gcps, gcp_obs: the flight's tables (:mod:`aerocal.tables`; the GCP tables may be
+            ``None``).
+        metadata: the flight's ``flight.json`` (``gnss_sigma_m`` [horizontal, vertical] metres, default 0.10 /
+            0.15; ``imu_sigma_deg``, default: attitudes not observed).
+        camera: the nominal camera (camera.json), self-calibrated in f, cx, cy, k1, k2, p1, p2 by the baseline
+            when no ``certificate`` is given.
+        certificate: a certificate file in any format :func:`aerocal.formats.import_certificate` reads; its IO is
+            fixed and its linear thermal correction applied to the measurements, as ``aerocal process``'s block
+            adjustment applies it, so that a thermal effect named is what that model leaves.
+
+    Raises:
+        DiagnoseInputError: neither a camera nor a certificate, or a certificate file that does not read.
+    """
+    h, v = metadata.get("gnss_sigma_m") or [0.10, 0.15]
+    imu = metadata.get("imu_sigma_deg")
     t0 = None
     io = None
     if certificate is not None:
@@ -56,15 +56,12 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
         io = IOUncertainty.from_certificate(cert)
         if cert.thermal is not None:
             t0 = getattr(cert.thermal.model, "t0", None)
-        # the certificate's model is diagnosed: its linear thermal correction applied, as aerocal process's block
-        # adjustment applies it, so a thermal effect named is what that model leaves
         observations = corrected_to_t0(images, observations, camera, cert.linear_thermal)
         gcp_obs = corrected_to_t0(images, gcp_obs, camera, cert.linear_thermal)
+    elif camera is None:
+        raise DiagnoseInputError("no camera: give --certificate or the camera's nominal values in camera.json")
     else:
-        cam_path = folder / "camera.json"
-        if not cam_path.exists():
-            raise DiagnoseInputError(f"{cam_path} is missing; give --certificate or the camera's nominal values")
-        camera, free = Camera.from_dict(json.loads(cam_path.read_text())["camera"]), SELF_CALIBRATED
+        free = SELF_CALIBRATED
     adjust_config = AdjustConfig(free=free, gnss_sigma_m=(h, h, v),
                                  attitude_sigma_deg=tuple(imu) if imu else None)
     config = config or DiagnoseConfig(reference_temperature=t0)

@@ -17,7 +17,7 @@ Modules: :mod:`.features` (detection on tiles), :mod:`.pairs` (footprint overlap
 configuration dataclasses).
 """
 
-from aerocal.matching.cluster import dask_client, local_client
+from aerocal.matching.cluster import ExecutionConfig, dask_client, local_client
 from aerocal.matching.config import FeatureConfig, MatchConfig
 from aerocal.matching.features import detect, extract_features, image_features, keypoints_table, tile_boxes
 from aerocal.matching.pairs import (
@@ -43,6 +43,7 @@ from aerocal.matching.verify import (
 
 __all__ = [
     "PAIR_STATS",
+    "ExecutionConfig",
     "FeatureConfig",
     "MatchConfig",
     "MatchResult",

@@ -11,6 +11,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 
 import cv2
 
@@ -160,6 +161,32 @@ def run_all(
         if progress is not None:
             progress(done, total)
     return results
+
+
+@dataclass(frozen=True)
+class ExecutionConfig:
+    """Where the steps' tile work runs (matching, the partitioned adjustment, the mosaic tiles): on the Dask
+    scheduler at ``dask_address`` (e.g. ``"tcp://host:8786"``) when one is given, else on a local cluster of
+    ``local_workers`` processes started for a step whose work pays for it (2, one per core of the machines the
+    platform is sized for; 0: everything in the calling process).
+
+    Not part of any step's configuration or cache key: where the work ran does not change what it computed
+    (``tests/test_dask_cluster.py`` compares the poses of a cluster run with a local one to 1e-6 m), so a step
+    computed on one cluster is reused on another.
+    """
+
+    dask_address: str | None = None
+    local_workers: int = 2
+
+    def __post_init__(self) -> None:
+        if self.local_workers < 0:
+            raise ValueError(f"ExecutionConfig.local_workers must be 0 or more, got {self.local_workers}")
+        if self.dask_address is not None and not self.dask_address.strip():
+            raise ValueError("ExecutionConfig.dask_address is empty; give a scheduler address or None")
+
+    def client(self, serial: bool = False) -> contextlib.AbstractContextManager:
+        """:func:`dask_client` for a step: ``serial`` when the step's work is too small for a local cluster."""
+        return dask_client(self.dask_address, self.local_workers, serial)
 
 
 def dask_client(address: str | None, n_workers: int, serial: bool) -> contextlib.AbstractContextManager:

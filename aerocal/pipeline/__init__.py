@@ -13,6 +13,7 @@ Modules: :mod:`~aerocal.pipeline.dataset` (where a flight's inputs come from), :
 (:class:`RunSummary`, read by the CLI, written as ``run.json``).
 """
 
+from aerocal.matching.cluster import ExecutionConfig
 from aerocal.pipeline.certificates import CertificateStore, MemoryCertificates
 from aerocal.pipeline.config import ProcessConfig
 from aerocal.pipeline.dataset import FlightDataset, FlightInputError, FolderDataset, MemoryDataset
@@ -22,6 +23,7 @@ from aerocal.pipeline.summary import RunSummary, StepRecord, StepStatus
 
 __all__ = [
     "EXPORTS",
+    "ExecutionConfig",
     "CertificateStore",
     "FlightDataset",
     "FlightInputError",

@@ -5,6 +5,7 @@ corrected, not pixels; :func:`aerocal.adjust.adjust_fixed_io`)."""
 from __future__ import annotations
 
 import dataclasses
+from contextlib import nullcontext
 
 import numpy as np
 
@@ -14,14 +15,14 @@ from aerocal.calibrate.eo_checks import correct_recorded_eo
 from aerocal.certificates.document import Certificate
 from aerocal.diagnose.extension import correct_measurements, measurement_terms
 from aerocal.diagnose.io_uncertainty import IOUncertainty
-from aerocal.matching.cluster import dask_client, n_workers
+from aerocal.matching.cluster import ExecutionConfig, n_workers
 from aerocal.pipeline.config import BlockStepConfig
 from aerocal.pipeline.runner import ArrayOutput, JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
 
 def adjust_step(runner: Runner, ingest: StepResult, observations: str, certificate: str,
                 config: BlockStepConfig | None = None, adjust_config: AdjustConfig | None = None,
-                dask_address: str | None = None, geometry: StepResult | None = None,
+                execution: ExecutionConfig | None = None, geometry: StepResult | None = None,
                 name: str = "adjust") -> StepResult:
     """Adjust the whole flight with the certificate's model: its IO, its linear thermal model (the measurements
     corrected to T0) and its camera terms applied to the measurements (a rolling-shutter readout, a thermal
@@ -39,12 +40,13 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
     read so that they see the block's own model: ``block_images`` (recorded positions as corrected),
     ``block_observations`` and ``block_gcp_observations`` (the measurements as corrected for the camera terms,
     row for row the input's). A block of ``config.partition_min_images`` images or more is adjusted in
-    sub-blocks on the Dask cluster (``dask_address``, or a local one of ``config.dask_workers``);
+    sub-blocks on the Dask cluster of ``execution``;
     ``adjustment["partitioned"]`` then says how it was cut. ``name``: the step's name in the run (the adjustment
     of a block extended by its diagnosis is another step of the same run).
     """
     config = config or BlockStepConfig()
     acfg = adjust_config or config.adjust
+    run_on = execution or ExecutionConfig()
     inputs = {"images": ingest["images"], "observations": observations, "gcps": ingest["gcps"],
               "gcp_observations": ingest["gcp_observations"], "certificate": certificate}
     if geometry is not None:
@@ -77,9 +79,9 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
                            "time_sigma_s": eo.time_sigma_s, "notes": att.notes + eo.notes, "evidence": eo.evidence,
                            "attitude_offset_deg": att.offset_deg,
                            "attitude_check": att.check.to_dict() if att.check is not None else None}
-        solver = PartitionedSolver(config.partition_min_images, config.partition_max_images, config.dask_workers)
+        solver = PartitionedSolver(config.partition_min_images, config.partition_max_images, run_on.local_workers)
         parted = solver.n_parts(images.num_rows) > 1  # a smaller block needs no cluster, not even a given one
-        with dask_client(dask_address if parted else None, config.dask_workers, not parted) as client:
+        with (run_on.client() if parted else nullcontext(None)) as client:
             if client is not None:  # one sub-block per worker at least, on the cluster the step was given
                 solver.client, solver.n_workers = client, n_workers(client)
             res = adjust_fixed_io(images, obs, cert.camera, acfg, gcps, gobs, thermal, solver=solver)

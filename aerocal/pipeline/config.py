@@ -42,9 +42,8 @@ CalibrationStepConfig = CalibrationConfig
 class MatchStepConfig:
     """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
     :class:`aerocal.matching.FeatureConfig`, :class:`aerocal.matching.MatchConfig`); ``min_overlap`` of
-    candidate footprints (0.1); ``dask_workers`` of the local cluster when no address is given (2);
-    flights without a recorded position and attitude for every image are matched exhaustively (all
-    pairs) up to ``exhaustive_max_images`` (150, ~11,000 pairs). Flights of at most
+    candidate footprints (0.1); flights without a recorded position and attitude for every image are matched
+    exhaustively (all pairs) up to ``exhaustive_max_images`` (150, ~11,000 pairs). Flights of at most
     ``serial_max_megapixels`` (10) in all are matched in this process without a local cluster: a fresh
     cluster's start and worker imports cost more than the work for small flights
     (``benchmarks/history/engine_measurements.md``)."""
@@ -53,7 +52,6 @@ class MatchStepConfig:
     features: FeatureConfig | None = None
     match: MatchConfig | None = None
     min_overlap: float = 0.1
-    dask_workers: int = 2
     exhaustive_max_images: int = 150
     serial_max_megapixels: float = 10.0
 
@@ -88,8 +86,8 @@ class BlockStepConfig:
     0 = use the positions as recorded).
 
     City-scale blocks: from ``partition_min_images`` images (800; 0 = never) the adjustment runs in sub-blocks
-    on the Dask cluster (``dask_workers`` local workers, 2, when no scheduler address is given), at least one
-    per worker and each of at most about ``partition_max_images`` (3200) images (:mod:`aerocal.adjust.partition`:
+    on the Dask cluster (:class:`aerocal.matching.cluster.ExecutionConfig`), at least one per worker and each
+    of at most about ``partition_max_images`` (3200) images (:mod:`aerocal.adjust.partition`:
     the same solution as one adjustment, the observations' memory and the point eliminations spread over the
     workers). From 800 images the partitioned adjustment on 2 local workers was faster than the single one, with
     a smaller largest process (``benchmarks/partition_bench.py``, ``benchmarks/history/engine_measurements.md``)."""
@@ -99,19 +97,18 @@ class BlockStepConfig:
     recorded_eo_images: int = 200
     partition_min_images: int = 800
     partition_max_images: int = 3200
-    dask_workers: int = 2
 
 
 @dataclass(frozen=True)
 class MosaicStepConfig:
     """DSM and orthomosaic settings (:class:`aerocal.products.dsm.DsmConfig`,
-    :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults); ``dask_workers`` of the local
-    cluster for the mosaic tiles (2; 0 = serial); mosaics of at most ``serial_max_frames`` frames (4) run here
-    without a cluster, since starting the worker processes (a few seconds) costs more than the tiles."""
+    :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults); the tiles run on the Dask cluster
+    (:class:`aerocal.matching.cluster.ExecutionConfig`) except for mosaics of at most ``serial_max_frames``
+    frames (4), which run here without a cluster, since starting the worker processes (a few seconds) costs more
+    than the tiles."""
 
     dsm: DsmConfig | None = None
     mosaic: MosaicConfig | None = None
-    dask_workers: int = 2
     serial_max_frames: int = 4
 
 

@@ -218,7 +218,7 @@ class FolderDataset:
                 "files": files}
 
     def read(self, settings: IngestSettings) -> IngestedFlight:
-        return self._read_observations() if self.observations_mode else self._read_images(settings)
+        return self._read_observations() if self.observations_mode else self.read_images(settings)
 
     def _read_observations(self) -> IngestedFlight:
         meta_path, cam_path = self.folder / "flight.json", self.folder / "camera.json"
@@ -244,7 +244,9 @@ class FolderDataset:
             raise FlightInputError("\n".join(lines))
         return IngestedFlight(tabs, cam_doc, meta, crs, "observations", [str(p) for p in found])
 
-    def _read_images(self, settings: IngestSettings) -> IngestedFlight:
+    def read_images(self, settings: IngestSettings) -> IngestedFlight:
+        """The folder's images as image mode reads them (also where it holds observation tables: ``aerocal
+        match`` makes them again), the tables, camera and flight metadata ingest gives the pipeline."""
         res = ingest_folder(self.folder, gcp_file=settings.gcp_file, eo_file=settings.eo_file, crs=settings.crs)
         if res.blocking:
             raise FlightInputError(blocking_report(res))

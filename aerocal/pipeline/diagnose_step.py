@@ -6,14 +6,17 @@ thermal effect it names is what that model leaves."""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, corrected_to_t0, scale_tie_sigma, screened_rows
-from aerocal.camera import PARAM_NAMES
+from aerocal.camera import PARAM_NAMES, Camera
 from aerocal.certificates.document import Certificate
-from aerocal.diagnose.engine import DiagnoseConfig, diagnose
+from aerocal.diagnose.engine import DiagnoseConfig, Diagnosis, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
+from aerocal.diagnose.run import diagnose_tables
+from aerocal.pipeline.dataset import FlightInputError, FolderDataset, IngestSettings
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
 
 
@@ -89,3 +92,27 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
     return runner.run(name, inputs, {"diagnose": config or DiagnoseConfig(), "adjust": acfg,
                                            "thermal_correction": bool(thermal_correction),
                                            "calibrated_on_flight": bool(calibrated_on_flight)}, compute)
+
+
+def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
+                    config: DiagnoseConfig | None = None) -> Diagnosis:
+    """``aerocal diagnose FOLDER`` on a flight folder: read as ``aerocal process`` reads it in observations mode
+    (:class:`~aerocal.pipeline.dataset.FolderDataset`: the observation tables, camera.json and flight.json, with
+    eo.csv and the GCP files checked against the tables), then diagnosed by
+    :func:`aerocal.diagnose.run.diagnose_tables` (IO fixed from ``certificate`` when given, else the baseline
+    self-calibrates camera.json's camera).
+
+    Raises:
+        FlightInputError: the folder holds no observation tables (they come from ``aerocal match`` or an
+            observations-mode flight) or its files contradict them; the message names the file and the fix.
+        DiagnoseInputError: the certificate file does not read.
+    """
+    dataset = FolderDataset(folder)
+    if not dataset.observations_mode:
+        raise FlightInputError(f"{dataset.folder / 'observations' / 'observations.parquet'} is missing; the "
+                               f"diagnosis needs a block's measurements: run `aerocal match {folder}` first, or "
+                               "`aerocal process` and diagnose its run folder")
+    read = dataset.read(IngestSettings())
+    t = read.tables
+    return diagnose_tables(t["images"], t["observations"], t["gcps"], t["gcp_observations"], read.metadata,
+                           Camera.from_dict(read.camera["camera"]), certificate, config)

@@ -16,11 +16,10 @@ from aerocal.matching import (
     MatchConfig,
     build_tracks,
     candidate_pairs_from_footprints,
-    dask_client,
     detect_and_match,
     exhaustive_pairs,
 )
-from aerocal.matching.cluster import Progress
+from aerocal.matching.cluster import ExecutionConfig, Progress
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.dataset import FlightInputError
 from aerocal.pipeline.progress import step_progress
@@ -62,15 +61,16 @@ def match_images(
     gcps: pa.Table,
     flight: dict,
     config: MatchStepConfig | None = None,
-    dask_address: str | None = None,
+    execution: ExecutionConfig | None = None,
     progress: Progress | None = None,
 ) -> tuple[pa.Table, pa.Table, pa.Table, int]:
     """Enhance and match the frames of an ``images`` table: (keypoints, matches, observations, pairs tried).
 
     Candidate pairs come from the GNSS/IMU footprints on a plane at :func:`terrain_height`; without GNSS/IMU
-    for every image, all pairs (up to ``config.exhaustive_max_images``). SIFT and the pairs run on the Dask client
-    :func:`aerocal.matching.dask_client` chooses, streamed (:func:`aerocal.matching.detect_and_match`);
-    ``progress(done, total)`` counts images detected plus pairs matched.
+    for every image, all pairs (up to ``config.exhaustive_max_images``). SIFT and the pairs run on the Dask
+    cluster of ``execution`` (in this process for a flight of at most ``config.serial_max_megapixels``),
+    streamed (:func:`aerocal.matching.detect_and_match`); ``progress(done, total)`` counts images detected plus
+    pairs matched.
     """
     config = config or MatchStepConfig()
     loader = frame_loader(images.column("path").to_pylist(), config.enhance)
@@ -88,7 +88,7 @@ def match_images(
     mcfg = config.match or MatchConfig()
     megapixels = float(np.sum(images.column("width").to_numpy().astype(float)
                               * images.column("height").to_numpy().astype(float))) / 1e6
-    with dask_client(dask_address, config.dask_workers, megapixels <= config.serial_max_megapixels) as client:
+    with (execution or ExecutionConfig()).client(megapixels <= config.serial_max_megapixels) as client:
         kp, result = detect_and_match(images, loader, pairs, config.features or FeatureConfig(), mcfg, client,
                                       progress)
     matches = result.matches
@@ -96,7 +96,7 @@ def match_images(
 
 
 def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | None = None,
-               dask_address: str | None = None) -> StepResult:
+               execution: ExecutionConfig | None = None) -> StepResult:
     """Outputs ``keypoints``, ``matches`` and ``observations`` (tables) of :func:`match_images`."""
     config = config or MatchStepConfig()
     inputs = {k: ingest[k] for k in ("images", "camera", "flight", "gcps")}
@@ -105,7 +105,7 @@ def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | Non
         try:
             kp, matches, obs, n_pairs = match_images(inp.table("images"),
                                                      Camera.from_dict(inp.json("camera")["camera"]),
-                                                     inp.table("gcps"), inp.json("flight"), config, dask_address,
+                                                     inp.table("gcps"), inp.json("flight"), config, execution,
                                                      step_progress("match"))
         except ImageReadError as exc:
             # its header read at ingest, its pixels not: bad input, named, not a failure of the run

@@ -17,7 +17,7 @@ from aerocal.certificates.document import Certificate
 from aerocal.diagnose.extension import frame_terms
 from aerocal.ingest.flir import common_camera_info, raw_to_celsius
 from aerocal.io import file_sha256
-from aerocal.matching import dask_client
+from aerocal.matching import ExecutionConfig
 from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.progress import step_progress
@@ -72,7 +72,7 @@ def temperature_output(paths: Iterable[Path], counts_path: Path, work: Path, inf
 
 
 def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certificate: str,
-                config: MosaicStepConfig | None = None, dask_address: str | None = None) -> StepResult:
+                config: MosaicStepConfig | None = None, execution: ExecutionConfig | None = None) -> StepResult:
     """Outputs: ``dsm`` (GeoTIFF, float32 metres), ``orthomosaic`` (GeoTIFF/COG, when frames exist),
     ``temperature`` (FLIR frames) and ``mosaic`` (grid, GSD, coverage, frames used). The frames' SHA-256 key
     the step too: a frame added to ``images/`` or rendered again re-runs it."""
@@ -101,7 +101,7 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             frames = frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal, motion,
                                        turn)
             serial = len(frames) <= config.serial_max_frames
-            with dask_client(dask_address, config.dask_workers, serial) as client:
+            with (execution or ExecutionConfig()).client(serial) as client:
                 res = build_mosaic(frames, paths, dsm, work / "orthomosaic.tif", config.mosaic or MosaicConfig(),
                                    client, step_progress("mosaic"))
             out["orthomosaic"] = FileOutput(res.path, "orthomosaic", temporary=True)

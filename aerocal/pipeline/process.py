@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from aerocal.certificates.identity import CameraIdentity
+from aerocal.matching.cluster import ExecutionConfig
 from aerocal.pipeline.adjust_step import adjust_step
 from aerocal.pipeline.assess_step import assess_step
 from aerocal.pipeline.calibrate_step import calibrate_step
@@ -137,7 +138,7 @@ def process(
     runner: Runner | None = None,
     certificates: CertificateStore | None = None,
     recorder: RunRecorder | None = None,
-    dask_address: str | None = None,
+    execution: ExecutionConfig | None = None,
     calibrate_only: bool = False,
 ) -> FlightRun:
     """Process one flight end to end (see the module docstring).
@@ -156,7 +157,8 @@ def process(
             :class:`~aerocal.pipeline.certificates.MemoryCertificates`; pass one to reuse its certificates
             across flights).
         recorder: what the platform records of the run as it goes (default: nothing).
-        dask_address: a Dask scheduler for the tile work (default: a local cluster where it pays).
+        execution: where the tile work runs (default :class:`~aerocal.matching.cluster.ExecutionConfig`: a local
+            cluster of 2 workers where the work pays for it; give a Dask scheduler address to run on a cluster).
         calibrate_only: stop after the certificate (a calibration flight).
 
     Raises:
@@ -187,7 +189,7 @@ def process(
 
     matched = None
     if matched_mode:
-        matched = steps["match"] = match_step(runner, ing, config.match, dask_address)
+        matched = steps["match"] = match_step(runner, ing, config.match, execution)
         observations = matched["observations"]
     else:
         steps["match"] = runner.skip("match", "observations mode")
@@ -231,7 +233,7 @@ def process(
     if not calibrate_only:
         calibrated_here = "calibrate" in steps
         adj = steps["adjust"] = adjust_step(runner, ing, observations, cert_ref, config.block, adjustments.block,
-                                            dask_address)
+                                            execution)
         ass = steps["assess"] = assess_step(runner, ing, observations, adj)
         dia = steps["diagnose"] = diagnose_step(runner, ing, observations, cert_ref, config.diagnose,
                                                 adjustments.block, adj, config.block.thermal_correction,
@@ -260,7 +262,7 @@ def process(
                 record.certificate(cert_id, reason)
                 cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
             adj = steps["adjust_extended"] = adjust_step(runner, ext_ing, ext["observations"], cert_ref, config.block,
-                                                         adjustments.block, dask_address, geometry=adj,
+                                                         adjustments.block, execution, geometry=adj,
                                                          name="adjust_extended")
             ass = steps["assess_extended"] = assess_step(runner, ext_ing, ext["observations"], adj,
                                                          name="assess_extended")
@@ -274,7 +276,7 @@ def process(
             extension["agreement"] = agreement
             outputs["extension"] = runner.put(JsonOutput(extension, "extension"))
             outputs["diagnosis_before_extension"] = before["diagnose"]["diagnosis"]
-        mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, dask_address)
+        mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, execution)
         seconds = {name: res.seconds for name, res in steps.items() if not res.skipped}
         rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report, seconds,
                                             outputs.get("extension"))

@@ -38,7 +38,8 @@ def diagnose(
     Example: aerocal diagnose flight --certificate camera.json
     """
     # lazy: the diagnosis engine costs ~1.2 s CPU at start-up; --help must not pay it
-    from aerocal.diagnose.run import diagnose_folder, read_run_diagnosis
+    from aerocal.diagnose.run import read_run_diagnosis
+    from aerocal.pipeline.diagnose_step import diagnose_folder
 
     with user_errors():
         stored = read_run_diagnosis(flight) if certificate is None else None

@@ -286,48 +286,50 @@ def match(
 
     Example: aerocal match flights/2016-03-14 --dask tcp://scheduler:8786
     """
-    # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
-    from aerocal import tables
-    from aerocal.ingest import ingest_folder
-
     if not folder.is_dir():
         fail(f"{folder}: no such folder; give a flight folder with images/", BAD_INPUT)
     quiet_prefect()
     with user_errors():
         # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
+        from aerocal import tables
+        from aerocal.camera import Camera
+        from aerocal.io import write_json_atomic
+        from aerocal.matching.cluster import ExecutionConfig
         from aerocal.pipeline.config import MatchStepConfig
-        from aerocal.pipeline.dataset import FlightInputError
+        from aerocal.pipeline.dataset import FlightInputError, FolderDataset, IngestSettings
+        from aerocal.pipeline.ingest_step import flight_summary
         from aerocal.pipeline.match_step import match_images
 
-        res = ingest_folder(folder)
-        if res.images.num_rows == 0:
-            raise FlightInputError(
-                f"{folder}: no image could be ingested; run `aerocal ingest {folder}` to see why"
-            )
-        if res.camera is None:
-            raise FlightInputError(
-                f"{folder / 'camera.json'} is missing; matching needs the camera's nominal "
-                "model (width, height, f, cx, cy in pixels) there"
-            )
-        meta_path = folder / "flight.json"
-        meta = json.loads(meta_path.read_text()) if meta_path.exists() else {}
-        meta["folder"] = str(folder)
-        with console.status(f"matching {res.images.num_rows} images ..."):
+        # the flight as `aerocal process` reads it: the same images, camera (camera.json, else the nominal camera
+        # from the files) and flying height
+        dataset = FolderDataset(folder)
+        read = dataset.read_images(IngestSettings())
+        images, gcps = read.tables["images"], read.tables["gcps"]
+        if images.num_rows == 0:
+            raise FlightInputError(f"{folder}: no image could be ingested; run `aerocal ingest {folder}` to see why")
+        flight = flight_summary(images, read.metadata, read.crs, dataset.name, read.mode, str(dataset.folder))
+        with console.status(f"matching {images.num_rows} images ..."):
             kp, matches, obs, n_pairs = match_images(
-                res.images, res.camera, res.gcps, meta, MatchStepConfig(dask_workers=workers), dask
+                images, Camera.from_dict(read.camera["camera"]), gcps, flight, MatchStepConfig(),
+                ExecutionConfig(dask, workers)
             )
         target = out or folder / "observations"
         for kind, tab in (
-            ("images", res.images),
+            ("images", images),
             ("observations", obs),
-            ("gcps", res.gcps),
-            ("gcp_observations", res.gcp_observations),
+            ("gcps", gcps),
+            ("gcp_observations", read.tables["gcp_observations"]),
             ("keypoints", kp),
             ("matches", matches),
         ):
             tables.write(tab, target / f"{kind}.parquet", kind)
+        camera_json = folder / "camera.json"
+        if out is None and not camera_json.exists():
+            # observations mode reads the camera from camera.json: the one ingest found in the files, with its source
+            write_json_atomic(camera_json, read.camera)
+            console.print(f"camera.json written ({read.camera.get('source')}): check it before processing")
     console.print(
-        f"{res.images.num_rows} images, {n_pairs} candidate pairs, {matches.num_rows} verified matches, "
+        f"{images.num_rows} images, {n_pairs} candidate pairs, {matches.num_rows} verified matches, "
         f"{obs.num_rows} observations of {len(set(obs.column('track_id').to_pylist()))} tracks"
     )
     console.print(f"tables written to {target}")
