@@ -55,7 +55,7 @@ def _aerocal(folder: str, parts: int, queue) -> None:
     """aerocal's adjustment: the single solve, or with ``parts`` > 1 the partitioned one on a local 2-worker
     Dask cluster (its start not timed)."""
     from aerocal.adjust.partition import solve_partitioned
-    from aerocal.adjust.solver import Problem, solve
+    from aerocal.adjust.solver import BundleProblem, solve
     from aerocal.matching.cluster import local_client
 
     blk, st, cfg, _ = _problem(folder)
@@ -64,11 +64,11 @@ def _aerocal(folder: str, parts: int, queue) -> None:
         with local_client(n_workers=2) as client:
             load_s = max(load_s, *client.run(load_adjustment_kernels).values())
             t0 = time.perf_counter()
-            sol = solve_partitioned(Problem(blk, cfg, 0.0), st, parts, client)
+            sol = solve_partitioned(BundleProblem(blk, cfg, 0.0), st, parts, client)
             secs = time.perf_counter() - t0
     else:
         t0 = time.perf_counter()
-        sol = solve(Problem(blk, cfg, 0.0), st)
+        sol = solve(BundleProblem(blk, cfg, 0.0), st)
         secs = time.perf_counter() - t0
     N = blk.n_images
     sig = np.sqrt(np.stack([np.diag(sol.cov_camera[6 * i : 6 * i + 6, 6 * i : 6 * i + 6]) for i in range(N)]))

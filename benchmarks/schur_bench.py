@@ -17,7 +17,7 @@ import numpy as np
 from aerocal.adjust import AdjustConfig
 from aerocal.adjust.bundle import initial_state
 from aerocal.adjust.problem import build_block
-from aerocal.adjust.solver import Problem, schur_complement
+from aerocal.adjust.solver import BundleProblem, schur_complement
 from aerocal.simulate import simulate_flight
 from benchmarks.common import best_of, record
 
@@ -27,7 +27,7 @@ def case(n: int, free: tuple[str, ...]) -> dict:
     cfg = AdjustConfig(free=free, gnss_sigma_m=(0.1, 0.1, 0.15))
     blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)
     blk, st = initial_state(blk, sim.camera_nominal)
-    prob = Problem(blk, cfg, 0.0)
+    prob = BundleProblem(blk, cfg, 0.0)
     _, _, _, r, Jc, Jp, Hpp = prob.residuals(st, jac=True)
     sparse = best_of(lambda: schur_complement(Jc, Jp, Hpp, r, 1e-3))
     structured = best_of(lambda: schur_complement(Jc, Jp, Hpp, r, 1e-3, prob.blocks))

@@ -200,7 +200,7 @@ def test_structured_schur_complement_equals_the_sparse_products(free):
     from aerocal.adjust import schur_kernels
     from aerocal.adjust.bundle import initial_state
     from aerocal.adjust.problem import build_block
-    from aerocal.adjust.solver import Problem, schur_complement
+    from aerocal.adjust.solver import BundleProblem, schur_complement
 
     default_threads = schur_kernels.REDUCE_THREADS
     seed = 31
@@ -208,7 +208,7 @@ def test_structured_schur_complement_equals_the_sparse_products(free):
     cfg = AdjustConfig(free=free, gnss_sigma_m=(0.1, 0.1, 0.15), robust_loss="huber")
     blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)
     blk, st = initial_state(blk, sim.camera_nominal)
-    prob = Problem(blk, cfg, 0.0)
+    prob = BundleProblem(blk, cfg, 0.0)
     _, _, _, r, Jc, Jp, Hpp = prob.residuals(st, jac=True)
     assert prob.blocks is not None and prob.blocks.n_global == len(free)
     for lam, threads in ((0.0, 1), (1e-3, 1), (0.0, 3), (1e-3, 2)):
@@ -277,7 +277,7 @@ def test_a_warm_start_intersects_the_tie_points_the_earlier_points_table_lacks()
 
     from aerocal.adjust.bundle import initial_state, warm_start
     from aerocal.adjust.problem import build_block
-    from aerocal.adjust.solver import Problem
+    from aerocal.adjust.solver import BundleProblem
 
     seed = 71
     rng = np.random.default_rng(seed)
@@ -297,7 +297,7 @@ def test_a_warm_start_intersects_the_tie_points_the_earlier_points_table_lacks()
     lost = np.isin(block.track_ids, points.column("track_id").to_numpy()[drop])
     miss = np.linalg.norm(warm.X[: block.n_tie][lost] - full.X[: block.n_tie][lost], axis=1)
     assert lost.sum() > 10 and np.median(miss) < 0.05 and np.max(miss) < 1.0, f"seed {seed}: {np.sort(miss)[-5:]}"
-    problem = Problem(block, cfg, 0.0)
+    problem = BundleProblem(block, cfg, 0.0)
     assert problem.residuals(warm, jac=False)[0] < 1.05 * problem.residuals(full, jac=False)[0], f"seed {seed}"
 
 
@@ -441,14 +441,14 @@ def test_a_point_a_step_brings_next_to_a_camera_is_put_back_from_the_candidates_
     back to where they were, the others keep their step."""
     from aerocal.adjust.bundle import initial_state
     from aerocal.adjust.problem import build_block
-    from aerocal.adjust.solver import MIN_DEPTH_FRACTION, Problem
+    from aerocal.adjust.solver import MIN_DEPTH_FRACTION, BundleProblem
 
     seed = 32
     sim = simulate_flight("conte-calibration", seed=seed, max_images=12)
     cfg = AdjustConfig(gnss_sigma_m=(0.1, 0.1, 0.15))
     blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)
     blk, st = initial_state(blk, sim.camera_nominal)
-    prob = Problem(blk, cfg, 0.0)
+    prob = BundleProblem(blk, cfg, 0.0)
     prob.residuals(st, jac=True, sparse=False)
     view = prob.point_view()
     prob.set_depth_floor(prob.last_depth[view.is_tie])
@@ -475,7 +475,7 @@ def test_blocks_formed_in_the_projection_equal_the_separate_pass():
     a separate pass scales them once the residuals give the weights. Both give the same blocks."""
     from aerocal.adjust.bundle import initial_state
     from aerocal.adjust.problem import build_block
-    from aerocal.adjust.solver import Problem
+    from aerocal.adjust.solver import BundleProblem
 
     seed = 33
     sim = simulate_flight("conte-calibration", seed=seed, max_images=12)
@@ -484,7 +484,7 @@ def test_blocks_formed_in_the_projection_equal_the_separate_pass():
         cfg = AdjustConfig(gnss_sigma_m=(0.1, 0.1, 0.15), robust_loss=loss, robust_scale=1e9)
         blk = build_block(sim.images, sim.observations, sim.gcps, sim.gcp_observations, cfg)
         blk, st = initial_state(blk, sim.camera_nominal)
-        prob = Problem(blk, cfg, 0.0)
+        prob = BundleProblem(blk, cfg, 0.0)
         Hpp = prob.residuals(st, jac=True, sparse=False)[6]
         got[loss] = (prob.blocks.Ji.copy(), prob.blocks.Jx.copy(), Hpp)
     for a, b, name in zip(got["none"], got["huber"], ("Ji", "Jx", "Hpp"), strict=True):

@@ -14,7 +14,7 @@ from aerocal.adjust.covariance import triangulate_check_points
 from aerocal.adjust.partition import plan_partition, solve_partitioned
 from aerocal.adjust.problem import build_block
 from aerocal.adjust.projection import project
-from aerocal.adjust.solver import Problem, solve
+from aerocal.adjust.solver import BundleProblem, solve
 from aerocal.simulate import simulate_flight
 
 SEED = 5
@@ -55,15 +55,15 @@ def test_a_partitioned_fixed_io_block_gives_the_single_adjustment(n_parts):
     member = np.bincount(np.concatenate(plan.images), minlength=blk.n_images)
     assert set(plan.boundary.tolist()) == set(np.flatnonzero(member > 1).tolist()) and len(plan.boundary) > 0
     assert sum(o.sum() for o in plan.owned) == blk.n_images, "each image's priors are counted once"
-    a = solve(Problem(blk, cfg, 0.0), st.copy())
-    b = solve_partitioned(Problem(blk, cfg, 0.0), st.copy(), n_parts)
+    a = solve(BundleProblem(blk, cfg, 0.0), st.copy())
+    b = solve_partitioned(BundleProblem(blk, cfg, 0.0), st.copy(), n_parts)
     _assert_same(blk, a, b, f"seed {SEED}, {n_parts} sub-blocks")
 
 
 def test_a_partitioned_self_calibration_gives_the_same_io_and_sigmas():
     blk, st, cfg = _block("conte-calibration", 44, ("f", "cx", "cy", "k1", "k2", "p1", "p2"))
-    a = solve(Problem(blk, cfg, 0.0), st.copy())
-    b = solve_partitioned(Problem(blk, cfg, 0.0), st.copy(), 3)
+    a = solve(BundleProblem(blk, cfg, 0.0), st.copy())
+    b = solve_partitioned(BundleProblem(blk, cfg, 0.0), st.copy(), 3)
     _assert_same(blk, a, b, f"seed {SEED}, IO free")
 
 
@@ -71,9 +71,9 @@ def test_sub_blocks_as_actors_on_a_dask_cluster_give_the_single_adjustment():
     from aerocal.matching.cluster import local_client
 
     blk, st, cfg = _block("conte-city", 60, ())
-    a = solve(Problem(blk, cfg, 0.0), st.copy())
+    a = solve(BundleProblem(blk, cfg, 0.0), st.copy())
     with local_client(n_workers=2) as client:
-        b = solve_partitioned(Problem(blk, cfg, 0.0), st.copy(), 2, client)
+        b = solve_partitioned(BundleProblem(blk, cfg, 0.0), st.copy(), 2, client)
         assert len(client.scheduler_info()["workers"]) == 2
         _assert_same(blk, a, b, f"seed {SEED}, Dask actors")
 
@@ -112,7 +112,7 @@ def test_check_point_covariance_equals_the_propagation_through_the_whole_camera_
     for preset, n, free in (("conte-calibration", 44, ("f", "cx", "cy", "k1", "k2", "p1", "p2")),
                             ("conte-city", 60, ())):
         blk, st, cfg = _block(preset, n, free)
-        sol = solve(Problem(blk, cfg, 0.0), st.copy())
+        sol = solve(BundleProblem(blk, cfg, 0.0), st.copy())
         cp = triangulate_check_points(blk, sol)
         ok = np.flatnonzero(np.isfinite(cp.xyz).all(axis=1))
         assert len(ok) >= 3, f"{preset}: seed {SEED}"

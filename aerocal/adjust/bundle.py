@@ -30,7 +30,15 @@ from aerocal.adjust.covariance import (
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block, build_block
 from aerocal.adjust.projection import IDX, THERMAL_PARAMS, project
 from aerocal.adjust.selection import select_parameters
-from aerocal.adjust.solver import MIN_DEPTH_FRACTION, Problem, Solution, SparseInverse, State, schur_complement, solve
+from aerocal.adjust.solver import (
+    MIN_DEPTH_FRACTION,
+    BundleProblem,
+    Solution,
+    SparseInverse,
+    State,
+    schur_complement,
+    solve,
+)
 from aerocal.adjust.thinning import ThinningConfig, thin_tracks
 from aerocal.adjust.triangulate import (
     MAX_DEPTH_RATIO,
@@ -319,7 +327,7 @@ def adjust(
     gcp_observations: pa.Table | None = None,
     thermal_correction: LinearThermalModel | None = None,
     initial_poses: pa.Table | None = None,
-    solver: Callable[[Problem, State], Solution] | None = None,
+    solver: Callable[[BundleProblem, State], Solution] | None = None,
 ) -> AdjustmentResult:
     """Bundle adjustment with self-calibration (IO free or fixed per parameter) and an optional thermal model.
 
@@ -378,7 +386,7 @@ def adjust(
     last: list[Solution] = []  # the last run's solution (the selection's result is the last run's)
 
     def run(cfg: AdjustConfig) -> AdjustmentResult:
-        sol = (solver or solve)(Problem(block, cfg, t0), start)
+        sol = (solver or solve)(BundleProblem(block, cfg, t0), start)
         last[:] = [sol]
         return _result(block, sol, camera, cfg, observations.num_rows)
 
@@ -446,7 +454,7 @@ def marginal_covariance(block: Block, sol: Solution, config: AdjustConfig, freed
     names = global_names(sol)
     while True:
         cfg = dataclasses.replace(config, free=tuple(config.free) + tuple(keep))
-        prob = Problem(block, cfg, sol.t0)
+        prob = BundleProblem(block, cfg, sol.t0)
         Hpp = prob.residuals(sol.state, jac=True, sparse=False)[6]
         S = schur_complement(None, None, Hpp, None, 0.0, prob.blocks)[0]
         prob.release()

@@ -38,7 +38,7 @@ import scipy.sparse as sp
 from aerocal.adjust.problem import AdjustConfig, Block
 from aerocal.adjust.solver import (
     MIN_DEPTH_FRACTION,
-    Problem,
+    BundleProblem,
     ReducedSolver,
     Solution,
     SparseInverse,
@@ -144,7 +144,7 @@ class SubBlock:
     """
 
     def __init__(self, block: Block, config: AdjustConfig, t0: float, owned: np.ndarray, start: State) -> None:
-        self.problem = Problem(block, config, t0, check_datum=False)
+        self.problem = BundleProblem(block, config, t0, check_datum=False)
         self.problem.prior_weight = np.asarray(owned, dtype=float)
         self.state = start
         self.candidate: State | None = None
@@ -155,7 +155,7 @@ class SubBlock:
 
     def tie_depths(self) -> np.ndarray:
         """Depths (metres, > 0) of the tie observations at the start state: the whole block's median sets the
-        floor below which a point is held (:meth:`Problem.hold_close_points`)."""
+        floor below which a point is held (:meth:`BundleProblem.hold_close_points`)."""
         b, st = self.problem.b, self.state
         i, j = b.obs_image[b.obs_is_tie], b.obs_point[b.obs_is_tie]
         z = np.einsum("mk,mk->m", st.R[i][:, 2], st.X[j] - st.C[i])
@@ -224,7 +224,7 @@ def _gather(calls: list) -> list:
     return [c.result() if hasattr(c, "result") else c for c in calls]
 
 
-def solve_partitioned(problem: Problem, start: State, plan: Plan | int, client: object | None = None) -> Solution:
+def solve_partitioned(problem: BundleProblem, start: State, plan: Plan | int, client: object | None = None) -> Solution:
     """:func:`aerocal.adjust.solver.solve` with the block cut by ``plan`` (or into that many sub-blocks, see the
     module), on ``client``'s Dask workers (one actor per sub-block) or, without a client, in this process.
 
@@ -325,7 +325,7 @@ class PartitionedSolver:
             return 1
         return max(2, self.n_workers, -(-n_images // max(1, self.max_images)))
 
-    def __call__(self, problem: Problem, start: State) -> Solution:
+    def __call__(self, problem: BundleProblem, start: State) -> Solution:
         K = self.n_parts(problem.b.n_images)
         if K < 2:
             return solve(problem, start)

@@ -51,7 +51,7 @@ from aerocal.adjust.schur_kernels import (
 
 #: A tie point intersected closer to a camera that sees it than this fraction of the block's median depth
 #: is dropped before the adjustment (:func:`aerocal.adjust.bundle.initial_state`), and a step that would
-#: bring one there leaves it where it was (:meth:`Problem.hold_close_points`). In an aerial block such a
+#: bring one there leaves it where it was (:meth:`BundleProblem.hold_close_points`). In an aerial block such a
 #: point is a wrong intersection from a poor start, not terrain, and its Jacobian grows as 1 / depth^2:
 #: on seneca (autopilot attitude good to a few degrees) points centimetres in front of a camera made the
 #: reduced normal matrix overflow (diagonal > 1e20) and the factorisation fail. Oblique low blocks
@@ -174,7 +174,7 @@ class ObsView:
                    np.ascontiguousarray(b.obs_uv[order]), b.obs_sigma[order], b.obs_is_tie[order])
 
 
-class Problem:
+class BundleProblem:
     """Residuals and Jacobians of a :class:`Block` under an :class:`AdjustConfig`."""
 
     def __init__(self, block: Block, config: AdjustConfig, t0: float, check_datum: bool = True) -> None:
@@ -253,7 +253,7 @@ class Problem:
     def by_point(self) -> tuple[ObsView, PairLayout]:
         """The observations in point order and the block layout of the reduced camera system
         (:func:`image_pair_layout`): both depend only on which image observes which point, so they are formed
-        once for the block; the layout on the first Jacobian only (a residuals-only Problem never needs it)."""
+        once for the block; the layout on the first Jacobian only (a residuals-only BundleProblem never needs it)."""
         view = self.point_view()
         if self._pair_layout is None:
             b = self.b
@@ -493,7 +493,7 @@ def schur_complement(Jc, Jp, Hpp, r, lam: float, blocks: ObsBlocks | None = None
     normal matrix and of the point blocks by ``1 + lam`` (Levenberg-Marquardt). ``S`` is a ``scipy.sparse``
     CSC matrix: an image couples only with the images it shares tie points with, so it holds
     ~36 x (1 + neighbours) entries per image instead of (6 N)^2 (2745 images: 2.2 GB dense per copy).
-    With ``blocks`` (:class:`ObsBlocks` of the Jacobian, :meth:`Problem.residuals`) everything is formed
+    With ``blocks`` (:class:`ObsBlocks` of the Jacobian, :meth:`BundleProblem.residuals`) everything is formed
     from the observations' blocks and ``Jc``, ``Jp`` and ``r`` are not read (they may be ``None``), and
     ``Hcp`` is an operator; without, from general sparse products of ``Jc`` and ``Jp``.
     """
@@ -946,7 +946,7 @@ def levenberg_marquardt(
     return cost, it, converged, history
 
 
-def redundancy(problem: Problem) -> int:
+def redundancy(problem: BundleProblem) -> int:
     """Degrees of freedom of ``problem``: its residuals (2 per image observation, 3 per image and prior, 3 per
     control GCP) less its unknowns; an :class:`AdjustmentError` when there is no redundancy."""
     b, lay = problem.b, problem.layout
@@ -958,7 +958,7 @@ def redundancy(problem: Problem) -> int:
     return n_res - n_unk
 
 
-def solve(problem: Problem, start: State) -> Solution:
+def solve(problem: BundleProblem, start: State) -> Solution:
     """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
     # the linearisation at the current state: (cost, res_px, w, r, Jc, Jp, Hpp); problem.blocks holds its blocks
     st, cand = start, None

@@ -20,7 +20,7 @@ import pyarrow.compute as pc
 
 from aerocal.adjust.bundle import AdjustmentResult, adjust
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError
-from aerocal.adjust.solver import Problem, Solution, State
+from aerocal.adjust.solver import BundleProblem, Solution, State
 from aerocal.camera import Camera, LinearThermalModel
 
 STRATEGIES = ("fixed", "self", "certificate")
@@ -70,7 +70,7 @@ def adjust_fixed_io(
     gcps: pa.Table | None = None,
     gcp_observations: pa.Table | None = None,
     thermal: LinearThermalModel | None = None,
-    solver: Callable[[Problem, State], Solution] | None = None,
+    solver: Callable[[BundleProblem, State], Solution] | None = None,
 ) -> AdjustmentResult:
     """Full-block adjustment with IO fixed at ``camera`` (IO at ``thermal.t0`` when a model is given).
     ``solver``: see :func:`aerocal.adjust.bundle.adjust`.

@@ -19,7 +19,7 @@ import pyarrow as pa
 from aerocal import tables
 from aerocal.adjust.bundle import initial_state
 from aerocal.adjust.problem import AdjustConfig, build_block
-from aerocal.adjust.solver import Problem, State, inverse_spd, schur_complement
+from aerocal.adjust.solver import BundleProblem, State, inverse_spd, schur_complement
 from aerocal.camera import Camera
 
 
@@ -146,7 +146,7 @@ def _predict(
     blk, st = initial_state(blk, camera)
     # the noise-free state: the synthetic points where they were placed, GCPs at their coordinates
     state = State(io=st.io, slopes=st.slopes, R=st.R, C=st.C, X=st.X)
-    prob = Problem(blk, cfg.adjust, t0=float(np.nanmedian(blk.temperature)) if cfg.adjust.thermal else 0.0)
+    prob = BundleProblem(blk, cfg.adjust, t0=float(np.nanmedian(blk.temperature)) if cfg.adjust.thermal else 0.0)
     _, _, _, r, Jc, Jp, Hpp = prob.residuals(state, jac=True)
     S, *_ = schur_complement(Jc, Jp, Hpp, np.zeros_like(r), 0.0)
     cov = inverse_spd(S.toarray())  # a calibration sub-block: tens of images

@@ -34,7 +34,7 @@ from scipy import stats
 
 from aerocal.adjust import adjust, scale_tie_sigma
 from aerocal.adjust.problem import AdjustConfig
-from aerocal.adjust.solver import Problem, inverse_spd, solve
+from aerocal.adjust.solver import BundleProblem, inverse_spd, solve
 from aerocal.adjust.strategy import central_images
 from aerocal.camera import Camera, LinearThermalModel
 from aerocal.diagnose import hypotheses as hyp
@@ -938,7 +938,7 @@ def attitude_offset(base: Baseline, named: list[NamedEffect]) -> dict | None:
         return None
     sol = base.solution
     if base.config.attitude_sigma_deg is not None:
-        problem = Problem(base.block, dataclasses.replace(base.config, attitude_sigma_deg=None), base.solution.t0)
+        problem = BundleProblem(base.block, dataclasses.replace(base.config, attitude_sigma_deg=None), base.solution.t0)
         sol = solve(problem, base.state.copy())
     off = offset_statistics(sol.state.R, base.block.R_rec, mean_rotation_covariance(sol, base.block.n_images))
     if off is None:

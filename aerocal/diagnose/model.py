@@ -19,7 +19,7 @@ import scipy.sparse as sp
 from aerocal.adjust.bundle import initial_state, warm_start
 from aerocal.adjust.problem import AdjustConfig, Block, build_block
 from aerocal.adjust.projection import project
-from aerocal.adjust.solver import Problem, Solution, State, factorise, inverse_spd, schur_complement, solve
+from aerocal.adjust.solver import BundleProblem, Solution, State, factorise, inverse_spd, schur_complement, solve
 from aerocal.adjust.triangulate import pixels_to_rays, triangulate_linear
 from aerocal.camera import Camera
 
@@ -105,7 +105,7 @@ def fit_baseline(images: pa.Table, observations: pa.Table, camera: Camera, confi
     block, state = initial_state(block0, camera)
     if start is not None:
         state = warm_start(block, state, *start)
-    sol = solve(Problem(block, config, 0.0), state)
+    sol = solve(BundleProblem(block, config, 0.0), state)
     return Baseline(block, covariates_from_images(images, block), config, sol, camera)
 
 
@@ -118,13 +118,13 @@ CHI2_2_MEDIAN = 1.386
 
 def refit(base: Baseline, block: Block) -> Baseline:
     """Re-adjust corrected measurements of the same block, starting from the previous solution."""
-    sol = solve(Problem(block, base.config, 0.0), base.state.copy())
+    sol = solve(BundleProblem(block, base.config, 0.0), base.state.copy())
     return dataclasses.replace(base, block=block, solution=sol)
 
 
 def linearise(base: Baseline, state: State | None = None) -> Linear:
     state = state or base.state
-    problem = Problem(base.block, base.config, 0.0)
+    problem = BundleProblem(base.block, base.config, 0.0)
     _, _, _, r, Jc, Jp, Hpp = problem.residuals(state, jac=True)
     b = base.block
     xn, pc, duv_dpc = observation_geometry(b, state)

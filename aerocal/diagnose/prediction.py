@@ -37,7 +37,7 @@ import scipy.sparse.linalg as spla
 
 from aerocal.adjust.problem import AdjustmentError, Block
 from aerocal.adjust.projection import rotation_log
-from aerocal.adjust.solver import Problem, State, solve
+from aerocal.adjust.solver import BundleProblem, State, solve
 from aerocal.diagnose.model import Baseline, Covariates
 
 
@@ -198,7 +198,7 @@ def sub_baseline(base: Baseline, keep: np.ndarray) -> Baseline:
     """The baseline's block restricted to the images where ``keep`` is True (:func:`sub_block`), adjusted again
     with the baseline's configuration, from the baseline's solution."""
     block, start, _ = sub_block(base.block, base.state, keep)
-    problem = Problem(block, base.config, base.solution.t0, check_datum=False)
+    problem = BundleProblem(block, base.config, base.solution.t0, check_datum=False)
     sol = solve(problem, start)
     cov = Covariates(time_s=base.covariates.time_s[keep], strip=base.covariates.strip[keep])
     return Baseline(block, cov, base.config, sol, base.template)
@@ -241,7 +241,7 @@ def resect(block: Block, start: State, base: Baseline, iterations: int = 10) -> 
     Levenberg damping on the image measurements and the recorded position and attitude priors of ``base``'s
     configuration. Returns the state, each image's misfit (chi-square of its measurements, recorded position
     and attitude residuals, whitened by their sigmas) and its number of measurements."""
-    problem = Problem(block, base.config, base.solution.t0, check_datum=False)
+    problem = BundleProblem(block, base.config, base.solution.t0, check_datum=False)
     ng = problem.layout.n_global
     st, lam = start, 1e-3
     cost = problem.residuals(st, jac=False)[0]
@@ -265,7 +265,7 @@ def resect(block: Block, start: State, base: Baseline, iterations: int = 10) -> 
     return st, _image_chi2(problem, block, st), np.bincount(block.obs_image, minlength=block.n_images)
 
 
-def _image_chi2(problem: Problem, block: Block, st: State) -> np.ndarray:
+def _image_chi2(problem: BundleProblem, block: Block, st: State) -> np.ndarray:
     """Per image: the chi-square of its measurements, and of its recorded position and attitude where the
     configuration observes them, at ``st``."""
     _, res, _ = problem.residuals(st, jac=False)

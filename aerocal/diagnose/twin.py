@@ -67,7 +67,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from aerocal.adjust.projection import project, rotation_log, rotation_update
-from aerocal.adjust.solver import Problem, solve
+from aerocal.adjust.solver import BundleProblem, solve
 from aerocal.diagnose.model import CHI2_2_MEDIAN, TAIL_CHI2, Baseline
 
 #: the statistics of :func:`block_statistics`, with what a large real value says (the likely cause)
@@ -366,7 +366,7 @@ class _TieResiduals:
 
 def _tie_residuals(base: Baseline) -> _TieResiduals:
     b = base.block
-    _, res_px, _ = Problem(b, base.config, base.solution.t0).residuals(base.state, jac=False)
+    _, res_px, _ = BundleProblem(b, base.config, base.solution.t0).residuals(base.state, jac=False)
     tie = b.obs_is_tie
     z = res_px[tie] / b.obs_sigma[tie, None]
     s = np.sum(z * z, axis=1)
@@ -416,7 +416,7 @@ def make_twin(base: Baseline, seed: int, extensions: dict[str, float] | None = N
         raise KeyError(f"no extension named {sorted(unknown)}; known: {sorted(_BY_NAME)}")
     rng = np.random.default_rng(seed)
     b, st, cfg = base.block, base.state, base.config
-    prob = Problem(b, cfg, base.solution.t0)
+    prob = BundleProblem(b, cfg, base.solution.t0)
     i, j = b.obs_image, b.obs_point
     tie = b.obs_is_tie
     uv = project(st.io, st.slopes, prob.dtemp_img[i], st.R[i], st.C[i], st.X[j], jacobians=False).uv
@@ -461,7 +461,7 @@ def make_twin(base: Baseline, seed: int, extensions: dict[str, float] | None = N
     # it starts at its own truth: a few iterations reach its optimum (the real block's budget would multiply the
     # time of every twin)
     quick = dataclasses.replace(cfg, max_iterations=min(cfg.max_iterations, TWIN_ITERATIONS))
-    sol = solve(Problem(block, quick, base.solution.t0), st.copy())
+    sol = solve(BundleProblem(block, quick, base.solution.t0), st.copy())
     return dataclasses.replace(base, block=block, solution=sol)
 
 
