@@ -36,8 +36,8 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m benchmarks
 
-# the seed papers' set-ups simulated against their measured numbers (about an hour on 2 cores): the committed
-# report studies/results/paper_setups.md, each study's own report, figures and numbers beside it
+# the seed papers' set-ups simulated against their measured numbers (42 min on 2 cores when last run): the
+# committed report studies/results/paper_setups.md, each study's own report, figures and numbers beside it
 papers: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(BIN)/python -m studies.paper_setups --out studies/results
 

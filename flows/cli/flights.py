@@ -155,16 +155,39 @@ def extension_lines(extension: dict[str, Any]) -> list[str]:
     return lines
 
 
-def print_problems(result: Any, out: Console, warnings: bool = True, limit: int = 50) -> None:
-    """Every error of an ingest result (blocking ones first), then warnings up to ``limit`` lines in all."""
-    ordered = result.blocking + [p for p in result.errors if not p.stops_processing]
-    if warnings:
-        ordered += result.warnings[: max(0, limit - len(ordered))]
-    for p in ordered:
+def print_problems(problems: list, out: Console, warnings: bool = True, limit: int = 50) -> None:
+    """Every error of ingest's ``problems`` (:class:`aerocal.ingest.problems.Problem`; those that stop processing
+    first), then warnings up to ``limit`` lines in all."""
+    ordered = [p for p in problems if p.stops_processing]
+    ordered += [p for p in problems if p.severity == "error" and not p.stops_processing]
+    notes = [p for p in problems if p.severity != "error" and not p.stops_processing]
+    shown = notes[: max(0, limit - len(ordered))] if warnings else []
+    for p in ordered + shown:
         out.print(str(p), markup=False)
-    rest = len(result.warnings) - len([p for p in ordered if p.severity == "warning"])
+    rest = len(notes) - len(shown)
     if warnings and rest > 0:
         out.print(f"... and {rest} more warnings (aerocal ingest FOLDER --out DIR writes them all)")
+
+
+def print_ingest_report(folder: Path, rows: list[tuple[str, str]], problems: list, written: Path | None = None) -> None:
+    """What ``aerocal ingest`` says of a folder: the summary ``rows``, every problem, where the tables were
+    ``written``, and how many problems stop ``aerocal process``; exit 2 when any problem is an error."""
+    table = Table(title=f"ingest of {folder}", show_header=False)
+    for item, value in rows:
+        table.add_row(item, value)
+    console.print(table)
+    print_problems(problems, console)
+    if written is not None:
+        console.print(f"tables written to {written}")
+    blocking = [p for p in problems if p.stops_processing]
+    if blocking:
+        err_console.print(
+            f"[red]{len(blocking)} problem(s) stop `aerocal process`[/red] (marked 'stops processing'); "
+            "fix them and ingest again",
+            markup=True,
+        )
+    if any(p.severity == "error" for p in problems):
+        raise typer.Exit(BAD_INPUT)
 
 
 def stop_if_not_processable(flight_dir: Path) -> None:
@@ -196,7 +219,7 @@ def stop_if_not_processable(flight_dir: Path) -> None:
             f"processing ({len(result.errors)} error(s) in all; nothing was processed or stored):",
             markup=True,
         )
-        print_problems(result, err_console, warnings=False)
+        print_problems(result.problems, err_console, warnings=False)
         raise typer.Exit(BAD_INPUT)
 
 
@@ -229,21 +252,7 @@ def ingest(
             result = ingest_folder(folder, gcp_file=list(gcp) or None, eo_file=eo, crs=crs)
         if out is not None:
             write_ingest(result, out)
-    table = Table(title=f"ingest of {folder}", show_header=False)
-    for item, value in summary_rows(result):
-        table.add_row(item, value)
-    console.print(table)
-    print_problems(result, console)
-    if out is not None:
-        console.print(f"tables written to {out}")
-    if result.blocking:
-        err_console.print(
-            f"[red]{len(result.blocking)} problem(s) stop `aerocal process`[/red] (marked 'stops processing'); "
-            "fix them and ingest again",
-            markup=True,
-        )
-    if result.errors:
-        raise typer.Exit(BAD_INPUT)
+    print_ingest_report(folder, summary_rows(result), result.problems, out)
 
 
 def _ingest_observations_folder(folder: Path) -> None:
@@ -254,21 +263,7 @@ def _ingest_observations_folder(folder: Path) -> None:
 
     with user_errors():
         rows, problems = observations_report(folder)
-    table = Table(title=f"ingest of {folder}", show_header=False)
-    for item, value in rows:
-        table.add_row(item, value)
-    console.print(table)
-    for p in problems:
-        console.print(str(p), markup=False)
-    blocking = [p for p in problems if p.stops_processing]
-    if blocking:
-        err_console.print(
-            f"[red]{len(blocking)} problem(s) stop `aerocal process`[/red] (marked 'stops processing'); "
-            "fix them and ingest again",
-            markup=True,
-        )
-    if any(p.severity == "error" for p in problems):
-        raise typer.Exit(BAD_INPUT)
+    print_ingest_report(folder, rows, problems)
 
 
 def match(
