@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 import pytest
+from tolerance import assert_within_sigma
 
 from aerocal.adjust import AdjustConfig, adjust, scale_tie_sigma
 from aerocal.simulate import simulate_flight
@@ -85,7 +86,8 @@ def test_robust_loss_recovers_the_clean_solution_and_flags_the_blunders(runs, lo
     print(f"{loss}:", _describe(sim, res))
     for n in IO:
         err = getattr(res.camera, n) - getattr(true, n)
-        assert abs(err) < 3 * res.sigmas[n], f"seed {SEED} {loss}: {n} off by {err:.4g} (sigma {res.sigmas[n]:.2g})"
+        # bounded: f, cx, cy to 0.2 % of f, k1 to 0.02 (a blunder that bends the block widens them past it)
+        assert_within_sigma(err, res.sigmas[n], 3, 0.02 if n == "k1" else 0.002 * true.f, f"seed {SEED} {loss}: {n}")
         # and where the clean block is, to within its own precision
         d = getattr(res.camera, n) - getattr(clean.camera, n)
         assert abs(d) < clean.sigmas[n], f"seed {SEED} {loss}: {n} {d:+.4g} from the clean solution"

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 import pytest
+from tolerance import assert_within_sigma
 
 from aerocal.adjust import AdjustConfig, ThinningConfig, adjust, thin_tracks
 from aerocal.simulate import simulate_flight
@@ -77,7 +78,8 @@ def test_thinned_block_lands_on_the_truth_and_returns_every_track(flight):
         err = getattr(thin.camera, n) - getattr(true, n)
         print(f"{n}: thinned {err:+.4g} +- {thin.sigmas[n]:.2g}, all tracks "
               f"{getattr(full.camera, n) - getattr(true, n):+.4g} +- {full.sigmas[n]:.2g}")
-        assert abs(err) < 3.5 * thin.sigmas[n], f"seed {SEED}: thinned {n} off the truth by {err:.4g}"
+        cap = 0.02 if n == "k1" else 0.002 * true.f
+        assert_within_sigma(err, thin.sigmas[n], 3.5, cap, f"seed {SEED}: thinned {n}")
         assert thin.sigmas[n] < 3 * full.sigmas[n], f"seed {SEED}: thinning lost too much precision in {n}"
     print("check RMSE thinned", thin.check_rmse.round(3), "all", full.check_rmse.round(3), "rho", thin.rho.round(2))
     assert np.all(thin.check_rmse < 1.5 * full.check_rmse + 0.02), f"seed {SEED}: check points worse when thinned"

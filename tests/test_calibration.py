@@ -2,6 +2,8 @@
 
 import dataclasses
 
+from tolerance import assert_within_sigma
+
 from aerocal.adjust import AdjustConfig
 from aerocal.calibrate.self_calibration import CalibrationConfig, self_calibrate
 from aerocal.simulate import PRESETS, simulate_flight
@@ -51,7 +53,9 @@ def test_a_thermal_slope_is_certified_only_with_a_held_out_gain():
     h = cal.held_out.get("df/dT")
     assert h is not None and h.beyond(2.0), f"seed {seed}: {h and h.describe()}"
     assert "df/dT" in cal.result.thermal_slopes, f"seed {seed}: {cal.review.notes}"
-    assert abs(cal.result.thermal_slopes["df/dT"] - 1.5) < 4 * cal.result.thermal_sigmas["df/dT"]
+    # bounded: a slope kept for its held-out gain is known to 20 % of itself
+    assert_within_sigma(cal.result.thermal_slopes["df/dT"] - 1.5, cal.result.thermal_sigmas["df/dT"], 4, 0.3,
+                        f"seed {seed}: df/dT (px/degC)")
     still = simulate_flight(spec, seed=seed)
     cal = self_calibrate(still.images, still.observations, spec.camera_nominal, still.gcps, still.gcp_observations,
                          adjust_config=CONFIG)

@@ -8,6 +8,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from tolerance import assert_within_sigma
 
 from aerocal.adjust import AdjustConfig
 from aerocal.diagnose import hypotheses as hyp
@@ -110,6 +111,7 @@ def test_hidden_effect_is_named_with_its_magnitude(name, seed, predicted_sigma):
     assert err < 0.20, f"seed {seed}: {name} true {truth}, estimated {est} ({err:.0%} off along the truth)"
     across = est - along * u
     assert np.all(np.abs(across) < 4 * est_sigma + 1e-12), f"seed {seed}: {name} spurious components {across}"
+    assert np.linalg.norm(across) < 0.2 * np.linalg.norm(truth), f"seed {seed}: {name} spurious components {across}"
 
 
 @pytest.mark.parametrize("seed", [3, 4, 5])
@@ -240,7 +242,7 @@ def test_an_effect_too_small_to_move_the_image_is_not_named_however_significant(
     first = {e.name: e for e in small.hypotheses if e.round == 1}
     rs = first["rolling_shutter"]
     assert rs.significant and rs.shift_px < MATERIAL_SHIFT_PX, f"seed {seed}: {rs}"
-    assert abs(rs.estimate[0] - 2e-4) < 4 * rs.sigma[0], f"seed {seed}: {rs}"
+    assert_within_sigma(rs.estimate[0] - 2e-4, rs.sigma[0], 4, 1e-4, f"seed {seed}: readout (s)")
     assert "rolling_shutter" not in [e.name for e in small.effects], f"seed {seed}: named {small.summary()}"
     said = [n for n in small.notes if n.startswith("rolling_shutter:")]
     assert said and "not named" in said[0] and "px" in said[0], f"seed {seed}: notes {small.notes}"
@@ -280,7 +282,7 @@ def test_a_large_block_is_diagnosed_on_its_central_sub_block_and_still_names_the
     print(d.summary(), d.notes[:1])
     assert d.notes and d.notes[0].startswith(f"diagnosed on the {n - 12} images nearest the block centre of {n}")
     assert d.effects and d.effects[0].name == "thermal_focal", f"seed {seed}: {d.summary()}"
-    assert abs(d.effects[0].magnitude[0] - 0.5) < 4 * d.effects[0].sigma[0], f"seed {seed}: {d.effects[0]}"
+    assert_within_sigma(d.effects[0].magnitude[0] - 0.5, d.effects[0].sigma[0], 4, 0.1, f"seed {seed}: df/dT")
     ids = central_images(sim.images, n - 12)
     x = sim.images.column("gnss_x").to_numpy()
     y = sim.images.column("gnss_y").to_numpy()
@@ -331,8 +333,8 @@ def test_an_io_error_within_the_certificates_sigma_is_not_named():
     assert not aware.effects, f"seed {seed}: {aware.summary()}"
     k3 = next(e for e in aware.hypotheses if e.name == "radial_k3" and e.round == 1)
     assert not k3.significant, f"seed {seed}: {k3}"
-    assert abs(k3.estimate[0] + k3_sigma) < 3 * k3.sigma[0] and k3.sigma[0] >= 0.9 * k3_sigma, (
-        f"seed {seed}: {k3.estimate} +- {k3.sigma}")
+    assert k3.sigma[0] >= 0.9 * k3_sigma, f"seed {seed}: {k3.estimate} +- {k3.sigma}"
+    assert_within_sigma(k3.estimate[0] + k3_sigma, k3.sigma[0], 3, 3 * k3_sigma, f"seed {seed}: k3")
 
 
 def test_summary_gives_no_clean_bill_when_the_twin_differs():

@@ -60,6 +60,7 @@ print(json.dumps({{"heavy": heavy, "reason": run.summary.certificate_reason, "fi
     model = parsed.thermal.model if parsed.thermal is not None else None
     f_at_ref = parsed.camera.f + (model.df_dt * (t0 - model.t0) if model is not None else 0.0)
     sigma = parsed.sigmas["f"]
+    assert sigma <= 0.01 * true_f, f"seed {SEED}: sigma of f {sigma:.2f} px beyond the review's 1 % bound"
     assert abs(f_at_ref - true_f) < 4 * sigma + (abs(SLOPE) * 3 if model is None else 0.0), \
         f"seed {SEED}: f {f_at_ref:.2f} +- {sigma:.2f} px, true {true_f:.2f} px"
 

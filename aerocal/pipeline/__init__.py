@@ -15,8 +15,8 @@ Modules: :mod:`~aerocal.pipeline.dataset` (where a flight's inputs come from), :
 
 from aerocal.matching.cluster import ExecutionConfig
 from aerocal.pipeline.certificates import CertificateStore, MemoryCertificates
-from aerocal.pipeline.config import ProcessConfig
-from aerocal.pipeline.dataset import FlightDataset, FlightInputError, FolderDataset, MemoryDataset
+from aerocal.pipeline.config import CertificateMode, ProcessConfig
+from aerocal.pipeline.dataset import FlightDataset, FlightInputError, FlightMode, FolderDataset, MemoryDataset
 from aerocal.pipeline.process import EXPORTS, FlightRun, process
 from aerocal.pipeline.runner import LocalRunner, Runner, StepResult
 from aerocal.pipeline.summary import RunSummary, StepRecord, StepStatus
@@ -24,9 +24,11 @@ from aerocal.pipeline.summary import RunSummary, StepRecord, StepStatus
 __all__ = [
     "EXPORTS",
     "ExecutionConfig",
+    "CertificateMode",
     "CertificateStore",
     "FlightDataset",
     "FlightInputError",
+    "FlightMode",
     "FlightRun",
     "FolderDataset",
     "LocalRunner",

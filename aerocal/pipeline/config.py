@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 from aerocal.adjust import AdjustConfig, ThinningConfig
@@ -24,12 +25,20 @@ from aerocal.pipeline.runner import configuration_json
 from aerocal.products.dsm import DsmConfig
 from aerocal.products.mosaic import MosaicConfig
 
-#: values of ``certificate`` that are not certificate ids: ``auto`` (the stored certificate that applies, else
-#: self-calibrate), ``none`` (always self-calibrate) and ``nominal`` (the flight's nominal camera as given in its
-#: camera.json, e.g. a metric camera's laboratory calibration: neither calibrated nor stored)
-CERTIFICATE_MODES = ("auto", "none", "nominal")
+
+class CertificateMode(StrEnum):
+    """Values of ``certificate`` that are not certificate ids (a certificate id pins that certificate)."""
+
+    AUTO = "auto"  #: the stored certificate that applies, else self-calibrate and issue one
+    NONE = "none"  #: always self-calibrate
+    #: the flight's nominal camera as given in its camera.json (e.g. a metric camera's laboratory calibration):
+    #: neither calibrated nor stored
+    NOMINAL = "nominal"
+
+
+CERTIFICATE_MODES = tuple(m.value for m in CertificateMode)
 #: the ``certificate`` mode that adjusts the block with the nominal camera
-NOMINAL = "nominal"
+NOMINAL = CertificateMode.NOMINAL
 
 #: the ingest step's configuration (kept under this name for flow configurations)
 IngestStepConfig = IngestSettings

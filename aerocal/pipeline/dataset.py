@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -49,6 +50,13 @@ OBSERVATION_TABLES = ("images", "observations", "gcps", "gcp_observations")
 #: a reference surface for the DSM (e.g. a LiDAR DSM) in the flight folder: a single-band north-up GeoTIFF
 #: of heights in metres, in the flight's CRS
 REFERENCE_DSM = Path("reference") / "dsm.tif"
+
+
+class FlightMode(StrEnum):
+    """Where a flight's image measurements come from."""
+
+    IMAGES = "images"  #: matched from its frames
+    OBSERVATIONS = "observations"  #: given as tables (``observations/*.parquet``), nothing matched
 
 
 class FlightInputError(ValueError):
@@ -214,7 +222,8 @@ class FolderDataset:
             files[rel.as_posix()] = {"sha256": file_sha256(p), "size": p.stat().st_size}
         if not files:
             raise FlightInputError(f"{self.folder} holds no files; give a flight folder")
-        return {"schema": "aerocal.flight-manifest/1", "mode": "observations" if self.observations_mode else "images",
+        mode = FlightMode.OBSERVATIONS if self.observations_mode else FlightMode.IMAGES
+        return {"schema": "aerocal.flight-manifest/1", "mode": mode.value,
                 "files": files}
 
     def read(self, settings: IngestSettings) -> IngestedFlight:
@@ -242,7 +251,7 @@ class FolderDataset:
             if len(blocking) > 20:
                 lines.append(f"  ... and {len(blocking) - 20} more")
             raise FlightInputError("\n".join(lines))
-        return IngestedFlight(tabs, cam_doc, meta, crs, "observations", [str(p) for p in found])
+        return IngestedFlight(tabs, cam_doc, meta, crs, FlightMode.OBSERVATIONS, [str(p) for p in found])
 
     def read_images(self, settings: IngestSettings) -> IngestedFlight:
         """The folder's images as image mode reads them (also where it holds observation tables: ``aerocal
@@ -260,7 +269,7 @@ class FolderDataset:
             height, facts["height_agl_m"] = measured_flying_height(self.folder, res.images, res.camera)
         meta = {**res.plan, "height_agl_m": height,
                 "gnss_sigma_m": None if res.gnss_sigma_m is None else list(res.gnss_sigma_m)}
-        return IngestedFlight(tabs, cam_doc, meta, res.crs, "images", [str(p) for p in res.problems],
+        return IngestedFlight(tabs, cam_doc, meta, res.crs, FlightMode.IMAGES, [str(p) for p in res.problems],
                               list(res.skipped_images), facts)
 
 
@@ -307,7 +316,7 @@ class MemoryDataset:
         """SHA-256 of each table (:func:`aerocal.pipeline.runner.table_sha256`) and the documents."""
         return {
             "schema": "aerocal.memory-manifest/1",
-            "mode": "observations",
+            "mode": FlightMode.OBSERVATIONS.value,
             "tables": {kind: table_sha256(getattr(self, kind), kind) for kind in OBSERVATION_TABLES},
             "camera": self.camera,
             "metadata": self.metadata,
@@ -328,7 +337,7 @@ class MemoryDataset:
         crs = self.crs or (self.images.schema.metadata or {}).get(b"aerocal.crs", b"").decode() \
             or self.metadata.get("crs")
         return IngestedFlight(tabs, with_shared_identity(dict(self.camera)), dict(self.metadata), crs,
-                              "observations")
+                              FlightMode.OBSERVATIONS)
 
 
 def dataset_of(flight: str | Path | FlightDataset) -> FlightDataset:
