@@ -112,13 +112,14 @@ class BlockStepConfig:
 class MosaicStepConfig:
     """DSM and orthomosaic settings (:class:`aerocal.products.dsm.DsmConfig`,
     :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults); the tiles run on the Dask cluster
-    (:class:`aerocal.matching.cluster.ExecutionConfig`) except for mosaics of at most ``serial_max_frames``
-    frames (4), which run here without a cluster, since starting the worker processes (a few seconds) costs more
-    than the tiles."""
+    (:class:`aerocal.matching.cluster.ExecutionConfig`) except for mosaics of at most ``serial_max_megapixels``
+    (25) of frames in all, which run here without a cluster: starting a local cluster's worker processes costs
+    about 4 s, more than half the tiles of a mosaic that small take (``benchmarks/history/engine_measurements.md``,
+    the mosaic's serial threshold)."""
 
     dsm: DsmConfig | None = None
     mosaic: MosaicConfig | None = None
-    serial_max_frames: int = 4
+    serial_max_megapixels: float = 25.0
 
 
 @dataclass(frozen=True)

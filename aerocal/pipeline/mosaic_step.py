@@ -100,7 +100,8 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             motion, turn = frame_terms(cert, images, poses)  # the certificate's readout and thermal rotation
             frames = frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal, motion,
                                        turn)
-            serial = len(frames) <= config.serial_max_frames
+            megapixels = len(frames) * cert.camera.width * cert.camera.height / 1e6
+            serial = megapixels <= config.serial_max_megapixels
             with (execution or ExecutionConfig()).client(serial) as client:
                 res = build_mosaic(frames, paths, dsm, work / "orthomosaic.tif", config.mosaic or MosaicConfig(),
                                    client, step_progress("mosaic"))

@@ -51,6 +51,7 @@ import cv2
 import numpy as np
 
 from aerocal.camera import Camera
+from aerocal.simulate.raycast_kernels import hits_near, march
 from aerocal.simulate.scene import SKY_KELVIN, SKY_RGB, Scene
 
 
@@ -102,6 +103,8 @@ class RayHits:
 
 
 _LEVELS = (16, 4)  # block sizes (cells) of the empty-space-skipping grids, coarse to fine
+#: the grids :func:`aerocal.simulate.raycast_kernels.march` is given when empty-space skipping is off
+_NO_GRID = np.zeros((1, 1), dtype=np.float32)
 
 
 def _padded_dsm(scene: Scene) -> np.ndarray:
@@ -187,70 +190,13 @@ def intersect_dsm(
         t_end = np.where(~down & (dz > 0), (zmax - z0) / np.where(dz > 0, dz, 1.0), t_end)
         t_end = np.minimum(t_end, _t_leave_grid(c0, r0, dc, dr, rows, cols))
     h_len = np.maximum(np.hypot(dc, dr), 1e-12)  # cells per metre, horizontally
-    skip_levels = [(b, gmax, b / h_len) for b, gmax in _max_grids(scene)] if skip_empty else []
-    dsm = _padded_dsm(scene)
-
-    # state of the active rays: t, the patch (pr, pc) holding the point at t, and whether it is known
-    pc = np.zeros(len(cand), dtype=np.int64)
-    pr = np.zeros(len(cand), dtype=np.int64)
-    located = np.zeros(len(cand), dtype=bool)
-    result = np.full(len(cand), np.inf)
-    active = np.arange(len(cand))
-    while len(active):
-        ta = t[active]
-        pending = np.arange(len(active))
-        # 1. skip: the longest step on the coarsest max grid that provably stays above the surface
-        if len(skip_levels):
-            za = z0[active] + ta * dz[active]
-            cc = c0[active] + ta * dc[active]
-            rr = r0[active] + ta * dr[active]
-            for b, gmax, h_limit in skip_levels:
-                gr, gc = gmax.shape
-                k = active[pending]
-                bc = np.clip(cc[pending] // b, 0, gc - 1).astype(np.int64)  # patch index = floor(grid coord)
-                br = np.clip(rr[pending] // b, 0, gr - 1).astype(np.int64)
-                clearance = za[pending] - gmax[br, bc]
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    safe = np.where(down[k], clearance / -dz[k], np.inf)
-                s = np.where(clearance > 0, np.minimum(h_limit[k], safe), 0.0)
-                go = s >= 0.5 * cell
-                kg = k[go]
-                t[kg] = ta[pending[go]] + s[go]
-                located[kg] = False
-                pending = pending[~go]
-                if not len(pending):
-                    break
-        # 2. one patch: exit parameter, quadratic f(s) = z - h along the ray inside it, first root
-        if len(pending):
-            k = active[pending]
-            relocate = k[~located[k]]
-            pc[relocate] = np.floor(c0[relocate] + t[relocate] * dc[relocate]).astype(np.int64)
-            pr[relocate] = np.floor(r0[relocate] + t[relocate] * dr[relocate]).astype(np.int64)
-            located[relocate] = True
-            t_root, t_out, pc[k], pr[k] = _patch_step(
-                dsm, rows, cols, c0[k], r0[k], z0[k], dc[k], dr[k], dz[k], ta[pending], pc[k], pr[k], t_end[k]
-            )
-            hit = np.isfinite(t_root)
-            result[k[hit]] = t_root[hit]
-            t[k] = np.where(hit, np.inf, t_out)
-        finished = (t[active] >= t_end[active]) | np.isfinite(result[active])
-        active = active[~finished]
+    levels = _max_grids(scene) if skip_empty else []
+    grids = tuple(g for _, g in levels) or (_NO_GRID, _NO_GRID)
+    blocks = np.array([b for b, _ in levels] or [1, 1], dtype=np.int64)
+    result = march(_padded_dsm(scene), rows, cols, c0, r0, z0, dc, dr, dz, down, t, t_end, h_len, float(cell),
+                   grids, blocks, len(levels))
     t_hit[cand] = result
     return _hits(o, d, t_hit)
-
-
-def _patch_step(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t, pc, pr, t_end):
-    """Intersect rays with the patch (pr, pc) they are in at ``t``: returns (hit parameter or inf, exit
-    parameter, next patch col, next patch row). Rays in grid units as in :func:`intersect_dsm`."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_col = np.where(dc != 0, (pc + (dc > 0) - c0) / dc, np.inf)
-        t_row = np.where(dr != 0, (pr + (dr > 0) - r0) / dr, np.inf)
-    t_out = np.maximum(np.minimum(np.minimum(t_col, t_row), t_end), t)
-    s_root = _first_root_in_patch(dsm, rows, cols, pc, pr, c0 + t * dc - pc, r0 + t * dr - pr, dc, dr,
-                                  z0 + t * dz, dz, t_out - t)
-    pc_next = pc + np.where(t_col <= t_out, np.where(dc > 0, 1, -1), 0)
-    pr_next = pr + np.where(t_row <= t_out, np.where(dr > 0, 1, -1), 0)
-    return t + s_root, t_out, pc_next, pr_next
 
 
 def _hits_near(scene: Scene, o: np.ndarray, d: np.ndarray, t_start: np.ndarray, max_patches: int = 3):
@@ -262,68 +208,8 @@ def _hits_near(scene: Scene, o: np.ndarray, d: np.ndarray, t_start: np.ndarray, 
     c0, r0 = scene.grid_coords(o[:, 0], o[:, 1])
     dc = d[:, 0] / cell
     dr = -d[:, 1] / cell
-    z0, dz = o[:, 2], d[:, 2]
-    t = np.asarray(t_start, dtype=float)
-    dsm = _padded_dsm(scene)
-    pc = np.floor(c0 + t * dc).astype(np.int64)
-    pr = np.floor(r0 + t * dr).astype(np.int64)
-    t_end = np.full(len(t), np.inf)
-    t_root, t, pc, pr = _patch_step(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t, pc, pr, t_end)
-    under = t_root <= t_start  # under the surface at the start (or exactly on it): not resolved here
-    result = np.where(under, np.inf, t_root)
-    active = np.nonzero(~np.isfinite(t_root) & (t > t_start))[0]
-    pc, pr = pc[active], pr[active]
-    for _ in range(max_patches - 1):
-        if not len(active):
-            break
-        k = active
-        t_root, t_out, pc, pr = _patch_step(dsm, rows, cols, c0[k], r0[k], z0[k], dc[k], dr[k], dz[k], t[k],
-                                            pc, pr, t_end[k])
-        hit = np.isfinite(t_root)
-        result[k[hit]] = t_root[hit]
-        t[k] = t_out
-        active, pc, pr = k[~hit], pc[~hit], pr[~hit]
-    return result
-
-
-def _first_root_in_patch(dsm, rows, cols, pc, pr, u0, v0, du, dv, z_in, dz, length) -> np.ndarray:
-    """Smallest s in [0, length] where a ray crosses below the bilinear surface of patch (pr, pc), else inf.
-
-    ``u0, v0`` are the ray's position in the patch (0..1 across it, cells) at s = 0, ``du, dv`` cells per
-    metre, ``z_in`` its height at s = 0 and ``dz`` its vertical rate. ``dsm`` is :func:`_padded_dsm`
-    (edge extension, as :func:`aerocal.simulate.scene._bilinear`).
-    """
-    # dsm is the DSM padded by one edge cell on each side, flattened: patch (pr, pc) has its top-left
-    # corner at padded (pr + 1, pc + 1); patches further out are clamped to the padding (edge extension)
-    stride = cols + 2
-    i00 = (np.clip(pr, -1, rows - 1) + 1) * stride + np.clip(pc, -1, cols - 1) + 1
-    h00 = dsm[i00].astype(float)
-    h01 = dsm[i00 + 1]
-    h10 = dsm[i00 + stride]
-    h11 = dsm[i00 + stride + 1]
-    a = h01 - h00  # h = h00 + a u + b v + c u v
-    b = h10 - h00
-    c = h00 - h01 - h10 + h11
-    # f(s) = z_in + s dz - h(u0 + s du, v0 + s dv) = C + B s + A s^2
-    C = z_in - (h00 + a * u0 + b * v0 + c * u0 * v0)
-    B = dz - (a * du + b * dv + c * (u0 * dv + v0 * du))
-    A = -c * du * dv
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        disc = B * B - 4.0 * A * C
-        sq = np.sqrt(np.maximum(disc, 0.0))
-        q = -0.5 * (B + np.where(B >= 0, sq, -sq))  # stable roots: q / A and C / q
-        r1 = np.where(A != 0, q / A, np.inf)
-        r2 = np.where(q != 0, C / q, np.inf)
-        lin = np.abs(A) * length < 1e-12 * np.maximum(np.abs(B), 1e-300)
-        r_lin = np.where(B < 0, -C / B, np.inf)
-    r1 = np.where(lin, r_lin, r1)
-    r2 = np.where(lin, np.inf, r2)
-    slack = 1e-9 * (1.0 + length)  # a root on the exit boundary, within rounding, belongs to this patch
-    r1 = np.where((disc >= 0) & (r1 >= 0) & (r1 <= length + slack), r1, np.inf)
-    r2 = np.where((disc >= 0) & (r2 >= 0) & (r2 <= length + slack), r2, np.inf)
-    root = np.minimum(r1, r2)
-    root = np.where(np.isfinite(root), np.minimum(root, length), np.inf)
-    return np.where(C <= 0, 0.0, root)  # already on or under the surface at the entry point
+    return hits_near(_padded_dsm(scene), rows, cols, c0, r0, o[:, 2], dc, dr, d[:, 2],
+                     np.asarray(t_start, dtype=float), max_patches)
 
 
 def _t_leave_grid(c0, r0, dc, dr, rows: int, cols: int) -> np.ndarray:
