@@ -170,9 +170,30 @@ class Reduced:
 
 
 def reduce(lin: Linear, extra: np.ndarray) -> Reduced:
-    Jc = sp.hstack([lin.Jc, sp.csr_matrix(extra)], format="csr") if extra.shape[1] else lin.Jc
-    S, rhs, *_ = schur_complement(Jc, lin.Jp, lin.Hpp, lin.r, 0.0)
-    return Reduced(S, -np.asarray(rhs).ravel(), lin.Jc.shape[1])
+    """The reduced normal equations of the block's camera columns and ``extra`` (dense, one column per hypothesis
+    parameter or random draw, rows aligned with ``lin.r``), the points eliminated.
+
+    The camera part is the sparse Schur complement; the extra columns' parts are formed densely from
+    ``Jp^T E`` and the point blocks' inverses. Appending hundreds of dense columns to the sparse Jacobian (as
+    this did before) made every sparse product of the elimination dense in those rows: a conte-calibration
+    diagnosis spent 5 of its 18 s there (``benchmarks/history/engine_measurements.md``)."""
+    S_cc, rhs_c, Hpp_inv, Hcp, gp = schur_complement(lin.Jc, lin.Jp, lin.Hpp, lin.r, 0.0)
+    nc = lin.Jc.shape[1]
+    g_c = -np.asarray(rhs_c).ravel()
+    ne = extra.shape[1]
+    if not ne:
+        return Reduced(S_cc.tocsc(), g_c, nc)
+    E = np.asarray(extra, dtype=float)
+    P = len(lin.Hpp)
+    JpE = np.asarray(lin.Jp.T @ E).reshape(P, 3, ne)
+    HiJpE = np.einsum("pij,pjk->pik", Hpp_inv, JpE).reshape(3 * P, ne)
+    JpE = JpE.reshape(3 * P, ne)
+    S_ce = np.asarray(lin.Jc.T @ E) - np.asarray(Hcp @ HiJpE)
+    S_ee = E.T @ E - JpE.T @ HiJpE
+    g_e = E.T @ lin.r - HiJpE.T @ gp
+    S = sp.bmat([[S_cc, sp.csr_matrix(S_ce)], [sp.csr_matrix(S_ce.T), sp.csr_matrix(0.5 * (S_ee + S_ee.T))]],
+                format="csc")
+    return Reduced(S, np.concatenate([g_c, g_e]), nc)
 
 
 class Conditional:
