@@ -39,7 +39,7 @@ from storage.cameras import CameraIdentity, find_camera, get_or_create_camera, s
 from storage.database import begin_write
 from storage.errors import (
     CertificateDocumentError,
-    NoCertificateError,
+    NoStoredCertificateError,
     NotFoundError,
     StorageError,
 )
@@ -345,7 +345,7 @@ def select_certificate(
     With ``run_id`` the choice and reason are recorded on that run (not committed).
 
     Raises:
-        NoCertificateError: nothing applies; the message says what is missing, e.g.
+        NoStoredCertificateError: nothing applies; the message says what is missing, e.g.
             ``camera NEC TS9260 s/n 123: newest certificate 2016-03-14 covers 18-24 degC; flight
             spans 12-19 degC; ...``.
     """
@@ -355,7 +355,7 @@ def select_certificate(
         try:
             pinned = get_certificate(session, pin)
         except NotFoundError as exc:
-            raise NoCertificateError(f"camera {identity}: pinned {exc}") from None
+            raise NoStoredCertificateError(f"camera {identity}: pinned {exc}") from None
         candidates, pin = [candidate(pinned)], pinned.id
     else:  # the camera's certificates: its identity is the flight's
         candidates = [candidate(row, identity) for row in _certificates_of(session, identity)]
@@ -364,7 +364,7 @@ def select_certificate(
             candidates, identity, day, temperature_range, rules=rules, pin=pin, max_age_days=max_age_days
         )
     except NoApplicableCertificate as exc:
-        raise NoCertificateError(str(exc)) from None
+        raise NoStoredCertificateError(str(exc)) from None
     if run_id is not None:
         record_certificate(session, run_id, chosen, reason)
     return chosen, reason

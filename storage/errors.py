@@ -42,9 +42,9 @@ class ImmutableCertificateError(StorageError):
     """Something tried to change or delete a stored certificate; issue a new one that supersedes it."""
 
 
-class NoCertificateError(StorageError, NoApplicableCertificateError):
-    """No stored certificate applies to a flight; the message says what is missing (the engine's
-    :class:`aerocal.certificates.selection.NoCertificateError`, raised by the database store)."""
+class NoStoredCertificateError(StorageError, NoApplicableCertificateError):
+    """No stored certificate applies to a flight; the message says what is missing. Raised by the database store;
+    a subclass of the engine's :class:`aerocal.certificates.selection.NoCertificateError`, which callers catch."""
 
 
 class CorruptArtifactError(StorageError):

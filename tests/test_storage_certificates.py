@@ -21,7 +21,7 @@ from storage.certificates import (
     select_certificate,
     supersession_chain,
 )
-from storage.errors import CertificateDocumentError, ImmutableCertificateError, NoCertificateError
+from storage.errors import CertificateDocumentError, ImmutableCertificateError, NoStoredCertificateError
 from storage.flights import register_flight
 from storage.models import Certificate
 from storage.provenance import provenance
@@ -221,19 +221,19 @@ def test_no_certificate_message_says_what_is_missing(make_certificate, storage_d
     serial = f"123-{unique}"
     with storage_db.session() as session:
         issue_certificate(session, make_certificate(serial, "2016-03-14", (21.0, 21.0)))
-        with pytest.raises(NoCertificateError) as err:
+        with pytest.raises(NoStoredCertificateError) as err:
             select_certificate(session, CameraIdentity("NEC", "TS9260", serial), "2017-05-02", (12.0, 19.0))
         assert (
             f"camera NEC TS9260 s/n {serial}: newest certificate 2016-03-14 covers 18-24 degC; "
             "flight spans 12-19 degC" in str(err.value)
         )
         with pytest.raises(
-            NoCertificateError, match="is 414 days older than the flight of 2017-05-02; the limit is 365"
+            NoStoredCertificateError, match="is 414 days older than the flight of 2017-05-02; the limit is 365"
         ):
             select_certificate(session, f"NEC|TS9260|{serial}", "2017-05-02", (20.0, 22.0), max_age_days=365)
-        with pytest.raises(NoCertificateError, match="was calibrated after the flight of 2015-06-01"):
+        with pytest.raises(NoStoredCertificateError, match="was calibrated after the flight of 2015-06-01"):
             select_certificate(session, f"NEC|TS9260|{serial}", "2015-06-01", (20.0, 22.0))
-        with pytest.raises(NoCertificateError, match=f"s/n nothing-{unique}: no certificate is stored"):
+        with pytest.raises(NoStoredCertificateError, match=f"s/n nothing-{unique}: no certificate is stored"):
             select_certificate(session, f"NEC|TS9260|nothing-{unique}", "2017-05-02", None)
 
 
@@ -255,7 +255,7 @@ def test_thermal_model_covers_its_valid_range_and_the_newest_applicable_wins(
         chosen, reason = select_certificate(session, camera, "2017-05-02", (29.0, 32.0))
         assert chosen.id == constant.id and chosen.version == 1, reason
         # the thermal model is not extrapolated (tolerance 0) unless the rules say so
-        with pytest.raises(NoCertificateError) as err:
+        with pytest.raises(NoStoredCertificateError) as err:
             select_certificate(session, camera, "2017-05-02", (2.0, 12.0))
         assert "newest certificate 2016-03-14 covers 27-34 degC; flight spans 2-12 degC" in str(err.value)
         assert "widest temperature coverage of any certificate: 5-35 degC" in str(err.value)
@@ -275,7 +275,7 @@ def test_pinned_certificate_is_used_and_must_belong_to_the_camera(make_certifica
         )
         assert chosen.id == cert.id
         assert reason.startswith("pinned by id") and "covers 18-24 degC; flight spans 5-9 degC" in reason
-        with pytest.raises(NoCertificateError, match=f"belongs to camera NEC TS9260 s/n {theirs}"):
+        with pytest.raises(NoStoredCertificateError, match=f"belongs to camera NEC TS9260 s/n {theirs}"):
             select_certificate(session, f"NEC|TS9260|{mine}", "2017-05-02", None, pin=foreign.id)
 
 
@@ -293,7 +293,7 @@ def test_a_rejected_certificate_is_on_record_but_never_selected(make_certificate
         camera = CameraIdentity("NEC", "TS9260", serial)
         chosen, reason = select_certificate(session, camera, "2017-05-02", (20.0, 21.0))
         assert chosen.id == good.id, reason
-        with pytest.raises(NoCertificateError, match="was rejected by its review") as err:
+        with pytest.raises(NoStoredCertificateError, match="was rejected by its review") as err:
             select_certificate(session, camera, "2017-05-02", None, pin=bad.id)
         assert why in str(err.value)
         doc = make_certificate(serial, "2016-07-01", (20.0, 22.0))
@@ -329,7 +329,7 @@ def test_stored_documents_load_into_the_engine_which_chooses_as_the_store_does(m
             stored, stored_reason = select_certificate(session, camera, "2017-05-02", flight)
             chosen, reason = choose_certificate(in_memory, camera, "2017-05-02", flight)
             assert (chosen.id, reason) == (stored.id, stored_reason)
-        with pytest.raises(NoCertificateError) as stored_err:
+        with pytest.raises(NoStoredCertificateError) as stored_err:
             select_certificate(session, camera, "2017-05-02", (2.0, 12.0))
         with pytest.raises(NoApplicableCertificateError) as err:
             choose_certificate(in_memory, camera, "2017-05-02", (2.0, 12.0))
