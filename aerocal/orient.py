@@ -54,6 +54,10 @@ class IncrementalConfig:
     multiple_models: bool = False  # one model; images that do not join it stay unregistered
     camera_model: str = "SIMPLE_RADIAL"  # COLMAP model seeded from the starting camera (f, cx, cy, k1)
 
+    def __post_init__(self) -> None:
+        if self.min_model_size < 2:
+            raise ValueError(f"IncrementalConfig.min_model_size must be 2 or more images, got {self.min_model_size}")
+
 
 def orient_from_priors(images: pa.Table) -> pa.Table:
     """Initial poses from the recorded GNSS/IMU (the adjustment refines them)."""

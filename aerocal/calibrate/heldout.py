@@ -45,6 +45,15 @@ class HeldOutConfig:
     min_track_length: int = 3  # tie tracks of the held-out images seen in at least this many of them
     max_iterations: int = 20  # of every fold's adjustments
 
+    def __post_init__(self) -> None:
+        if self.folds < 2:
+            raise ValueError(f"HeldOutConfig.folds must be 2 or more, got {self.folds}")
+        for name in ("min_groups", "min_images", "max_iterations"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"HeldOutConfig.{name} must be 1 or more, got {getattr(self, name)}")
+        if self.min_track_length < 2:
+            raise ValueError(f"HeldOutConfig.min_track_length must be 2 or more, got {self.min_track_length}")
+
 
 @dataclass
 class HeldOutComparison:

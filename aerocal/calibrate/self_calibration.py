@@ -92,6 +92,18 @@ class CalibrationConfig:
     held_out: HeldOutConfig = field(default_factory=HeldOutConfig)
     null_draws: int = 40
 
+    def __post_init__(self) -> None:
+        for name in ("whole_flight_max_images", "corridor_max_images"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"CalibrationConfig.{name} must be 1 or more, got {getattr(self, name)}")
+        if self.subset_images is not None and self.subset_names is not None:
+            raise ValueError("CalibrationConfig: give subset_images or subset_names, not both")
+        for name in ("subset_images", "subset_names"):
+            if getattr(self, name) is not None and not len(getattr(self, name)):
+                raise ValueError(f"CalibrationConfig.{name} is empty; give the sub-block's images or None")
+        if self.null_draws < 0:
+            raise ValueError(f"CalibrationConfig.null_draws must be 0 or more, got {self.null_draws}")
+
 
 @dataclass
 class Calibration:

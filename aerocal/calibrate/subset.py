@@ -52,6 +52,22 @@ class SubsetConfig:
     max_images: int = 44
     score_params: tuple[str, ...] = ("f", "cx", "cy")
 
+    def __post_init__(self) -> None:
+        if not self.strip_counts or min(self.strip_counts) < 1:
+            raise ValueError(f"SubsetConfig.strip_counts must be counts of 1 or more, got {self.strip_counts}")
+        if not self.images_per_strip or min(self.images_per_strip) < 2:
+            raise ValueError(f"SubsetConfig.images_per_strip must be counts of 2 or more, got {self.images_per_strip}")
+        if self.transversal_images < 0 or self.max_grid_per_side < 1 or self.max_images < 1:
+            raise ValueError("SubsetConfig: transversal_images must be 0 or more, max_grid_per_side and max_images 1 "
+                             f"or more (got {self.transversal_images}, {self.max_grid_per_side}, {self.max_images})")
+        if not (self.tie_spacing_px > 0 and self.tie_sigma_px > 0):
+            raise ValueError("SubsetConfig: tie_spacing_px and tie_sigma_px must be positive pixels, got "
+                             f"{self.tie_spacing_px}, {self.tie_sigma_px}")
+        if self.height_agl_m is not None and not self.height_agl_m > 0:
+            raise ValueError(f"SubsetConfig.height_agl_m must be positive metres or None, got {self.height_agl_m}")
+        if not self.score_params:
+            raise ValueError("SubsetConfig.score_params is empty; give the parameters the sub-block is chosen for")
+
 
 @dataclass
 class SubsetProposal:

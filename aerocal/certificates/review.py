@@ -28,6 +28,7 @@ record, but it is never selected for a flight.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -84,6 +85,15 @@ class DecisionConfig:
     nominal_focal_tolerance: float = 0.01
     nominal_principal_point_tolerance: float = 0.01
     nominal_corner_distortion: float = 0.02
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if f.name == "min_check_points":
+                if value < 0:
+                    raise ValueError(f"DecisionConfig.min_check_points must be 0 or more, got {value}")
+            elif not (value > 0 and math.isfinite(value)):
+                raise ValueError(f"DecisionConfig.{f.name} must be a positive finite number, got {value}")
 
 
 @dataclass(frozen=True)

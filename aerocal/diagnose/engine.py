@@ -150,6 +150,20 @@ class DiagnoseConfig:
     # the k-fold over strips (time blocks) that measures each candidate's gain on held-out images
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
 
+    def __post_init__(self) -> None:
+        unknown = [h for h in self.hypotheses if h not in hyp.HYPOTHESES]
+        if unknown:
+            raise ValueError(f"DiagnoseConfig.hypotheses {unknown} unknown; valid: {', '.join(hyp.HYPOTHESES)}")
+        if not 0.0 < self.family_alpha < 1.0:
+            raise ValueError(f"DiagnoseConfig.family_alpha must be a probability in (0, 1), got {self.family_alpha}")
+        if not 0.0 < self.confusion_ratio <= 1.0:
+            raise ValueError(f"DiagnoseConfig.confusion_ratio must be in (0, 1], got {self.confusion_ratio}")
+        for name in ("max_effects", "refine_iterations", "null_draws", "twins"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"DiagnoseConfig.{name} must be 0 or more, got {getattr(self, name)}")
+        if self.max_images is not None and self.max_images < 3:
+            raise ValueError(f"DiagnoseConfig.max_images must be 3 or more, or None, got {self.max_images}")
+
 
 @dataclass
 class Evidence:

@@ -64,6 +64,16 @@ class MatchStepConfig:
     exhaustive_max_images: int = 150
     serial_max_megapixels: float = 10.0
 
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.min_overlap < 1.0:
+            raise ValueError(f"MatchStepConfig.min_overlap must be a fraction in [0, 1), got {self.min_overlap}")
+        if self.exhaustive_max_images < 2:
+            raise ValueError(f"MatchStepConfig.exhaustive_max_images must be 2 or more, got "
+                             f"{self.exhaustive_max_images}")
+        if self.serial_max_megapixels < 0:
+            raise ValueError(f"MatchStepConfig.serial_max_megapixels must be 0 or more, got "
+                             f"{self.serial_max_megapixels}")
+
 
 @dataclass(frozen=True)
 class OrientStepConfig:
@@ -107,6 +117,13 @@ class BlockStepConfig:
     partition_min_images: int = 800
     partition_max_images: int = 3200
 
+    def __post_init__(self) -> None:
+        if self.recorded_eo_images < 0 or self.partition_min_images < 0:
+            raise ValueError("BlockStepConfig: recorded_eo_images and partition_min_images must be 0 or more, got "
+                             f"{self.recorded_eo_images}, {self.partition_min_images}")
+        if self.partition_max_images < 1:
+            raise ValueError(f"BlockStepConfig.partition_max_images must be 1 or more, got {self.partition_max_images}")
+
 
 @dataclass(frozen=True)
 class MosaicStepConfig:
@@ -121,6 +138,11 @@ class MosaicStepConfig:
     mosaic: MosaicConfig | None = None
     serial_max_megapixels: float = 25.0
 
+    def __post_init__(self) -> None:
+        if self.serial_max_megapixels < 0:
+            raise ValueError(f"MosaicStepConfig.serial_max_megapixels must be 0 or more, got "
+                             f"{self.serial_max_megapixels}")
+
 
 @dataclass(frozen=True)
 class ReportStepConfig:
@@ -131,6 +153,11 @@ class ReportStepConfig:
     title: str | None = None
     extra: dict = field(default_factory=dict)
     measured_within_m: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not self.measured_within_m > 0:
+            raise ValueError(f"ReportStepConfig.measured_within_m must be positive metres, got "
+                             f"{self.measured_within_m}")
 
 
 @dataclass(frozen=True)

@@ -46,6 +46,23 @@ class FlightPlanConfig:
     # track; a block flown at one ground speed cannot tell a rolling-shutter readout from an affinity
     wind_m_s: tuple[float, float] = (0.0, 0.0)
 
+    def __post_init__(self) -> None:
+        if not (self.height_agl_m > 0 and self.speed_m_s > 0):
+            raise ValueError("FlightPlanConfig: height_agl_m and speed_m_s must be positive, got "
+                             f"{self.height_agl_m}, {self.speed_m_s}")
+        if not (0.0 <= self.forward_overlap < 1.0 and 0.0 <= self.side_overlap < 1.0):
+            raise ValueError("FlightPlanConfig: forward_overlap and side_overlap must be fractions in [0, 1), got "
+                             f"{self.forward_overlap}, {self.side_overlap}")
+        if self.direction not in ("ew", "ns"):
+            raise ValueError(f"FlightPlanConfig.direction must be 'ew' or 'ns', got {self.direction!r}")
+        for name in ("n_strips", "images_per_strip", "transversal_images"):
+            if getattr(self, name) is not None and getattr(self, name) < 1:
+                raise ValueError(f"FlightPlanConfig.{name} must be 1 or more, or None, got {getattr(self, name)}")
+        if self.extend_images < 0 or self.transversal_strips < 0 or self.turn_time_s < 0:
+            raise ValueError("FlightPlanConfig: extend_images, transversal_strips and turn_time_s must be 0 or more")
+        if self.attitude_jitter_deg < 0 or self.height_jitter_m < 0:
+            raise ValueError("FlightPlanConfig: attitude_jitter_deg and height_jitter_m must be 0 or more")
+
 
 @dataclass
 class Trajectory:

@@ -65,6 +65,12 @@ class SensorConfig:
     temperature: TemperatureCurve = TemperatureCurve()
     reference_temperature_c: float = 20.0  # the temperature at which the true IO equals camera_true
 
+    def __post_init__(self) -> None:
+        values = (self.gnss_sigma_h_m, self.gnss_sigma_v_m, *self.imu_sigma_deg, self.tie_sigma_px, self.gcp_sigma_px,
+                  *self.gcp_survey_sigma_m)
+        if not all(v >= 0 and math.isfinite(v) for v in values):
+            raise ValueError(f"SensorConfig: sigmas must be finite and 0 or more, got {values}")
+
 
 def recorded_exterior(
     C: np.ndarray,

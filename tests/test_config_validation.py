@@ -1,0 +1,47 @@
+"""Every configuration refuses a value that could not be meant where it is made, naming the class, the field and
+the value, instead of failing (or silently misbehaving) steps later."""
+
+import pytest
+
+from aerocal.calibrate.heldout import HeldOutConfig
+from aerocal.calibrate.self_calibration import CalibrationConfig
+from aerocal.calibrate.subset import SubsetConfig
+from aerocal.certificates.review import DecisionConfig
+from aerocal.diagnose.engine import DiagnoseConfig
+from aerocal.matching.cluster import ExecutionConfig
+from aerocal.orient import IncrementalConfig
+from aerocal.pipeline.config import BlockStepConfig, MatchStepConfig, MosaicStepConfig, ReportStepConfig
+from aerocal.simulate.flight_plan import FlightPlanConfig
+from aerocal.simulate.sensors import SensorConfig
+
+BAD = [
+    (lambda: HeldOutConfig(folds=1), "HeldOutConfig.folds"),
+    (lambda: CalibrationConfig(subset_images=(1, 2), subset_names=("a",)), "not both"),
+    (lambda: CalibrationConfig(subset_names=()), "CalibrationConfig.subset_names is empty"),
+    (lambda: SubsetConfig(images_per_strip=(1,)), "SubsetConfig.images_per_strip"),
+    (lambda: DecisionConfig(certified_focal_sigma=0.0), "DecisionConfig.certified_focal_sigma"),
+    (lambda: DiagnoseConfig(hypotheses=("rolling_shuter",)), "rolling_shuter"),
+    (lambda: DiagnoseConfig(family_alpha=1.5), "DiagnoseConfig.family_alpha"),
+    (lambda: ExecutionConfig(local_workers=-1), "ExecutionConfig.local_workers"),
+    (lambda: IncrementalConfig(min_model_size=1), "IncrementalConfig.min_model_size"),
+    (lambda: MatchStepConfig(min_overlap=1.0), "MatchStepConfig.min_overlap"),
+    (lambda: BlockStepConfig(partition_max_images=0), "BlockStepConfig.partition_max_images"),
+    (lambda: MosaicStepConfig(serial_max_megapixels=-1.0), "MosaicStepConfig.serial_max_megapixels"),
+    (lambda: ReportStepConfig(measured_within_m=0.0), "ReportStepConfig.measured_within_m"),
+    (lambda: FlightPlanConfig(direction="diagonal"), "FlightPlanConfig.direction"),
+    (lambda: FlightPlanConfig(side_overlap=1.2), "side_overlap"),
+    (lambda: SensorConfig(gnss_sigma_h_m=float("nan")), "SensorConfig"),
+]
+
+
+@pytest.mark.parametrize("make, names", BAD, ids=[b[1] for b in BAD])
+def test_a_value_that_cannot_be_meant_is_refused_by_name(make, names):
+    with pytest.raises(ValueError, match=names):
+        make()
+
+
+def test_the_defaults_are_valid():
+    for cls in (HeldOutConfig, CalibrationConfig, SubsetConfig, DecisionConfig, DiagnoseConfig, ExecutionConfig,
+                IncrementalConfig, MatchStepConfig, BlockStepConfig, MosaicStepConfig, ReportStepConfig,
+                FlightPlanConfig, SensorConfig):
+        cls()
