@@ -331,15 +331,30 @@ def adjust(
 ) -> AdjustmentResult:
     """Bundle adjustment with self-calibration (IO free or fixed per parameter) and an optional thermal model.
 
-    ``solver``: what solves each least-squares problem (default :func:`aerocal.adjust.solver.solve`; a
-    partitioned one, :class:`aerocal.adjust.partition.PartitionedSolver`, for city-scale blocks).
+    Args:
+        images: the ``images`` table (:mod:`aerocal.tables`): recorded positions in the flight CRS (metres) and
+            attitudes, temperatures (degC), strips.
+        observations: tie-point measurements, pixels (top-left corner origin, x right, y down).
+        camera: the starting IO (pixels); the nominal camera, or a certificate's.
+        config: what is free and how the block is weighted (default :class:`AdjustConfig`: GNSS 0.10 / 0.10 /
+            0.15 m, IO fixed). With ``config.adaptive`` insignificant or near-singular parameters are dropped one
+            at a time and the block re-adjusted; ``result.selection`` says why each was dropped.
+        gcps, gcp_observations: ground control (flight CRS, metres, with survey sigmas) and its pixels; a
+            ``check`` point is held out of the adjustment and triangulated afterwards.
+        thermal_correction: correct tie-point and GCP measurements to the model's reference temperature before
+            adjusting (Daakir 2019), ``camera`` then being the IO at that temperature.
+        initial_poses: starting poses from an orientation (a poses table) for blocks without recorded
+            GNSS/IMU; the priors must then be off and at least 3 control GCPs give the datum.
+        solver: what solves each least-squares problem (default :func:`aerocal.adjust.solver.solve`; a
+            partitioned one, :class:`aerocal.adjust.partition.PartitionedSolver`, for city-scale blocks).
 
-    ``initial_poses``: starting poses from an orientation (a poses table) for blocks without recorded
-    GNSS/IMU; the priors must then be off and at least 3 control GCPs give the datum.
-    ``thermal_correction``: correct tie-point and GCP measurements to the model's reference temperature
-    before adjusting (Daakir 2019), ``camera`` then being the IO at that temperature.
-    With ``config.adaptive`` insignificant or near-singular parameters are dropped one at a time and the
-    block re-adjusted; ``result.selection`` says why each was dropped.
+    Returns:
+        :class:`AdjustmentResult`: poses, points, IO with covariance, residuals aligned with ``observations``,
+        check-point errors and their predicted sigmas (metres, E N Up), and whether it converged.
+
+    Raises:
+        AdjustmentError: the block has no datum (no GNSS/IMU priors and fewer than 3 control GCPs), or no tie
+            track can be triangulated from the starting poses; the message names the fix.
     """
     config = config or AdjustConfig()
     if config.tie_thinning is not None and config.tie_thinning.per_cell:

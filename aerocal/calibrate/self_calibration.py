@@ -204,11 +204,23 @@ def self_calibrate(
 ) -> Calibration:
     """Self-calibrate a flight under the decision rule (see the module docstring).
 
-    ``camera``: the nominal camera (starting values, and the prior every estimate is checked against);
-    ``height_agl_m``: the flying height above ground, for the geometry's prediction when there are no GCPs;
-    ``adjust_config`` overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas);
-    ``input_errors``: errors the ingest reported for this flight. A calibration made from input with errors is
-    rejected (its certificate stays on record, never used): one bad cell must not poison later flights.
+    Args:
+        images, observations, gcps, gcp_observations: the flight's tables (:mod:`aerocal.tables`; flight CRS,
+            metres; pixels).
+        camera: the nominal camera (starting values, and the prior every estimate is checked against; pixels).
+        height_agl_m: the flying height above ground (metres), for the geometry's prediction without GCPs.
+        config: the sub-block, the decision rule and the held-out test (default :class:`CalibrationConfig`).
+        adjust_config: overrides ``config.adjust`` (e.g. with the flight's declared GNSS sigmas).
+        input_errors: errors the ingest reported for this flight. A calibration made from input with errors is
+            rejected (its certificate stays on record, never used): one bad cell must not poison later flights.
+
+    Returns:
+        :class:`Calibration`: the adjustment of the calibration block, the review (accepted or rejected, and why),
+        what was held at its nominal value and why, the thermal slopes with their held-out gains, the notes.
+
+    Raises:
+        ValueError: ``config.subset_images`` / ``subset_names`` name images the flight does not hold.
+        AdjustmentError: the calibration block has no datum (see :func:`aerocal.adjust.adjust`).
     """
     config = config or CalibrationConfig()
     acfg = adjust_config or config.adjust

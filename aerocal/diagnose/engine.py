@@ -1026,9 +1026,27 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
              gcps: pa.Table | None = None, gcp_observations: pa.Table | None = None,
              config: DiagnoseConfig | None = None, io: IOUncertainty | None = None,
              start: tuple[pa.Table, pa.Table] | None = None) -> Diagnosis:
-    """Adjust the block with ``adjust_config`` and diagnose it (``io``: the uncertainty of the fixed IO,
-    :func:`diagnose_baseline`; ``start``: poses and points of an adjustment of the block to start from,
-    :func:`aerocal.diagnose.model.fit_baseline`).
+    """Adjust the block with ``adjust_config`` and diagnose it.
+
+    Args:
+        images, observations, gcps, gcp_observations: the block's tables (:mod:`aerocal.tables`; flight CRS,
+            metres; pixels).
+        camera: the IO the block is adjusted with (fixed unless ``adjust_config.free`` frees part of it).
+        adjust_config: the block's weights (GNSS/IMU sigmas), robust loss and free IO.
+        config: the hypotheses, the family-wise false-alarm rate, the held-out test (default
+            :class:`DiagnoseConfig`).
+        io: the uncertainty of the fixed IO (:mod:`aerocal.diagnose.io_uncertainty`), added to every estimate's
+            covariance (:func:`diagnose_baseline`).
+        start: poses and points of an adjustment of the block to start from
+            (:func:`aerocal.diagnose.model.fit_baseline`).
+
+    Returns:
+        :class:`Diagnosis`: every hypothesis tested (statistic, adjusted p, estimate and sigma in the catalogue's
+        units), the effects named with their held-out gain, the pairs the block cannot tell apart, the gain on
+        check points, the recorded-EO checks and a one-line verdict (``summary()``).
+
+    Raises:
+        AdjustmentError: the block has no datum (see :func:`aerocal.adjust.adjust`).
 
     With a robust loss (and ``adjust_config.reject_chi2``) the blunders are found by a robust adjustment
     and removed first (:func:`aerocal.adjust.bundle.adjust`, which also estimates the tie observations'

@@ -207,10 +207,21 @@ def ingest_folder(
 ) -> IngestResult:
     """Ingest a flight folder, a folder of images or a list of image files; never raises on bad data.
 
-    ``gcp_file``: an ODM ``gcp_list.txt`` or a GCP CSV, or several (a CSV of coordinates and roles plus a
-    ``gcp_list.txt`` of image measurements); default: ``gcp_list.txt`` and ``gcps.csv`` beside ``images/``.
-    ``eo_file``: an EO CSV (default ``eo.csv``). ``crs``: the flight's projected CRS (default: the UTM zone
-    of the images' median position); also the CRS of EO/GCP CSVs that carry no ``# crs:`` line.
+    Args:
+        path_or_list: a flight folder (``images/`` beside eo.csv, GCP files, camera.json, flight.json), a folder
+            of images, or image files.
+        gcp_file: an ODM ``gcp_list.txt`` or a GCP CSV, or several (a CSV of coordinates and roles plus a
+            ``gcp_list.txt`` of image measurements); default: ``gcp_list.txt`` and ``gcps.csv`` beside ``images/``.
+        eo_file: an EO CSV (default ``eo.csv``): positions and attitudes that replace or complete the images' own.
+        crs: the flight's projected CRS (default: the UTM zone of the images' median position); also the CRS of
+            EO/GCP CSVs that carry no ``# crs:`` line.
+        config: what ingest accepts (default :class:`aerocal.ingest.config.IngestConfig`).
+
+    Returns:
+        :class:`IngestResult`: the ``images``, ``gcps`` and ``gcp_observations`` tables in the flight CRS
+        (metres), the camera identity and its nominal camera with the source of each number, the flight's
+        facts, and ``problems``: everything found wrong by file, line and field, those that stop processing
+        marked (``blocking``). Bad data never raises: it is a problem in the result.
     """
     cfg = config or IngestConfig()
     problems = ProblemLog()

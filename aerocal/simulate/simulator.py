@@ -128,9 +128,22 @@ def simulate_flight(
     max_images: int | None = None,
     source: str | None = None,
 ) -> SimulatedFlight:
-    """Simulate ``preset`` with hidden ``effects`` ({name: magnitude}, see :mod:`aerocal.effects`).
+    """Simulate ``preset`` with hidden ``effects``.
 
-    ``source``: the image folder of a measured preset (``seneca``).
+    Args:
+        preset: a preset's name (:data:`aerocal.simulate.presets.PRESETS`) or a :class:`FlightSpec`.
+        seed: of every random draw (scene, trajectory, sensor noise, measurements): the same seed, the same flight.
+        effects: ``{name: magnitude}`` in the catalogue's units (:mod:`aerocal.effects`), acting on the
+            measurements and the recorded exterior orientation; processing is never told them.
+        max_images: keep the frames nearest the block centre (at least 2); ``None``: every frame.
+        source: the image folder of a measured preset (``seneca``).
+
+    Returns:
+        :class:`SimulatedFlight`: the tables a flight folder holds, the true exposures and camera, the scene.
+
+    Raises:
+        PresetError: an unknown preset. EffectError: an unknown effect or a magnitude of the wrong shape.
+        SimulationError: ``max_images`` below 2.
     """
     spec = get_preset(preset, source) if isinstance(preset, str) else preset
     fx = normalise_effects(effects)
@@ -344,9 +357,23 @@ def write_flight(sim: SimulatedFlight, out_dir: str | Path, mode: str = "observa
                  progress=None, as_recorded: bool = False) -> Path:
     """Write the flight folder atomically: everything goes to a temporary sibling, renamed at the end.
 
-    ``as_recorded`` (images mode only) writes the folder as it comes off the aircraft: ``images/`` with
-    the metadata the camera records, and no sidecar file (no eo.csv, GCP files, camera.json, flight.json,
-    observations/); the truth and the reference DSM are written beside it as always."""
+    Args:
+        sim: the flight (:func:`simulate_flight`).
+        out_dir: the folder to write; it must not exist, or be empty.
+        mode: ``"observations"`` (the measurement tables under ``observations/``, nothing to match) or
+            ``"images"`` (rendered frames under ``images/`` with eo.csv, the GCP files, camera.json and
+            flight.json).
+        progress: ``progress(done, total)`` per rendered frame.
+        as_recorded: (images mode only) the folder as it comes off the aircraft: ``images/`` with the metadata
+            the camera records, and no sidecar file (no eo.csv, GCP files, camera.json, flight.json,
+            observations/).
+
+    Returns:
+        The folder written. The truth (``truth.json``, ``truth/``) and the reference DSM are written beside the
+        flight as always; processing never reads them.
+
+    Raises:
+        SimulationError: an unknown mode, ``as_recorded`` with observations, or an ``out_dir`` that is not empty."""
     if as_recorded and mode != "images":
         raise SimulationError("as_recorded needs mode 'images': an observations-mode flight is its sidecar files")
     if mode not in MODES:
