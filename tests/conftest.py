@@ -1,6 +1,7 @@
 """Session set-up shared by every test module."""
 
 import os
+import sys
 
 
 def pytest_configure(config):
@@ -28,3 +29,10 @@ def pytest_collection_modifyitems(session, config, items):
     process, as pytest-xdist requires)."""
     rank = {name: k for k, name in enumerate(FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(FIRST)))
+
+
+def pytest_sessionfinish(session, exitstatus):
+    """The Prefect server the flow tests shared (:mod:`prefect_harness`), stopped while the streams are open."""
+    harness = sys.modules.get("prefect_harness")
+    if harness is not None:
+        harness.stop_shared_server()

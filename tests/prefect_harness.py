@@ -5,7 +5,8 @@ machine) and stops it at the end; seventeen test modules asked for one, so a ``m
 nine. Here the first module of a process starts one (with its own SQLite database, as the harness does) and
 every module then runs against it inside the harness's settings for as long as its ``with`` block lasts: the API
 URL, the database, no analytics and no heartbeats; on leaving, the logs and events are drained, as the harness
-does, so that nothing of one module reaches the next. The server stops when the process exits.
+does, so that nothing of one module reaches the next. The server stops at the end of the session
+(``tests/conftest.py``).
 """
 
 from __future__ import annotations
@@ -39,9 +40,14 @@ def _shared_server():
                                  PREFECT_SERVER_ANALYTICS_ENABLED: False}):
             server = SubprocessASGIServer(port=_find_available_port())
             server.start(timeout=180)  # a loaded 2-core machine starts it slowly
-        atexit.register(server.stop)
         _SERVER = server
     return _SERVER
+
+
+def stop_shared_server() -> None:
+    """Stop the shared server (at the end of the test session, while pytest's streams still take its last log)."""
+    if _SERVER is not None and _SERVER.running:
+        _SERVER.stop()
 
 
 def _drain() -> None:

@@ -1,4 +1,5 @@
-"""The demo flow on a reduced flight: simulated, processed with every step, products that open."""
+"""`aerocal demo` as a user runs it: the flight simulated, processed with every step, what it prints, products that
+open."""
 
 from __future__ import annotations
 
@@ -31,22 +32,30 @@ def prefect_server(isolated_prefect_env):
 
 def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_model(prefect_server, tmp_path,
                                                                                     monkeypatch):
-    """``aerocal demo``'s flow with its defaults (the 44-image flight and its 8 rendered frames, as `make demo` runs
-    it): the hidden 10 ms readout is not told to processing; the diagnosis names it within 25 %, the block is
-    adjusted again with it, the check points improve, the readout goes into version 2 of the camera's certificate
-    and the extended block's diagnosis names nothing."""
+    """``aerocal demo`` with its defaults (the 44-image flight and its 8 rendered frames, as `make demo` runs it): the
+    hidden 10 ms readout is not told to processing; the diagnosis names it within 25 %, the block is adjusted again
+    with it, the check points improve, the readout goes into version 2 of the camera's certificate and the extended
+    block's diagnosis names nothing; the command says so."""
+    from typer.testing import CliRunner
+
     from aerocal.certificates.document import Certificate
-    from flows.demo import DemoConfig, demo
+    from aerocal.cli import app
+    from aerocal.pipeline import RunSummary
+    from flows.demo import DemoConfig
     from storage.certificates import get_certificate
     from storage.database import connect
 
     monkeypatch.delenv("AEROCAL_DATABASE_URL", raising=False)
     monkeypatch.delenv("AEROCAL_ARTIFACT_ROOT", raising=False)
     out = tmp_path / "demo"
-    config = DemoConfig()
-    result = demo(out, config)
-    summary = result.run
-    assert result.hidden == "rolling_shutter = 0.01 s", result.hidden
+    config = DemoConfig()  # what the command runs
+    done = CliRunner().invoke(app, ["demo", "--out", str(out)], env={"COLUMNS": "250"})
+    assert done.exit_code == 0, done.output
+    printed = " ".join(done.output.split())
+    assert "not told to processing: rolling_shutter = 0.01 s" in printed, printed[:2000]
+    assert "found and applied: rolling_shutter = " in printed and "(by the diagnosis;" in printed, printed
+    assert "diagnosis of the extended block: no systematic effect found" in printed, printed
+    summary = RunSummary.from_json(json.loads((out / "run" / "run.json").read_text()))
 
     # everything under the output folder, Prefect's home included
     assert (out / "aerocal.db").is_file() and (out / "artifacts").is_dir()
@@ -68,7 +77,7 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
 
     # the products come from the extended block
     with rasterio.open(summary.files["orthomosaic"]) as ds:
-        assert ds.crs.to_string() == result.simulated["crs"]
+        assert ds.crs.to_string() == json.loads((out / "flight" / "flight.json").read_text())["crs"]
         band = ds.read(1)
         coverage = float(np.mean(band != ds.nodata))
     assert coverage > 0.2, f"orthomosaic covers {coverage:.0%} of its grid"
