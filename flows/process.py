@@ -90,8 +90,8 @@ def _run_flow(
         session.commit()
         prov = provenance(session, ctx.run_id).to_dict()
     summary = dataclasses.replace(run.summary, storage=where.describe())
-    summary = summary.with_files(provenance=str(write_json_atomic(out / "provenance.json", prov)))
-    summary = summary.with_files(run=str(out / "run.json"))
+    summary = summary.with_files(provenance=str(write_json_atomic(out / "provenance.json", prov)),
+                                 run=str(out / "run.json"))
     write_json_atomic(out / "run.json", summary.to_json())
     # a failed run's traceback left in a folder this run completed in would sit beside outputs it does not
     # describe; the failed run and its error stay in the database

@@ -460,10 +460,12 @@ def test_exact_matcher_finds_the_true_mutual_neighbours_in_one_piece_and_in_bloc
     d1, d2 = d1[p1], d2[p2]
     dup = int(np.nonzero(p2 == 0)[0][0])
     d2 = np.vstack([d2, d2[dup]])  # a duplicated descriptor: generated descriptor 0 has no unique neighbour
+    dup1 = int(np.nonzero(p1 == 1)[0][0])
+    d1 = np.vstack([d1, d1[dup1]])  # and a duplicated row, in another row block than its twin: a column's tie
 
     truth = _reference_matches(d1, d2, 0.8)
     found = set(map(tuple, verify_module.match_descriptors(d1, d2, MatchConfig()).tolist()))
-    monkeypatch.setattr(verify_module, "EXACT_MAX_CELLS", 97 * len(d2))  # 97-row blocks, each direction alone
+    monkeypatch.setattr(verify_module, "EXACT_MAX_CELLS", 97 * len(d2))  # 97-row blocks, both directions from them
     blocks = set(map(tuple, verify_module.match_descriptors(d1, d2, MatchConfig()).tolist()))
     print(f"seed {seed}: {len(found)} matches, {len(truth)} by definition")
     assert found == truth, f"seed {seed}: {len(found ^ truth)} matches differ from the definition"
@@ -471,6 +473,7 @@ def test_exact_matcher_finds_the_true_mutual_neighbours_in_one_piece_and_in_bloc
     planted = {(int(np.nonzero(p1 == k)[0][0]), int(np.nonzero(p2 == k)[0][0])) for k in range(1, shared)}
     assert len(found & planted) > 0.95 * len(planted) and not found - planted, f"seed {seed}"
     assert not any(j in (dup, len(d2) - 1) for _, j in found), f"seed {seed}: a tie was matched"
+    assert not any(i in (dup1, len(d1) - 1) for i, _ in found), f"seed {seed}: a column's tie was matched"
 
 
 def test_exact_and_flann_matchers_agree_on_real_frames(seneca_strip):

@@ -82,9 +82,9 @@ def adjust_fixed_io(
                     solver=solver)
     if result.converged:
         return result
-    # a weakly determined direction (real h20t_forest: two opposite strips, consumer GNSS, no attitude
-    # records, no GCPs) can leave Levenberg-Marquardt in a slow tail: 50 iterations unconverged, 156 to
-    # converge with sigma0 the same to 5e-6; adjust again with a longer budget rather than report a
+    # a weakly determined direction can leave Levenberg-Marquardt in a slow tail (real h20t_forest, two opposite
+    # strips, consumer GNSS, no attitude records, no GCPs: 156 iterations to converge before the solver moved the
+    # points of a failed step to its cameras, 6 since); adjust again with a longer budget rather than report a
     # solution as unfinished
     longer = dataclasses.replace(config, max_iterations=SLOW_TAIL_FACTOR * config.max_iterations)
     again = adjust(images, observations, camera, longer, gcps, gcp_observations, thermal_correction=thermal,

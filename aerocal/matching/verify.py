@@ -70,7 +70,7 @@ def _ratio_nn(idx: np.ndarray, dist: np.ndarray, ratio: float) -> np.ndarray:
 
 
 #: Largest distance matrix (query rows x train columns) computed in one piece, cells: 4096 x 4096 float32
-#: cells are 64 MB. Bigger sets are matched in row blocks, each direction on its own.
+#: cells are 64 MB. Bigger sets are matched in row blocks of one product, both directions from each block.
 EXACT_MAX_CELLS = 4096 * 4096
 
 
@@ -89,27 +89,42 @@ def _squared_distances(a: np.ndarray, b: np.ndarray, na: np.ndarray, nb: np.ndar
 
 
 def _nearest_two(a: np.ndarray, b: np.ndarray, na: np.ndarray, nb: np.ndarray):
-    """For every row of ``a``: index of its nearest row of ``b``, squared distances to the nearest two."""
-    n = len(a)
+    """Both directions from one distance matrix, formed in row blocks of ``a``: for every row of ``a`` the index
+    of its nearest row of ``b`` and the squared distances to the nearest two; for every row of ``b`` the squared
+    distances to its nearest two rows of ``a`` (equal when two rows tie for the nearest).
+
+    A column's two smallest values come from column-wise minima (fast along the rows of a C-ordered block),
+    never from a column-wise argmin, which walks the block with a stride and costs a third of the product: the
+    reverse direction thus costs no second matrix product."""
+    n, m = len(a), len(b)
     idx, d1, d2 = np.zeros(n, np.int64), np.zeros(n, np.float32), np.zeros(n, np.float32)
-    step = max(1, EXACT_MAX_CELLS // max(len(b), 1))
+    c1, c2 = np.full(m, np.inf, np.float32), np.full(m, np.inf, np.float32)
+    step = max(1, EXACT_MAX_CELLS // max(m, 1))
     for s in range(0, n, step):
         d = _squared_distances(a[s : s + step], b, na[s : s + step], nb)
         r = np.arange(len(d))
         j = d.argmin(axis=1)
-        idx[s : s + step], d1[s : s + step] = j, d[r, j]
+        best = d[r, j]
+        idx[s : s + step], d1[s : s + step] = j, best
+        low = d.min(axis=0)
+        tied = (d == low).sum(axis=0) > 1
         d[r, j] = np.inf
         d2[s : s + step] = d.min(axis=1)
-    return idx, d1, d2
+        d[r, j] = best
+        above = np.where(d > low, d, np.float32(np.inf)).min(axis=0)
+        second = np.where(tied, low, above)
+        c2 = np.minimum(np.minimum(c2, second), np.maximum(c1, low))
+        c1 = np.minimum(c1, low)
+    return idx, d1, d2, c1, c2
 
 
 def _exact_matches(desc1: np.ndarray, desc2: np.ndarray, ratio: float, mutual: bool) -> np.ndarray:
     """Exact nearest neighbours, ratio test (and the mutual check with the reverse ratio test): (M, 2).
 
-    Small sets use one distance matrix for both directions: a column's nearest row is found through its
-    minimum (a column-wise argmin walks the matrix with a stride and costs as much as the product), and a
-    column's second-nearest by masking the mutual pairs. Written for this project on numpy's BLAS, faster than
-    OpenCV's ``BFMatcher.knnMatch`` and FLANN (see :class:`MatchConfig`;
+    Both directions come from one distance matrix (for big sets, from its row blocks: :func:`_nearest_two`): a
+    column's nearest row is found through its minimum (a column-wise argmin walks the matrix with a stride and
+    costs as much as the product), and a column's second-nearest by masking the mutual pairs. Written for this
+    project on numpy's BLAS, faster than OpenCV's ``BFMatcher.knnMatch`` and FLANN (see :class:`MatchConfig`;
     ``benchmarks/history/engine_measurements.md``).
     """
     a = np.ascontiguousarray(desc1, dtype=np.float32)
@@ -117,11 +132,13 @@ def _exact_matches(desc1: np.ndarray, desc2: np.ndarray, ratio: float, mutual: b
     na, nb = np.einsum("ij,ij->i", a, a), np.einsum("ij,ij->i", b, b)
     r2 = np.float32(ratio * ratio)
     if len(a) * len(b) > EXACT_MAX_CELLS:
-        j1, best, second = _nearest_two(a, b, na, nb)
+        j1, best, second, col_best, col_second = _nearest_two(a, b, na, nb)
         q = np.nonzero(best < r2 * second)[0]
         if mutual:
-            i1, best21, second21 = _nearest_two(b, a, nb, na)
-            q = q[(i1[j1[q]] == q) & (best21[j1[q]] < r2 * second21[j1[q]])]
+            # q is the nearest row of its nearest column (a tie leaves that column's two smallest equal, and the
+            # reverse ratio test then fails), and that column passes the ratio test too
+            j = j1[q]
+            q = q[(best[q] <= col_best[j]) & (col_best[j] < r2 * col_second[j])]
         return np.stack([q, j1[q]], axis=1).astype(np.int64)
     d = _squared_distances(a, b, na, nb)
     r = np.arange(len(a))

@@ -21,8 +21,10 @@ _INF = np.inf
 
 @njit(cache=True, error_model="numpy")
 def _first_root(dsm, rows, cols, pc, pr, u0, v0, du, dv, z_in, dz, length):  # pragma: no cover - compiled
-    """Smallest s in [0, length] where the ray crosses below the bilinear surface of patch (pr, pc), else inf
-    (the scalar form of :func:`aerocal.simulate.raycast._first_root_in_patch`)."""
+    """Smallest s in [0, length] where the ray crosses below the bilinear surface of patch (pr, pc) of the padded
+    ``dsm``, else inf. The ray enters at ``(u0, v0)`` (position within the patch, in cells) at height ``z_in`` and
+    moves by ``(du, dv, dz)`` per unit of s; the crossing is the first root of the quadratic in s that the
+    surface's height less the ray's is along the ray."""
     stride = cols + 2
     prc = min(max(pr, -1), rows - 1)
     pcc = min(max(pc, -1), cols - 1)

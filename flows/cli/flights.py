@@ -23,6 +23,7 @@ from flows.cli.options import ARTIFACT_ROOT_OPTION, DASK_OPTION, DATABASE_URL_OP
 from flows.environment import conceal_password, quiet_prefect
 
 if TYPE_CHECKING:  # the CLI's start-up imports no engine module (see the module docstring)
+    from aerocal.ingest.problems import Problem
     from aerocal.pipeline.findings import Finding
     from aerocal.pipeline.summary import RunSummary
 
@@ -141,12 +142,14 @@ def extension_lines(extension: dict[str, Any]) -> list[str]:
     b, a = extension.get("before") or {}, extension.get("after") or {}
     lines = []
     if b.get("sigma0") is not None and a.get("sigma0") is not None:
-        lines.append(f"sigma0 {b['sigma0']:.4g} -> {a['sigma0']:.4g}")
+        lines.append(f"sigma0 {b['sigma0']:.3f} -> {a['sigma0']:.3f}")
     cb, ca = b.get("check_points") or {}, a.get("check_points") or {}
     if cb.get("rmse_m") and ca.get("rmse_m"):
-        rmse = ", ".join(f"{k} {cb['rmse_m'][k]:.3g} -> {ca['rmse_m'][k]:.3g}" for k in cb["rmse_m"]
-                         if cb["rmse_m"][k] is not None and ca["rmse_m"].get(k) is not None)
-        lines.append(f"check points RMSE (m): {rmse}")
+        axes = [k for k in cb["rmse_m"] if cb["rmse_m"][k] is not None and ca["rmse_m"].get(k) is not None]
+        rmse = ", ".join(f"{k} {cb['rmse_m'][k]:.3g} -> {ca['rmse_m'][k]:.3g}" for k in axes)
+        worse = [k for k in axes if ca["rmse_m"][k] > cb["rmse_m"][k]]
+        # a gain overall need not be one on every axis: an axis that got worse is said, not left to be noticed
+        lines.append(f"check points RMSE (m): {rmse}" + (f" (worse in {', '.join(worse)})" if worse else ""))
     if b.get("twin") != a.get("twin"):
         lines.append(f"twin: {a.get('twin')}")
     if b.get("certificate_id") != a.get("certificate_id"):
@@ -155,7 +158,7 @@ def extension_lines(extension: dict[str, Any]) -> list[str]:
     return lines
 
 
-def print_problems(problems: list, out: Console, warnings: bool = True, limit: int = 50) -> None:
+def print_problems(problems: list[Problem], out: Console, warnings: bool = True, limit: int = 50) -> None:
     """Every error of ingest's ``problems`` (:class:`aerocal.ingest.problems.Problem`; those that stop processing
     first), then warnings up to ``limit`` lines in all."""
     ordered = [p for p in problems if p.stops_processing]
@@ -169,7 +172,8 @@ def print_problems(problems: list, out: Console, warnings: bool = True, limit: i
         out.print(f"... and {rest} more warnings (aerocal ingest FOLDER --out DIR writes them all)")
 
 
-def print_ingest_report(folder: Path, rows: list[tuple[str, str]], problems: list, written: Path | None = None) -> None:
+def print_ingest_report(folder: Path, rows: list[tuple[str, str]], problems: list[Problem],
+                        written: Path | None = None) -> None:
     """What ``aerocal ingest`` says of a folder: the summary ``rows``, every problem, where the tables were
     ``written``, and how many problems stop ``aerocal process``; exit 2 when any problem is an error."""
     table = Table(title=f"ingest of {folder}", show_header=False)

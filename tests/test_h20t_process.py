@@ -1,0 +1,104 @@
+"""The real h20t_forest flight through `aerocal process`, as a user runs it: real data is the judge.
+
+Data: ``../shared/data/h20t_forest`` (42 radiometric JPEGs of a DJI Zenmuse H20T, 640x512 uncooled microbolometer,
+~95 m above a forest: two opposite strips and the turn between them; DJI XMP GNSS and gimbal attitude, no GCPs, no
+documented sensor temperature). The folder is processed as it is, with nothing written by hand: the nominal camera,
+the flying height and the GNSS sigmas are what the files say, and the certificate is this flight's own
+self-calibration.
+
+What a user checks, pinned to what the product measured when it was judged right (each figure's calibrated sigma,
+with a cap; a change beyond them is a changed answer to explain):
+
+* the self-calibration converges and its certificate is accepted: the block determines the radial distortion of
+  this lens (k1 about -0.25) and not its focal length or principal point (two strips at one height, no GCPs),
+  which stay at the nominal values with the reason;
+* no thermal slope is estimated: the frames carry no documented sensor temperature;
+* the block adjustment converges, and the diagnosis names no catalogue effect;
+* the recorded attitudes are checked against the adjusted ones: the recorded yaw is the gimbal's, turned by
+  about 3.7 degrees from the camera's the images give;
+* the orthomosaic is a georeferenced GeoTIFF a GIS opens.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from aerocal.certificates.document import Certificate
+
+H20T = Path(__file__).resolve().parents[2] / "shared" / "data" / "h20t_forest"
+#: the certificate when it was judged right: parameter -> (value, calibrated sigma, cap on the tolerance)
+PINNED = {"k1": (-0.2517, 0.0154, 0.03)}
+#: the recorded attitudes' offset about the camera's z axis then (deg): estimate, sigma
+PINNED_YAW_DEG = (-3.67, 0.62)
+#: the GNSS time lag on the whole block then (s): estimate, sigma; "consistent with zero", not named
+PINNED_LAG_S = (0.056, 0.084)
+
+
+@pytest.fixture(scope="module")
+def prefect_server():
+    from prefect_harness import prefect_harness
+
+    with prefect_harness():
+        yield
+
+
+@pytest.mark.slow
+def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_path, prefect_server):
+    import rasterio
+
+    from aerocal.cli import app
+
+    assert (H20T / "images").is_dir(), f"the measured h20t_forest images are expected at {H20T}"
+    out = tmp_path / "run"
+    result = CliRunner().invoke(app, ["process", str(H20T), "--out", str(out),
+                                      "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}",
+                                      "--artifacts", str(tmp_path / "art")], env={"COLUMNS": "250"})
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "run.json").read_text())
+    cert = Certificate.from_json((out / "calibration_certificate.json").read_text())
+    calibration = json.loads((out / "calibration.json").read_text())
+    text = cert.render_text()
+    print(text, "\n", summary["certificate_reason"])
+
+    # the self-calibration converged (it crept for 150 iterations before the solver re-intersected the points
+    # of a failed step) and its certificate is the one the block used
+    assert cert.status == "accepted", text
+    assert summary["certificate_id"] == cert.id, summary["certificate_reason"]
+    assert not any("without converging" in s for s in calibration["adjustment"]["selection"]), calibration
+    assert summary["adjustment_converged"], summary["adjustment_iterations"]
+    # what the block determines: the radial distortion, pinned; f, cx, cy held at the nominal camera, with why
+    for name in ("f", "cx", "cy"):
+        assert name not in cert.estimated, text
+        assert "not determined" in cert.significance[name].dropped, text
+    assert cert.camera.f == pytest.approx(13.5 / 0.012), text  # 13.5 mm over 12 um pixels
+    for name, (value, sigma, cap) in PINNED.items():
+        assert name in cert.estimated, f"{name} was estimated when pinned: {text}"
+        tol = min(3.0 * max(sigma, cert.sigmas[name]), cap)
+        assert abs(getattr(cert.camera, name) - value) <= tol, f"{name} {getattr(cert.camera, name)}: {text}"
+    assert cert.thermal is None and any("no sensor temperature" in n for n in cert.review.notes), text
+
+    # nothing named; the GNSS lag reported with its sigma, consistent with zero
+    diagnosis = json.loads((out / "diagnosis.json").read_text())
+    assert not diagnosis["effects"] and not summary["findings"], diagnosis["summary"]
+    lag = summary["recorded_eo"]["gnss_time_offset"]
+    assert lag["status"] == "consistent with zero", lag
+    assert abs(lag["estimate"][0] - PINNED_LAG_S[0]) <= min(3.0 * PINNED_LAG_S[1], 0.3), lag
+    # the recorded yaw is the gimbal's: turned from the camera's by the offset pinned, and said so
+    att = summary["recorded_eo"]["attitude_offset"]
+    assert att["units"] == "deg" and "about the camera's" in att["status"] and "z" in att["status"], att
+    yaw, yaw_sigma = att["estimate"][2], att["sigma"][2]
+    assert yaw_sigma <= 1.0, att
+    assert abs(yaw - PINNED_YAW_DEG[0]) <= min(3.0 * max(PINNED_YAW_DEG[1], yaw_sigma), 1.5), att
+
+    # the orthomosaic: a georeferenced GeoTIFF of the forest's temperatures or counts
+    with rasterio.open(out / "orthomosaic.tif") as ds:
+        assert ds.crs is not None and ds.crs.is_projected, ds.crs
+        band = ds.read(1, masked=True)
+        gsd = abs(ds.transform.a)
+    assert 0.02 < gsd < 0.5, gsd  # ~0.085 m: 12 um pixels at 13.5 mm from ~95 m
+    assert band.count() > 0.3 * band.size and float(np.ma.std(band)) > 0, (band.count(), band.size)
