@@ -50,7 +50,21 @@ def _sha256(path: Path) -> str:
 
 
 def write_ingest(result: IngestResult, out_dir: str | Path) -> Path:
-    """Write the tables, then the manifest; return the manifest path."""
+    """Write an ingest result to ``out_dir``: the tables, then the manifest (layout in the module docstring).
+
+    The manifest is removed first and written last, every file atomically: a folder whose write was
+    interrupted has no manifest, and :func:`read_ingest` refuses it.
+
+    Args:
+        result: what :func:`aerocal.ingest.folder.ingest_folder` returned.
+        out_dir: the folder (created with its parents when missing); files of an earlier write are replaced.
+
+    Returns:
+        The path of the manifest, ``out_dir/ingest.json``.
+
+    Raises:
+        SchemaError: a table of ``result`` does not match its :mod:`aerocal.tables` schema.
+    """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     manifest = out / MANIFEST
@@ -85,8 +99,22 @@ def write_ingest(result: IngestResult, out_dir: str | Path) -> Path:
 
 
 def read_ingest(out_dir: str | Path) -> dict[str, object]:
-    """Read a folder written by :func:`write_ingest`: ``{"images", "gcps", "gcp_observations", "extra":
-    tables, "crs": str, "problems": list[Problem], "manifest": dict}``; raise :class:`IngestOutputError`."""
+    """Read a folder written by :func:`write_ingest`, refusing an incomplete or altered one.
+
+    Args:
+        out_dir: the folder.
+
+    Returns:
+        ``{"images", "gcps", "gcp_observations", "extra": tables, "crs": str | None, "problems": list[Problem],
+        "manifest": dict}``: the three :mod:`aerocal.tables` tables (validated), the per-image metadata outside
+        the schema, the flight's CRS (``None`` when ingest found none), the problems ingest recorded and the
+        manifest as read.
+
+    Raises:
+        IngestOutputError: the manifest is missing or unreadable, or a file it lists is missing or differs from
+            its sha256; the message names the file.
+        SchemaError: a table file is not readable Parquet or does not match its schema.
+    """
     out = Path(out_dir)
     manifest_path = out / MANIFEST
     if not manifest_path.is_file():

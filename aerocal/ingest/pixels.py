@@ -30,7 +30,20 @@ class ImageReadError(ValueError):
 
 
 def read_raw(path: str | Path) -> np.ndarray:
-    """Pixels of ``path`` with original radiometry (module docstring); raise :class:`ImageReadError`."""
+    """Pixels of ``path`` with original radiometry, on the stored grid (module docstring).
+
+    Args:
+        path: a FLIR radiometric JPEG, a DJI R-JPEG, another JPEG, or a TIFF.
+
+    Returns:
+        The stored pixel grid, EXIF orientation not applied: FLIR and DJI thermal frames as ``uint16`` (H, W)
+        counts; a TIFF's first page in its own dtype, (H, W) or (H, W, C); any other JPEG as ``uint8`` (H, W)
+        grey or (H, W, 3) RGB.
+
+    Raises:
+        ImageReadError: the file cannot be read, is neither JPEG nor TIFF, or cannot be decoded (including a
+            FLIR JPEG with broken FLIR segments); the message names the file and the reason.
+    """
     path = Path(path)
     try:
         data = path.read_bytes()

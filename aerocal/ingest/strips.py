@@ -98,10 +98,19 @@ def circular_mean(angles_deg: np.ndarray) -> float:
 def find_strips(
     x: np.ndarray, y: np.ndarray, heading: np.ndarray | None = None, config: StripConfig | None = None
 ) -> np.ndarray:
-    """Strip number per frame (flight order), -1 for frames in no strip.
+    """Strip number of every frame, by the rule of the module docstring (thresholds in :class:`StripConfig`).
 
-    ``x``, ``y``: positions in metres in a projected CRS, in flight order, all finite (drop frames without
-    a position before calling). ``heading``: degrees clockwise from north per frame, NaN where unknown.
+    Args:
+        x, y: positions (N,), metres in a projected CRS, in flight order, all finite (drop frames without a
+            position before calling).
+        heading: degrees clockwise from north per frame, NaN where unknown; ``None``: no end frame is trimmed by
+            heading.
+        config: the thresholds (default :class:`StripConfig`); ``course_tolerance_deg`` and ``spacing_ratio`` are
+            widened to the flight's own course and step noise.
+
+    Returns:
+        int32 array (N,), in flight order: strips numbered 0, 1, 2, ... in flight order, -1 for frames in no strip
+        (turns, approach, hover); all -1 with fewer than ``config.min_frames`` frames or when no frame moves.
     """
     cfg = config or StripConfig()
     x = np.asarray(x, dtype=float)

@@ -11,8 +11,17 @@ from aerocal.ingest.folder import IngestResult
 
 
 def summary_rows(result: IngestResult) -> list[tuple[str, str]]:
-    """Rows ``(item, value)``: images, cameras, time span, GNSS, attitude, temperature, strips, CRS, ground
-    control and problems found."""
+    """A short human-readable summary of an ingest result, as rows for a CLI table.
+
+    Args:
+        result: what :func:`aerocal.ingest.folder.ingest_folder` returned.
+
+    Returns:
+        Rows ``(item, value)``, both text, in this order: images (ingested, skipped), cameras, bit depth, time
+        span (UTC), GNSS positions, attitude, camera temperature (degC), strips (and frames in no strip), CRS,
+        ground control, the nominal camera and the certificate identity (each when known), flying height (m),
+        GNSS sigma (m), and the problems found (errors, those that stop processing, warnings).
+    """
     img = result.images
     n = img.num_rows
     rows: list[tuple[str, str]] = []

@@ -35,6 +35,19 @@ def local_client(n_workers: int = 2, threads_per_worker: int = 1) -> Iterator[ob
     One thread per worker process: OpenCV and numpy then use one core each (the workers call
     ``cv2.setNumThreads(1)``), and the GIL does not serialise the Python parts. No dashboard. The worker
     processes get :data:`WORKER_ENVIRONMENT`.
+
+    Args:
+        n_workers: worker processes to start (default 2).
+        threads_per_worker: threads of each worker process (default 1).
+
+    Returns:
+        A context manager whose ``with`` value is the ``distributed.Client``; the cluster starts on entering it.
+        On exit the workers' heartbeats are silenced, the cluster is scaled to no workers (waiting at most
+        :data:`WORKER_CLOSE_TIMEOUT_S` seconds for them to leave), then the client and the cluster are closed.
+
+    Raises:
+        ImportError: ``dask``/``distributed`` is not installed (imported on entering the context, not with this
+            module).
     """
     # lazy: dask + distributed are slow to import; only runs on a cluster need them
     import dask
@@ -190,9 +203,25 @@ class ExecutionConfig:
 
 
 def dask_client(address: str | None, n_workers: int, serial: bool) -> contextlib.AbstractContextManager:
-    """The Dask client a step's tile work runs on, as a context manager: the scheduler at ``address`` when one
-    is given, else ``None`` (serial, in this process) when ``serial`` or ``n_workers <= 0``, else a fresh
-    :func:`local_client` of ``n_workers`` closed on exit."""
+    """The Dask client a step's tile work runs on, as a context manager.
+
+    Args:
+        address: the address of a running Dask scheduler (e.g. ``"tcp://host:8786"``); when given (not empty),
+            ``n_workers`` and ``serial`` are ignored.
+        n_workers: worker processes of the local cluster started when there is no ``address``; ``<= 0``: none,
+            the work runs serially in this process.
+        serial: without ``address``, run serially in this process (a step whose work is too small for a local
+            cluster).
+
+    Returns:
+        A context manager whose ``with`` value is: a ``distributed.Client`` of the scheduler at ``address`` when
+        one is given (connected by this call, closed on exit); else ``None`` (serial, in this process) when
+        ``serial`` or ``n_workers <= 0``; else the client of a fresh :func:`local_client` of ``n_workers``
+        processes, started on entering and closed on exit.
+
+    Raises:
+        OSError: (from ``distributed``) the scheduler at ``address`` cannot be reached.
+    """
     if address:
         from distributed import Client  # lazy: the engine works without Dask installed
 

@@ -35,11 +35,21 @@ def _sift(config: FeatureConfig):
 
 
 def tile_boxes(width: int, height: int, config: FeatureConfig) -> np.ndarray:
-    """Tiles of an image and the core each one owns: int array (T, 8).
+    """Tiles of an image and the core each one owns, for SIFT detected tile by tile.
 
-    Columns: tile ``x0, y0, x1, y1`` then core ``cx0, cy0, cx1, cy1`` (pixels, half-open, full-image
-    coordinates). The cores partition the image; tile origins are multiples of ``tile_size -
-    tile_overlap``. ``tile_size=0`` gives one tile, the whole image.
+    The cores partition the image; tile origins are multiples of ``tile_size - tile_overlap``. ``tile_size=0``
+    gives one tile, the whole image.
+
+    Args:
+        width, height: the image's size, pixels.
+        config: ``tile_size`` and ``tile_overlap`` (pixels); an image side no longer than ``tile_size`` is one
+            tile along that side.
+
+    Returns:
+        int64 array (T, 8), one row per tile, left to right then top to bottom: tile ``x0, y0, x1, y1`` then core
+        ``cx0, cy0, cx1, cy1`` (pixels, half-open, full-image coordinates with the origin at the top-left
+        corner). The last tile along a side ends at the image border; a core reaches the image border where its
+        tile does, and stops about half the overlap inside the tile elsewhere.
     """
 
     def axis(n: int) -> list[tuple[int, int, int, int]]:
@@ -102,11 +112,22 @@ def merge_tiles(
 
 
 def detect(img8: np.ndarray, config: FeatureConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """SIFT keypoints of an 8-bit image, detected tile by tile.
+    """SIFT keypoints and descriptors of an 8-bit image, detected tile by tile (:func:`tile_boxes`).
 
-    Returns ``(keypoints, descriptors)``: float32 (N, 4) ``[x, y, scale, orientation]`` in full-image
-    pixels (aerocal convention, see the module docstring), strongest first, at most
-    ``config.max_features``; uint8 (N, 128) SIFT descriptors.
+    Args:
+        img8: the image, uint8 (H, W); (H, W, 3) BGR and (H, W, 4) BGRA are converted to grey.
+        config: detection and tiling (default :class:`FeatureConfig`).
+
+    Returns:
+        ``(keypoints, descriptors)``: float32 (N, 4) ``[x, y, scale, orientation]``, x, y in full-image pixels
+        (aerocal convention, see the module docstring: origin at the top-left corner of the top-left pixel, y
+        down), scale the Gaussian sigma in pixels, orientation in radians clockwise from the x axis; strongest
+        response first (ties broken by y, x, scale, orientation), at most ``config.max_features`` (0: no cap);
+        and uint8 (N, 128) SIFT descriptors in the same order.
+
+    Raises:
+        ValueError: the image is not 2-D 8-bit (after the grey conversion); convert it with
+            :func:`aerocal.enhance.enhance` or :func:`aerocal.enhance.to_uint8`.
     """
     config = config or FeatureConfig()
     img8 = _check_image(img8)
@@ -162,9 +183,19 @@ def _image_items(images) -> list[tuple[int, object]]:
 
 
 def keypoints_table(features: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> pa.Table:
-    """The ``keypoints`` table of ``(image_id, keypoints (N, 4), descriptors (N, 128))`` triples.
+    """The ``keypoints`` table of per-image detections.
 
-    ``keypoint_id`` numbers each image's keypoints 0..N-1 in the order given.
+    Args:
+        features: ``(image_id, keypoints, descriptors)`` triples, as :func:`detect` gives them: keypoints (N, 4)
+            ``[x, y, scale, orientation]`` (pixels with the origin at the top-left corner; radians), descriptors
+            uint8 (N, 128). Give each image once.
+
+    Returns:
+        The ``keypoints`` table (:mod:`aerocal.tables`), images and keypoints in the order given; ``keypoint_id``
+        numbers each image's keypoints 0..N-1 in that order. Empty when ``features`` is.
+
+    Raises:
+        ValueError: keypoints or descriptors that cannot be reshaped to (N, 4) and (N, 128).
     """
     ids, kpids, kps, descs = [], [], [], []
     for image_id, kp, desc in features:
@@ -247,7 +278,19 @@ def extract_features(
 
 
 def image_features(keypoints: pa.Table) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Split a ``keypoints`` table per image: ``{image_id: (keypoint_id, xy (N, 2) float64, desc)}``."""
+    """Split a ``keypoints`` table per image, for matching.
+
+    Args:
+        keypoints: the ``keypoints`` table (:mod:`aerocal.tables`), every keypoint with its descriptor.
+
+    Returns:
+        ``{image_id: (keypoint_id (N,), xy (N, 2) float64, desc (N, 128) uint8)}``, image ids in increasing order,
+        each image's rows in increasing ``keypoint_id``; ``xy`` in pixels with the origin at the top-left corner.
+
+    Raises:
+        SchemaError: the table does not match the ``keypoints`` schema.
+        ValueError: keypoints without a descriptor.
+    """
     kp = tables.validate(keypoints, "keypoints")
     image_id = kp.column("image_id").to_numpy()
     kp_id = kp.column("keypoint_id").to_numpy()

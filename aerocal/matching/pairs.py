@@ -38,11 +38,22 @@ def _columns(images) -> dict[str, np.ndarray]:
 
 
 def prior_poses(images) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(image_id (N,), R_cw (N, 3, 3), C (N, 3))`` from an ``images`` table or a mapping of columns.
+    """Recorded poses ``(image_id, R_cw, C)`` of an ``images`` table or a mapping of columns.
 
-    The mapping may hold ``R_cw`` and ``C`` directly, or the ``images`` columns ``gnss_x, gnss_y,
-    gnss_z, roll, pitch, yaw, attitude_convention``. ``image_id`` defaults to 0..N-1. Images without a
-    position or attitude raise ``ValueError`` naming them.
+    Args:
+        images: an ``images`` table (:mod:`aerocal.tables`) or a mapping of column name -> values. The mapping
+            may hold ``R_cw`` (N, 3, 3) and ``C`` (N, 3) directly, or the ``images`` columns ``gnss_x, gnss_y,
+            gnss_z`` (metres, flight CRS), ``roll, pitch, yaw`` (degrees) and ``attitude_convention``. ``image_id``
+            is optional.
+
+    Returns:
+        ``(image_id (N,) int64, R_cw (N, 3, 3), C (N, 3))``: world-to-camera rotations (:mod:`aerocal.geometry`)
+        and projection centres (E, N, Up metres in the flight CRS; from the ``images`` columns, the recorded GNSS
+        positions). ``image_id`` defaults to 0..N-1.
+
+    Raises:
+        ValueError: a needed column is missing; images lack a position or attitude (the message names them); an
+            unknown ``attitude_convention``.
     """
     cols = _columns(images)
     if "R_cw" in cols and "C" in cols:
@@ -95,11 +106,25 @@ def footprints(
     cameras: Camera | Sequence[Camera],
     terrain_height: float | np.ndarray,
 ) -> np.ndarray:
-    """Ground footprints (N, 4, 2): E, N of the image corners on the plane ``Z = terrain_height``.
+    """Ground footprints: the four image corners of each camera on the plane ``Z = terrain_height``.
 
-    Vertices are counter-clockwise (seen from above). ``terrain_height`` is one height or one per image
-    (metres, same datum as ``C``). A camera at or below its terrain height raises ``ValueError``: the
-    usual cause is a height in another reference (take-off-relative vs ellipsoidal).
+    Each corner's viewing ray (camera model) is rotated into the world frame and intersected with the plane.
+    Rays that miss the ground, or meet it farther than :data:`MAX_RANGE_HEIGHTS` flying heights away
+    (horizontally), are clamped to that distance, so that near-horizontal corners of oblique views stay finite.
+
+    Args:
+        R_cw: world-to-camera rotations (N, 3, 3).
+        C: projection centres (N, 3), E, N, Up metres in the flight CRS.
+        cameras: one :class:`~aerocal.camera.Camera` for every image, or one per image.
+        terrain_height: height of the ground plane, one height or one per image (metres, same datum as ``C``).
+
+    Returns:
+        float array (N, 4, 2): E, N (metres) of each image's corners on the plane; vertices counter-clockwise
+        (seen from above).
+
+    Raises:
+        ValueError: a camera at or below its terrain height; the usual cause is a height in another reference
+            (take-off-relative vs ellipsoidal).
     """
     R = np.asarray(R_cw, dtype=float).reshape(-1, 3, 3)
     C = np.asarray(C, dtype=float).reshape(-1, 3)
@@ -148,14 +173,21 @@ def _ccw(poly: np.ndarray) -> np.ndarray:
 
 
 def convex_overlap_area(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Area of the intersection of convex counter-clockwise polygons ``a[i]`` and ``b[i]``: (P,).
+    """Area of the intersection of convex counter-clockwise polygons ``a[i]`` and ``b[i]``, for P pairs at once.
 
-    ``a`` (P, M, 2), ``b`` (P, K, 2). Sutherland-Hodgman clipping of ``a`` by each edge of ``b``,
-    vectorised over the P pairs. Vertices that fall outside are replaced by a copy of the previous kept
-    vertex, so every polygon keeps a fixed number of (possibly repeated) vertices, which changes
-    neither its shape nor its area; the vertex count doubles per clipping edge (4 -> 64 for quads).
-    Written here because shapely is not a dependency; checked against ``scipy.spatial.ConvexHull``
-    volumes of the intersection points in tests/test_matching.py.
+    Sutherland-Hodgman clipping of ``a`` by each edge of ``b``, vectorised over the P pairs. Vertices that fall
+    outside are replaced by a copy of the previous kept vertex, so every polygon keeps a fixed number of
+    (possibly repeated) vertices, which changes neither its shape nor its area; the vertex count doubles per
+    clipping edge (4 -> 64 for quads). Written here because shapely is not a dependency; checked against
+    ``scipy.spatial.ConvexHull`` volumes of the intersection points in tests/test_matching.py.
+
+    Args:
+        a: P convex polygons (P, M, 2), vertices counter-clockwise (e.g. :func:`footprints`, E, N metres).
+        b: P convex polygons (P, K, 2), vertices counter-clockwise; ``b[i]`` clips ``a[i]``.
+
+    Returns:
+        float array (P,): the intersection areas, in the square of the coordinates' unit (m^2 for footprints);
+        0 where the polygons do not meet.
     """
     poly = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
@@ -265,14 +297,32 @@ def _top_k_per_image(i: np.ndarray, j: np.ndarray, score: np.ndarray, n: int, k:
 
 
 def exhaustive_pairs(ids: int | Sequence[int] | np.ndarray) -> np.ndarray:
-    """All pairs (P, 2) with ``id1 < id2`` of ``ids`` (or of 0..n-1 when given an int n)."""
+    """All pairs of a set of images.
+
+    Args:
+        ids: image ids (repeated ids count once), or an int n for the ids 0..n-1.
+
+    Returns:
+        int64 array (P, 2), P = n (n - 1) / 2 over the n distinct ids: every pair once with ``id1 < id2``, rows
+        sorted by ``id1``, then ``id2``.
+    """
     ids = np.arange(ids) if isinstance(ids, int | np.integer) else np.unique(np.asarray(ids, dtype=np.int64))
     i, j = np.triu_indices(len(ids), k=1)
     return np.column_stack([ids[i], ids[j]]).astype(np.int64)
 
 
 def sequential_pairs(ids: int | Sequence[int] | np.ndarray, window: int = 3) -> np.ndarray:
-    """Each image with its next ``window`` images in the order given (a sliding window; flight order)."""
+    """Each image with its next ``window`` images in the order given (a sliding window; flight order).
+
+    Args:
+        ids: image ids in flight order, or an int n for the ids 0..n-1. The order is kept and repeated ids are
+            not merged (a repeated id can pair an image with itself).
+        window: how many following images each image is paired with (default 3); ``<= 0`` gives no pair.
+
+    Returns:
+        int64 array (P, 2): every pair once, its two ids in increasing order, rows sorted by the first id, then
+        the second.
+    """
     ids = np.arange(ids) if isinstance(ids, int | np.integer) else np.asarray(ids, dtype=np.int64)
     n = len(ids)
     out = [np.column_stack([ids[: n - d], ids[d:]]) for d in range(1, min(window, n - 1) + 1)]

@@ -53,11 +53,30 @@ def detect_and_match(
     client: object | None = None,
     progress: Progress | None = None,
 ) -> tuple[pa.Table, MatchResult]:
-    """The ``keypoints`` table and the verified matches of ``pairs``: the same tables as
-    :func:`extract_features` then :func:`match_pairs_detailed`, streamed on ``client``.
+    """The ``keypoints`` table and the verified matches of ``pairs``, detection and matching streamed on ``client``.
 
-    Without a client, or when ``features.granularity`` chooses tiles (few large images), the two phases run
-    one after the other. ``progress(done, total)`` counts images detected plus pairs matched.
+    The same tables as :func:`extract_features` then :func:`match_pairs_detailed`: a pair's matching task starts
+    as soon as its two images are detected. Without a client, or when ``features.granularity`` chooses tiles
+    (few large images), the two phases run one after the other.
+
+    Args:
+        images: an ``images`` table (its ``image_id`` and ``path`` columns), a sequence of ``(image_id, source)``
+            pairs, or a sequence of sources (numbered 0..n-1), as for :func:`extract_features`.
+        loader: ``loader(source) -> uint8 image`` (2-D, or BGR converted to grey); it runs on the workers, so it
+            must be picklable.
+        pairs: (P, 2) image ids; order within a pair, duplicates and self-pairs do not matter
+            (:func:`aerocal.matching.verify.normalise_pairs`). An image absent from ``images`` has no features.
+        features: detection (default :class:`FeatureConfig`).
+        match: matching and verification (default :class:`MatchConfig`).
+        client: a ``distributed.Client``, or ``None`` to run in this process.
+        progress: optional ``progress(done, total)`` callback; it counts images detected plus pairs matched.
+
+    Returns:
+        ``(keypoints, result)``: the ``keypoints`` table (images in the order given, keypoints strongest first)
+        and the :class:`MatchResult` (verified matches and one :data:`PAIR_STATS` row per normalised pair).
+
+    Raises:
+        ValueError: an ``images`` table row without a ``path``, or a loaded image that is not 2-D 8-bit.
     """
     fcfg = features or FeatureConfig()
     mcfg = match or MatchConfig()

@@ -21,12 +21,28 @@ def _node_key(image_id: np.ndarray, keypoint_id: np.ndarray) -> np.ndarray:
 
 
 def build_tracks(matches: pa.Table, keypoints: pa.Table, config: MatchConfig | None = None) -> pa.Table:
-    """The ``observations`` table of the tracks formed by ``matches``.
+    """Join verified pairwise matches into multi-image tracks: the ``observations`` table.
 
-    Every observation is a keypoint's position (pixels, aerocal convention) with ``sigma =
-    config.sigma_px``. Tracks seen in fewer than ``config.min_track_length`` images, and tracks that
-    contain two keypoints of the same image, are dropped. ``track_id`` numbers the kept tracks 0..T-1
-    in the order of their smallest (image_id, keypoint_id); rows are sorted by track, then image.
+    Every observation is a keypoint's position with ``sigma = config.sigma_px``. Tracks seen in fewer than
+    ``config.min_track_length`` images, and tracks that contain two keypoints of the same image (some match in
+    them is wrong), are dropped whole. ``track_id`` numbers the kept tracks 0..T-1 in the order of their smallest
+    (image_id, keypoint_id); rows are sorted by track, then image.
+
+    Args:
+        matches: the ``matches`` table (:mod:`aerocal.tables`) of verified matches
+            (:func:`aerocal.matching.match_pairs`).
+        keypoints: the ``keypoints`` table the matches were made from; it gives each observation's position.
+        config: ``sigma_px`` (pixels) and ``min_track_length`` (default :class:`MatchConfig`: 0.5 px, 2 images).
+
+    Returns:
+        The ``observations`` table: ``image_id``, ``track_id``, ``x``, ``y`` (the keypoint's position, pixels with
+        the origin at the top-left corner of the top-left pixel, x right, y down) and ``sigma`` (pixels); empty
+        when ``matches`` is.
+
+    Raises:
+        SchemaError: ``matches`` or ``keypoints`` does not match its :mod:`aerocal.tables` schema.
+        ValueError: matches refer to keypoints absent from ``keypoints``; the message names a few
+            (image_id, keypoint_id).
     """
     config = config or MatchConfig()
     m = tables.validate(matches, "matches")

@@ -159,11 +159,20 @@ def _exact_matches(desc1: np.ndarray, desc2: np.ndarray, ratio: float, mutual: b
 def match_descriptors(
     desc1: np.ndarray, desc2: np.ndarray, config: MatchConfig | None = None, index1=None, index2=None
 ) -> np.ndarray:
-    """Putative matches between two descriptor sets: int array (M, 2) of row indices.
+    """Putative matches between two descriptor sets: nearest neighbours, ratio test and mutual check.
 
-    Nearest neighbours by ``config.matcher``: exact (brute force on BLAS) or FLANN randomised
-    KD-trees (``index1``/``index2`` may be prebuilt ``cv2.flann_Index`` of the sets); Lowe's ratio test
-    and, with ``config.mutual``, the mutual check with the ratio test in the reverse direction too.
+    Nearest neighbours by ``config.matcher``: exact (brute force on BLAS) or FLANN randomised KD-trees; Lowe's
+    ratio test and, with ``config.mutual``, the mutual check with the ratio test in the reverse direction too.
+
+    Args:
+        desc1, desc2: the descriptor sets (N1, 128) and (N2, 128) (SIFT, uint8).
+        config: ``matcher``, ``ratio``, ``mutual`` and the FLANN settings (default :class:`MatchConfig`).
+        index1, index2: prebuilt ``cv2.flann_Index`` of ``desc1`` and ``desc2`` (``matcher="flann"`` only;
+            ``None``: built here, OpenCV's generator seeded with ``config.seed``). The exact matcher ignores them.
+
+    Returns:
+        int64 array (M, 2) of row indices into ``desc1`` and ``desc2``, in increasing ``desc1`` row; empty when
+        either set has fewer than 2 descriptors.
     """
     config = config or MatchConfig()
     if len(desc1) < 2 or len(desc2) < 2:
@@ -183,10 +192,18 @@ def match_descriptors(
 
 # ----------------------------------------------------------------------------- geometric verification
 def sampson_distance(F: np.ndarray, xy1: np.ndarray, xy2: np.ndarray) -> np.ndarray:
-    """Sampson distance (pixels) of correspondences ``xy1 <-> xy2`` (N, 2) to ``x2^T F x1 = 0``.
+    """Sampson distance of correspondences ``xy1 <-> xy2`` to the epipolar constraint ``x2^T F x1 = 0``.
 
     The first-order approximation of the geometric (reprojection) error:
     ``|x2^T F x1| / sqrt((F x1)_1^2 + (F x1)_2^2 + (F^T x2)_1^2 + (F^T x2)_2^2)``.
+
+    Args:
+        F: the fundamental matrix (3, 3) from the first image to the second, in pixel coordinates (origin at the
+            top-left corner of the top-left pixel).
+        xy1, xy2: corresponding points (N, 2), pixels, in the first and the second image.
+
+    Returns:
+        float array (N,): the distances, pixels; inf or NaN where the denominator is zero.
     """
     x1 = np.column_stack([xy1, np.ones(len(xy1))])
     x2 = np.column_stack([xy2, np.ones(len(xy2))])
@@ -206,10 +223,21 @@ def transfer_error(H: np.ndarray, xy1: np.ndarray, xy2: np.ndarray) -> np.ndarra
 
 
 def verify(xy1: np.ndarray, xy2: np.ndarray, config: MatchConfig | None = None):
-    """RANSAC (OpenCV USAC MAGSAC++) on putative correspondences (N, 2) in pixels.
+    """Geometric verification of putative correspondences by RANSAC (OpenCV USAC MAGSAC++).
 
-    Returns ``(inlier_mask (N,) bool, model 3x3 or None, rms_px)``: ``rms_px`` is the RMS Sampson
-    distance (fundamental) or transfer error (homography) of the inliers, NaN without a model.
+    Args:
+        xy1, xy2: putative correspondences (N, 2), pixels (origin at the top-left corner of the top-left pixel),
+            in the first and the second image.
+        config: ``geometry`` (fundamental matrix or homography), ``ransac_threshold`` (pixels),
+            ``ransac_confidence``, ``ransac_max_iters`` and ``min_matches`` (default :class:`MatchConfig`).
+
+    Returns:
+        ``(inlier_mask (N,) bool, model 3x3 or None, rms_px)``: ``model`` is the fundamental matrix
+        (``x2^T F x1 = 0``) or the homography (``x2 ~ H x1``); ``rms_px`` is the RMS Sampson distance
+        (fundamental) or transfer error (homography) of the inliers, pixels, NaN without a model. There is no
+        model (mask all False) with fewer than ``max(config.min_matches, 8)`` correspondences, when OpenCV asserts
+        on a degenerate sample, or when no correspondence is an inlier. The number of inliers is not checked
+        against ``min_matches`` here.
     """
     config = config or MatchConfig()
     n = len(xy1)
@@ -342,12 +370,39 @@ def match_pairs(
     client: object | None = None,
     progress: Progress | None = None,
 ) -> pa.Table:
-    """The ``matches`` table (verified inliers only) of ``pairs``; see :func:`match_pairs_detailed`."""
+    """The ``matches`` table (verified inliers only) of ``pairs``; see :func:`match_pairs_detailed`.
+
+    Args:
+        pairs: (P, 2) image ids; order within a pair, duplicates and self-pairs do not matter
+            (:func:`normalise_pairs`). An image absent from ``keypoints`` has no features.
+        keypoints: the ``keypoints`` table with descriptors (:func:`aerocal.matching.extract_features`).
+        config: matching and verification (default :class:`MatchConfig`).
+        client: a ``distributed.Client``: batches of ``config.pairs_per_task`` pairs run as tasks, each image's
+            features are sent to the cluster once. ``None`` runs here. Results are identical.
+        progress: optional ``progress(done_pairs, total_pairs)`` callback.
+
+    Returns:
+        The ``matches`` table: the inliers of every verified pair (at least ``config.min_matches`` inliers), with
+        ``image_id1 < image_id2``, pairs in increasing order.
+
+    Raises:
+        SchemaError: ``keypoints`` does not match its :mod:`aerocal.tables` schema.
+        ValueError: keypoints without a descriptor.
+    """
     return match_pairs_detailed(pairs, keypoints, config, client, progress).matches
 
 
 def pair_summary(pair_stats: pa.Table) -> dict[str, float]:
-    """Totals of a :data:`PAIR_STATS` table: pairs tried and verified, inliers, pooled inlier RMS (px)."""
+    """Totals of a :data:`PAIR_STATS` table.
+
+    Args:
+        pair_stats: the per-pair statistics (:attr:`MatchResult.pair_stats`).
+
+    Returns:
+        ``{"pairs", "verified_pairs", "inliers", "putative", "rms_px"}``: the pairs tried and those verified; the
+        inliers and the putative matches summed over the verified pairs only; the pooled inlier RMS (pixels) of
+        the verified pairs (their ``rms_px`` weighted by inliers), NaN when no pair is verified.
+    """
     n_inl = pair_stats.column("n_inliers").to_numpy()
     rms = pair_stats.column("rms_px").to_numpy(zero_copy_only=False)
     ok = pair_stats.column("verified").to_numpy(zero_copy_only=False).astype(bool)

@@ -66,9 +66,25 @@ def block_figure(
     exaggeration: float | None = None,
     title: str = "Block and check-point residuals",
 ) -> Figure:
-    """Camera centres (N, 2+ E, N), footprints ((M, 2) polygons), residual vectors (K, 2+, metres) at
-    ``points_en`` (K, 2), exaggerated (default: the largest residual drawn as 8 % of the block's size)
-    with a scale arrow."""
+    """The block seen from above: camera centres, footprints and residual vectors with a scale arrow.
+
+    Residuals are exaggerated (default: the largest residual drawn as 8 % of the block's size, the factor
+    rounded to 1, 2 or 5 x 10^k); the scale arrow has a round length near the largest residual.
+
+    Args:
+        centres: camera centres (N, 2+), E, N metres in the flight CRS.
+        footprints: image footprints on the ground, each an (M, 2) polygon of E, N metres (default: none).
+        points_en: where the residuals are drawn (K, 2+), E, N metres; nothing is drawn without ``residuals``.
+        residuals: residual vectors (K, 2+), metres; their E, N components are drawn (the caption calls them
+            check-point residuals, estimated minus surveyed).
+        ids: the K points' names in ``numbers`` (default "0".."K-1").
+        exaggeration: the factor the residuals are drawn at (default: automatic, above).
+        title: the figure's title.
+
+    Returns:
+        :class:`Figure` ``"block"``; ``numbers`` hold ``n_images`` and, with residuals, ``exaggeration``,
+        ``scale_arrow_m`` and ``points`` (``id``, ``E``, ``N``, ``dE_m``, ``dN_m``).
+    """
     fig = _canvas(7.0, 6.0)
     ax = fig.add_subplot()
     c = np.asarray(centres, dtype=float)
@@ -108,7 +124,19 @@ def block_figure(
 
 def image_residual_figure(binned, exaggeration: float | None = None,
                           title: str = "Reprojection residuals over the image") -> Figure:
-    """Mean residual vectors per bin (an :class:`aerocal.assess.BinnedResiduals`) over the image frame."""
+    """Mean residual vectors per bin over the image frame, exaggerated, with a scale arrow.
+
+    Args:
+        binned: an :class:`aerocal.assess.BinnedResiduals`: the mean reprojection residual (pixels) per bin of
+            the image (origin at the top-left corner, y down, drawn with y down); empty bins are not drawn.
+        exaggeration: the factor the vectors are drawn at (default: the largest drawn as 0.8 of a bin's shorter
+            side, the factor rounded to 1, 2 or 5 x 10^k).
+        title: the figure's title.
+
+    Returns:
+        :class:`Figure` ``"image_residuals"``; ``numbers`` hold ``exaggeration``, ``scale_arrow_px`` and the
+        binned grid (:meth:`aerocal.assess.BinnedResiduals.to_dict`).
+    """
     fig = _canvas(7.0, 5.6)
     ax = fig.add_subplot()
     x, y = binned.centres()
@@ -142,14 +170,21 @@ def _rect(w: float, h: float):
 
 
 def io_at_temperatures(camera, model, temperatures) -> dict[str, np.ndarray]:
-    """Focal length and principal point (pixels) that a thermal IO ``model`` gives ``camera`` (IO at the
-    model's reference temperature) at each of ``temperatures`` (degC): ``{"f", "cx", "cy"}`` arrays.
+    """Focal length and principal point (pixels) that a thermal IO ``model`` gives ``camera`` at temperatures.
 
     ``model=None`` (a certificate without a thermal model) gives the constant IO of ``camera``. A model
     with ``camera_at`` (:class:`~aerocal.camera.LinearThermalModel`) is evaluated exactly; a model that
     only corrects measurements (``correct(uv, T)``: similarity, polynomial) is summarised by the
     equivalent IO: the scale ``s`` and shift ``a`` of the least-squares fit ``correct(p, T) = a + s p`` over
     a grid of pixels ``p`` of the frame give ``f(T) = f / s`` and ``(cx, cy)(T) = ((cx, cy) - a) / s``.
+
+    Args:
+        camera: the IO at the model's reference temperature (:class:`aerocal.camera.Camera`, pixels).
+        model: the thermal model (with ``camera_at``, or with ``correct(uv, T)`` only), or ``None``.
+        temperatures: sensor temperatures, degC (one value or a 1-D array).
+
+    Returns:
+        ``{"f", "cx", "cy"}``: float arrays, pixels, one value per temperature.
     """
     t = np.atleast_1d(np.asarray(temperatures, dtype=float))
     out = {n: np.full(t.shape, float(getattr(camera, n))) for n in ("f", "cx", "cy")}
@@ -178,10 +213,25 @@ def temperature_io_figure(
     model=None, camera=None, title: str = "Interior orientation against sensor temperature",
     caption: str | None = None,
 ) -> Figure:
-    """Per-image focal length and principal point (pixels) against sensor temperature (degC). With a
-    ``camera`` (IO at the model's reference temperature) the certificate's line is drawn too over the
-    images' temperatures: the thermal ``model`` (:func:`io_at_temperatures`), or, with ``model=None``,
-    the constant IO of a certificate without a thermal model."""
+    """Per-image focal length and principal point (pixels) against sensor temperature (degC).
+
+    With a ``camera`` (IO at the model's reference temperature) the certificate's line is drawn too over the
+    images' temperatures: the thermal ``model`` (:func:`io_at_temperatures`), or, with ``model=None``, the
+    constant IO of a certificate without a thermal model.
+
+    Args:
+        temperatures: each image's sensor temperature (N,), degC.
+        f, cx, cy: each image's focal length and principal point (N,), pixels.
+        model: the certificate's thermal model, or ``None``.
+        camera: the certificate's camera (IO at the model's reference temperature); ``None``: no line.
+        title: the figure's title.
+        caption: the caption (default: a sentence saying what is drawn).
+
+    Returns:
+        :class:`Figure` ``"temperature_io"``; ``numbers`` hold ``temperature_c``, ``f_px``, ``cx_px``, ``cy_px``,
+        ``fitted_slope_px_per_degC`` (the least-squares slope of each series that has two finite points at
+        different temperatures) and ``model`` (its ``to_dict()``, or ``None``).
+    """
     t = np.asarray(temperatures, dtype=float)
     series = {"f": np.asarray(f, dtype=float), "cx": np.asarray(cx, dtype=float), "cy": np.asarray(cy, dtype=float)}
     fig = _canvas(7.0, 7.0)
@@ -214,7 +264,17 @@ def temperature_io_figure(
 
 
 def dem_difference_figure(diff, title: str = "DSM minus reference") -> Figure:
-    """Map and histogram of an :class:`aerocal.assess.DemDifference`."""
+    """Map and histogram of an :class:`aerocal.assess.DemDifference` (tested minus reference).
+
+    Args:
+        diff: the difference (metres, on the tested DEM's grid, E, N in the flight CRS); its transects are drawn
+            on the map.
+        title: the figure's title.
+
+    Returns:
+        :class:`Figure` ``"dem_difference"``: the map (colours symmetric about 0 out to ``|median| + 3 NMAD``, at
+        least 0.1 m) and the histogram with the mean and the median; ``numbers`` are ``diff.to_dict()``.
+    """
     fig = _canvas(10.0, 4.6)
     ax_map, ax_hist = fig.subplots(1, 2, width_ratios=[1.3, 1.0])
     d = diff.difference
@@ -252,10 +312,25 @@ def overview_figure(
     title: str = "Overview",
     caption: str = "",
 ) -> Figure:
-    """The flight seen from above: the orthomosaic thumbnail (``mosaic`` (H, W) grey values, NaN where
-    empty, over ``mosaic_extent`` (west, east, south, north) metres), the number of images that see each
-    ground cell (``overlap`` (rows, cols) counts, row 0 north, over ``overlap_extent``), camera centres
-    (N, 2+ E, N metres), control points (triangles) and check points (circles) as (id, E, N)."""
+    """The flight seen from above: orthomosaic thumbnail, image overlap, camera centres and ground control.
+
+    Args:
+        centres_en: camera centres (N, 2+), E, N metres in the flight CRS.
+        overlap: the number of images that see each ground cell, (rows, cols) counts, row 0 north; cells of 0
+            are left blank and cells seen by one image only are red.
+        overlap_extent: ``(west, east, south, north)`` metres of ``overlap``; it is drawn only with both.
+        mosaic: the orthomosaic thumbnail, (H, W) grey values, NaN where empty.
+        mosaic_extent: ``(west, east, south, north)`` metres of ``mosaic``; it is drawn only with both.
+        control: control points (triangles) as ``(id, E, N)``.
+        check: check points (circles) as ``(id, E, N)``.
+        title: the figure's title.
+        caption: the caption.
+
+    Returns:
+        :class:`Figure` ``"overview"``; ``numbers`` hold ``n_images``, ``control_points`` and ``check_points``,
+        with a mosaic ``mosaic_extent_m``, and with overlap ``overlap_extent_m``, ``overlap_median`` and
+        ``overlap_fraction_below_3`` (over the cells seen at all) and ``overlap_max``.
+    """
     fig = _canvas(8.0, 6.6)
     ax = fig.add_subplot()
     c = np.asarray(centres_en, dtype=float)
@@ -310,8 +385,19 @@ def tie_point_figure(
     points_en: np.ndarray, n_obs: np.ndarray, centres_en: np.ndarray | None = None,
     title: str = "Tie points", caption: str = "",
 ) -> Figure:
-    """Tie points (N, 2+ E, N metres) coloured by the number of images that measured each (``n_obs``), with
-    the camera centres; beside it the histogram of ``n_obs``."""
+    """Tie points coloured by the number of images that measured each, beside the histogram of that number.
+
+    Args:
+        points_en: tie points (N, 2+), E, N metres in the flight CRS.
+        n_obs: the number of images that measured each point (N,).
+        centres_en: camera centres (M, 2+), E, N metres, drawn too when given.
+        title: the figure's title.
+        caption: the caption.
+
+    Returns:
+        :class:`Figure` ``"tie_points"``; ``numbers`` hold ``n_points``, ``images_per_point_median``,
+        ``images_per_point_mean`` and ``images_per_point_counts`` (images per point -> number of points).
+    """
     p = np.asarray(points_en, dtype=float)
     k = np.asarray(n_obs, dtype=float)
     fig = _canvas(10.0, 5.0)
@@ -352,8 +438,21 @@ def distortion_displacement(camera, uv: np.ndarray) -> np.ndarray:
 
 
 def distortion_figure(camera, title: str = "Lens distortion", caption: str = "") -> Figure:
-    """The certificate's distortion: displacement vectors over the frame (exaggerated, with a scale arrow)
-    and the displacement's length against the distance from the principal point (pixels)."""
+    """The certificate's distortion: displacement vectors over the frame and a radial profile.
+
+    Left, the displacement (:func:`distortion_displacement`) of a grid of pixels over the frame (exaggerated,
+    with a scale arrow; the principal point marked); right, the displacement's length against the distance from
+    the principal point (pixels), along +x out to the distance of the farthest corner, positive outwards.
+
+    Args:
+        camera: the camera (:class:`aerocal.camera.Camera`, pixels with the origin at the top-left corner).
+        title: the figure's title.
+        caption: the caption.
+
+    Returns:
+        :class:`Figure` ``"distortion"``; ``numbers`` hold ``max_displacement_px`` (over the grid),
+        ``corner_displacement_px`` (at the four corners), ``exaggeration`` and ``scale_arrow_px``.
+    """
     w, h = float(camera.width), float(camera.height)
     u, v = np.meshgrid(np.linspace(0.0, w, 13), np.linspace(0.0, h, 10))
     uv = np.column_stack([u.ravel(), v.ravel()])

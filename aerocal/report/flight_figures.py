@@ -50,8 +50,23 @@ class FigureSkipped(Exception):
 
 
 def image_residuals_from_assessment(assessment: Mapping) -> Figure:
-    """Mean reprojection residual per image region from an assessment's ``reprojection`` statistics
-    (:meth:`aerocal.assess.ReprojectionStats.to_dict`, whose ``binned`` grid it draws)."""
+    """Mean reprojection residual per image region, from an assessment's ``reprojection`` statistics.
+
+    Args:
+        assessment: the assessment document; its ``reprojection`` entry
+            (:meth:`aerocal.assess.ReprojectionStats.to_dict`) gives the ``binned`` grid drawn, and ``rms_px``
+            (pixels) and ``n`` for the caption.
+
+    Returns:
+        :class:`~aerocal.report.figures.Figure` ``"image_residuals"``
+        (:func:`~aerocal.report.figures.image_residual_figure`), its caption adding the overall reprojection RMS
+        and the number of observations when ``rms_px`` is given.
+
+    Raises:
+        FigureSkipped: the assessment holds no binned residuals, or every bin is empty (no image size or no
+            observations).
+        ValueError: the grid's ``bins`` disagree with the shape of its counts.
+    """
     rep = assessment.get("reprojection") or {}
     binned = rep.get("binned")
     if not binned or not np.asarray(binned.get("count", []), dtype=float).sum():
@@ -70,11 +85,25 @@ def temperature_io_for_flight(
 ) -> Figure:
     """Focal length and principal point each image was adjusted with, against its sensor temperature.
 
-    ``camera``: the certificate's camera (IO at the thermal model's reference temperature); ``model``:
-    its thermal model or ``None``; ``temperatures``: image id -> sensor temperature (degC, ``None`` when
-    not recorded); ``valid_range``: the model's valid temperatures (degC). Without a thermal model the
-    constant IO is drawn over the flight's temperatures and the caption says that the certificate assumes
-    no drift.
+    Without a thermal model the constant IO is drawn over the flight's temperatures and the caption says that
+    the certificate assumes no drift. A model that only corrects measurements is drawn as its equivalent focal
+    length and principal point (:func:`~aerocal.report.figures.io_at_temperatures`).
+
+    Args:
+        camera: the certificate's camera (IO at the thermal model's reference temperature; pixels).
+        model: its thermal model, or ``None``.
+        temperatures: image id -> sensor temperature (degC, ``None`` when not recorded; NaN counts as not
+            recorded).
+        valid_range: the model's valid temperatures (degC); the caption says when the flight leaves them (the
+            model is then extrapolated).
+
+    Returns:
+        :class:`~aerocal.report.figures.Figure` ``"temperature_io"``
+        (:func:`~aerocal.report.figures.temperature_io_figure`); its ``numbers`` add ``image_id``,
+        ``temperature_range_c``, ``valid_range_c`` and ``thermal_model`` (whether there is one).
+
+    Raises:
+        FigureSkipped: no image of the flight records a sensor temperature.
     """
     ids = [int(i) for i, t in temperatures.items() if t is not None and np.isfinite(t)]
     t = np.array([float(temperatures[i]) for i in ids], dtype=float)
@@ -135,10 +164,27 @@ def dem_difference_for_flight(
     dsm, reference, tie_points_en: np.ndarray | None = None, measured_within_m: float = MEASURED_WITHIN_M,
     reference_name: str = "the reference DSM",
 ) -> Figure:
-    """The flight's DSM minus a reference surface (both :class:`aerocal.products.dsm.Dsm`), map and histogram, on
-    the DSM's cells inside the reference grid. With the adjusted tie points (``tie_points_en`` (N, 2+) E, N
-    metres) the numbers add ``measured_cells``: the same statistics on the cells within
-    ``measured_within_m`` of a tie point, where the DSM's heights are measured rather than interpolated."""
+    """The flight's DSM minus a reference surface, map and histogram, on the DSM's cells inside the reference grid.
+
+    Args:
+        dsm: the flight's DSM (:class:`aerocal.products.dsm.Dsm`, heights in metres).
+        reference: the reference surface (:class:`aerocal.products.dsm.Dsm`), in the DSM's CRS.
+        tie_points_en: the adjusted tie points (N, 2+), E, N metres. With them the numbers add ``measured_cells``:
+            the same statistics on the cells within ``measured_within_m`` of a tie point, where the DSM's heights
+            are measured rather than interpolated.
+        measured_within_m: metres from a DSM cell holding a tie point (default :data:`MEASURED_WITHIN_M`, 2 m).
+        reference_name: how the caption and the skip messages name the reference (default "the reference DSM").
+
+    Returns:
+        :class:`~aerocal.report.figures.Figure` ``"dem_difference"`` (tested minus reference); its caption gives
+        the number of cells, the cell size, mean, median and NMAD (metres), and those of the measured cells when
+        there are any; ``numbers`` are the :class:`aerocal.assess.DemDifference`'s ``to_dict()``, plus
+        ``measured_cells`` (``n``, ``mean_m``, ``std_m``, ``median_m``, ``nmad_m``, ``rmse_m``, ``selection``).
+
+    Raises:
+        FigureSkipped: the reference is in another CRS (the message says how to warp it), or it has no heights
+            under the flight's DSM.
+    """
     if not _same_crs(dsm.crs, reference.crs):
         raise FigureSkipped(f"DSM minus reference: not drawn, {reference_name} is in {reference.crs} and the "
                             f"flight's DSM in {dsm.crs}; warp the reference to the flight's CRS (gdalwarp -t_srs).")
@@ -167,13 +213,25 @@ def overlap_counts(
     frames: Sequence[FrameGeometry], dsm=None, ground_height_m: float | None = None,
     cells: int = OVERVIEW_CELLS,
 ) -> tuple[np.ndarray, tuple[float, float, float, float]]:
-    """How many frames see each ground cell: ``(counts (rows, cols), (west, east, south, north))``, row 0
-    north, metres of the flight's CRS.
+    """How many frames see each ground cell, on a grid over the frames' footprints.
 
-    The grid covers the frames' footprints on the plane at the ground height (``ground_height_m``, default
-    the DSM's median height) with at most ``cells`` cells along its longer side; every cell centre is lifted
-    to the DSM's height there (the ground height where the DSM is empty or absent) and projected into every
-    frame with its interior orientation and distortion: a cell counts for a frame when it lands inside it.
+    The grid covers the frames' footprints on the plane at the ground height with at most ``cells`` cells along
+    its longer side; every cell centre is lifted to the DSM's height there (the ground height where the DSM is
+    empty or absent) and projected into every frame with its interior orientation and distortion: a cell
+    counts for a frame when it lands inside it.
+
+    Args:
+        frames: the adjusted frames (:class:`aerocal.products.mosaic.FrameGeometry`), at least one.
+        dsm: the flight's DSM (:class:`aerocal.products.dsm.Dsm`), or ``None``.
+        ground_height_m: the ground plane's height, metres (default: the DSM's median height; 0 without a DSM).
+        cells: the most cells along the grid's longer side (default :data:`OVERVIEW_CELLS`, 160).
+
+    Returns:
+        ``(counts, (west, east, south, north))``: int32 counts (rows, cols), row 0 north, and the grid's extent,
+        metres of the flight's CRS.
+
+    Raises:
+        ValueError: ``frames`` is empty.
     """
     if ground_height_m is None:
         ground_height_m = float(np.nanmedian(dsm.heights)) if dsm is not None else 0.0

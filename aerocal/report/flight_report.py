@@ -87,20 +87,47 @@ def write_flight_report(
     reference_dsm_name: str = "reference/dsm.tif",
     extension: Mapping | None = None,
 ) -> dict:
-    """Write ``out_dir/report.html`` and ``out_dir/summary.json`` for a processed flight; return the summary
-    document (what ``summary.json`` holds).
+    """Write ``out_dir/report.html`` and ``out_dir/summary.json`` for a processed flight.
 
-    ``flight``: the ingest's flight summary (name, mode, n_images, crs, date, temperature_range, facts,
-    skipped_images); ``images``/``poses``/``points``/``gcps``: the :mod:`aerocal.tables` tables;
-    ``adjustment``: the fixed-IO adjustment's summary (sigma0, check_ids, check_errors_m, control_ids, ...);
-    ``dsm``: the DSM GeoTIFF; ``mosaic``, ``assessment``, ``diagnosis``, ``control_screening``: the steps'
-    JSON documents; ``reference_dsm``: a reference surface GeoTIFF (heights in metres, the flight's CRS) or
-    ``None``; ``orthomosaic``: the orthomosaic GeoTIFF or ``None``; ``title`` (default "Flight report:
-    <name>"), ``extra`` key figures added to the summary, ``measured_within_m``: DSM cells this close to a
-    tie point count as measured; ``step_seconds``: step name -> wall time (s), shown when given;
-    ``extension``: the record of the block's extension by its diagnosis
-    (:func:`aerocal.pipeline.extend_step.extension_record`): the terms applied and the block before and after
-    (``adjustment``, ``assessment`` and ``diagnosis`` are then the extended block's).
+    A figure the flight's data cannot support is replaced on the page, and in ``summary.json``'s ``notes``, by
+    the sentence saying why (:class:`~aerocal.report.flight_figures.FigureSkipped`).
+
+    Args:
+        out_dir: the folder written (created with its parents when missing).
+        flight: the ingest's flight summary: ``name``, ``mode``, ``n_images``, ``crs`` and ``date`` (required),
+            ``temperature_range``, ``facts``, ``skipped_images``.
+        images: the ``images`` table (:mod:`aerocal.tables`); its ``temperature_c`` (degC) per image.
+        certificate: the calibration certificate the flight used (camera, thermal model, sigmas, conditions).
+        adjustment: the fixed-IO adjustment's summary: ``sigma0`` and ``reprojection_rms_px`` (required),
+            ``check_ids``, ``check_errors_m`` (E, N, Up metres, estimated minus surveyed; required with
+            ``check_ids``), ``control_ids``, ...
+        poses: the adjusted ``poses`` table (projection centres E, N, Up metres in the flight's CRS).
+        points: the adjusted ``points`` table.
+        dsm: the DSM GeoTIFF, or ``None``.
+        mosaic: the mosaic step's JSON document (``frames``, ``ground_height_m``, ``gsd_m``, ``temperature``).
+        assessment: the assessment step's JSON document.
+        diagnosis: the diagnosis step's JSON document.
+        gcps: the ``gcps`` table.
+        control_screening: the ground-control screening's JSON document, or ``None`` (not screened).
+        reference_dsm: a reference surface GeoTIFF (heights in metres, the flight's CRS), or ``None``.
+        orthomosaic: the orthomosaic GeoTIFF, or ``None``.
+        title: the page's title (default "Flight report: <name>").
+        extra: key figures added to the summary.
+        measured_within_m: DSM cells this close to a tie point (metres) count as measured (default
+            :data:`~aerocal.report.flight_figures.MEASURED_WITHIN_M`).
+        step_seconds: step name -> wall time (seconds), shown when given.
+        reference_dsm_name: how the page names the reference surface (default ``"reference/dsm.tif"``).
+        extension: the record of the block's extension by its diagnosis
+            (:func:`aerocal.pipeline.extend_step.extension_record`): the terms applied and the block before and
+            after (``adjustment``, ``assessment`` and ``diagnosis`` are then the extended block's).
+
+    Returns:
+        The summary document, what ``summary.json`` holds (:func:`aerocal.report.html.machine_summary`, plus
+        ``step_seconds`` when given).
+
+    Raises:
+        KeyError: a required key of ``flight`` or ``adjustment`` is missing, or a check id is absent from ``gcps``.
+        ValueError: ``dsm`` or ``reference_dsm`` is not a readable north-up GeoTIFF with a CRS.
     """
     out_dir = Path(out_dir)
     cert = certificate

@@ -108,13 +108,27 @@ def write_report(
     title: str = "Flight report",
     notes: Sequence[str] = (),
 ) -> Path:
-    """Write ``run_dir/report.html`` (self-contained, from ``templates/report.html.j2``) and
-    ``run_dir/summary.json`` (:func:`machine_summary`); return the HTML path.
+    """Write ``run_dir/report.html`` (self-contained, from ``templates/report.html.j2``) and ``run_dir/summary.json``.
 
     The page shows the summary's key figures under readable labels (:func:`aerocal.report.wording.key_figures`),
     the figures with their captions, the ``notes`` (one sentence per figure the data could not support) and the
     certificate's parameters. Both files are written atomically. A processed flight's report is
     :func:`aerocal.report.flight_report.write_flight_report`.
+
+    Args:
+        run_dir: the folder written (created with its parents when missing).
+        summary: the key figures, JSON-ready (e.g. the ``to_dict()`` of :mod:`aerocal.assess` results); the first
+            value that is a mapping with a text ``verdict`` gives the page's verdict.
+        figures: the figures (:class:`aerocal.report.figures.Figure`), in page order, names unique.
+        certificate: the certificate table, or ``None``.
+        title: the page's title (default "Flight report").
+        notes: one sentence per figure not drawn.
+
+    Returns:
+        The path of ``report.html``; ``summary.json`` is :func:`machine_summary`'s document.
+
+    Raises:
+        ValueError: figure names repeat.
     """
     run_dir = Path(run_dir)
     machine = machine_summary(title, summary, figures, notes, certificate)

@@ -253,7 +253,21 @@ def preset_names() -> list[str]:
 
 
 def get_preset(name: str, source: str | None = None) -> FlightSpec:
-    """A preset by name; ``source`` is the image folder of a measured preset (``seneca``)."""
+    """A flight specification by preset name.
+
+    Args:
+        name: a preset of :data:`PRESETS`, or a measured preset (:data:`MEASURED`: ``seneca``).
+        source: the image folder of a measured preset (``seneca``; default: its folder in a development checkout,
+            ``shared/data/seneca/images`` beside the repository); unused by the other presets.
+
+    Returns:
+        :class:`FlightSpec`: the preset of :data:`PRESETS` itself, or for a measured preset one built on every
+        call from the stations, attitudes and temperatures its images record.
+
+    Raises:
+        PresetError: an unknown name (the message lists the valid ones), or a measured preset whose images are
+            missing or lack GNSS positions.
+    """
     if name == "seneca":
         # import cycle: aerocal.simulate.measured builds its FlightSpec from the classes of this module
         from aerocal.simulate.measured import MeasuredFlightError, seneca_spec

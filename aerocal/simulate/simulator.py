@@ -330,8 +330,19 @@ def _write_reference_dsm(sim: SimulatedFlight, path: Path) -> None:
 
 
 def as_dataset(sim: SimulatedFlight, name: str | None = None) -> MemoryDataset:
-    """The flight as the folder :func:`write_flight` would write in observations mode, without writing it: a
-    dataset :func:`aerocal.pipeline.process` runs on in memory."""
+    """The flight as a dataset :func:`aerocal.pipeline.process` runs on in memory.
+
+    It holds what :func:`write_flight` would write in observations mode, without writing it.
+
+    Args:
+        sim: the flight (:func:`simulate_flight`).
+        name: the dataset's name (default: the preset's, ``sim.spec.name``).
+
+    Returns:
+        :class:`aerocal.pipeline.dataset.MemoryDataset`: the ``images``, ``observations``, ``gcps`` and
+        ``gcp_observations`` tables, the camera document (:func:`camera_document`), the flight's metadata
+        (:func:`flight_metadata` in observations mode) and its CRS; none of the truth.
+    """
     return MemoryDataset(name or sim.spec.name, sim.images, sim.observations, sim.gcps, sim.gcp_observations,
                          camera_document(sim), flight_metadata(sim, "observations"), sim.crs)
 
