@@ -55,9 +55,8 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
 
     assert (H20T / "images").is_dir(), f"the measured h20t_forest images are expected at {H20T}"
     out = tmp_path / "run"
-    result = CliRunner().invoke(app, ["process", str(H20T), "--out", str(out),
-                                      "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}",
-                                      "--artifacts", str(tmp_path / "art")], env={"COLUMNS": "250"})
+    store = ["--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", str(tmp_path / "art")]
+    result = CliRunner().invoke(app, ["process", str(H20T), "--out", str(out), *store], env={"COLUMNS": "250"})
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "run.json").read_text())
     cert = Certificate.from_json((out / "calibration_certificate.json").read_text())
@@ -102,3 +101,13 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
         gsd = abs(ds.transform.a)
     assert 0.02 < gsd < 0.5, gsd  # ~0.085 m: 12 um pixels at 13.5 mm from ~95 m
     assert band.count() > 0.3 * band.size and float(np.ma.std(band)) > 0, (band.count(), band.size)
+
+    # the next survey with this camera (here the same frames, processed again as a user would): the stored
+    # certificate is chosen, not made again, and the block adjusted with it names nothing
+    again = tmp_path / "again"
+    result = CliRunner().invoke(app, ["process", str(H20T), "--out", str(again), *store], env={"COLUMNS": "250"})
+    assert result.exit_code == 0, result.output
+    reused = json.loads((again / "run.json").read_text())
+    assert reused["certificate_id"] == cert.id, reused["certificate_reason"]
+    assert reused["steps"].get("calibrate", {}).get("status") != "computed", reused["steps"]
+    assert not reused["findings"] and not json.loads((again / "diagnosis.json").read_text())["effects"], reused
