@@ -432,6 +432,30 @@ def test_flight_report_says_why_a_figure_is_missing(processed_flight, tmp_path):
     assert len(doc["notes"]) == 2 and "dsm_minus_reference_m" not in doc["summary"]
 
 
+def test_an_unreadable_reference_dsm_is_a_figure_left_out_with_the_file_and_the_fix(processed_flight, tmp_path):
+    """The reference DSM is the user's file: one that is not a GeoTIFF, or has no CRS, leaves its figure out with
+    a sentence naming the file and what to do, and the report (the run's last step) is still written."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    f = dict(processed_flight)
+    broken = tmp_path / "broken.tif"
+    broken.write_bytes(b"not a GeoTIFF at all")
+    f["reference_dsm"] = broken
+    _write(f, tmp_path / "a")
+    text = _read(tmp_path / "a" / "report.html").visible()
+    assert f"DSM minus reference: not drawn, {broken}: not a readable GeoTIFF" in text
+    no_crs = tmp_path / "no_crs.tif"
+    with rasterio.open(no_crs, "w", driver="GTiff", width=4, height=4, count=1, dtype="float32",
+                       transform=from_origin(0, 4, 1, 1)) as ds:
+        ds.write(np.zeros((1, 4, 4), np.float32))
+    f["reference_dsm"] = no_crs
+    doc = _write(f, tmp_path / "b")
+    text = _read(tmp_path / "b" / "report.html").visible()
+    assert "the raster has no CRS; assign the flight's CRS" in text
+    assert "dsm_minus_reference_m" not in doc["summary"]
+
+
 def test_overlap_counts_cover_each_footprint_once():
     """One nadir frame over flat ground sees a rectangle of w H / f by h H / f metres: that many cells count 1,
     none 2; two frames a footprint apart along E count 2 nowhere either, half a footprint apart on half of

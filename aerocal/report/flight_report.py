@@ -168,8 +168,12 @@ def write_flight_report(
                                 f"({reference_dsm_name}, a GeoTIFF of surface heights in the flight's CRS).")
         if dsm_grid is None:
             raise FigureSkipped("DSM minus reference: not drawn, the flight has no DSM.")
+        try:
+            reference = read_dsm(reference_dsm)
+        except ValueError as exc:  # the user's file: a figure left out with why, not a run lost at its end
+            raise FigureSkipped(f"DSM minus reference: not drawn, {exc}") from exc
         tie_en = np.column_stack([points.column("X").to_numpy(), points.column("Y").to_numpy()])
-        return dem_difference_for_flight(dsm_grid, read_dsm(reference_dsm), tie_en, measured_within_m,
+        return dem_difference_for_flight(dsm_grid, reference, tie_en, measured_within_m,
                                          f"the reference DSM ({reference_dsm_name})")
 
     attempt("dem_difference", dem_difference)
