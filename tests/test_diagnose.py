@@ -1,7 +1,12 @@
 """The diagnosis finds a hidden effect without being told which, and says nothing when there is none.
 
-Every test simulates a flight with the effect hidden in it, processes the flight's tables (never its
-truth) and compares the named cause with what was drawn. Seeds are printed in every assertion.
+Every test simulates a flight with the effect hidden in it, diagnoses the flight's tables and compares the named
+cause with what was drawn. These are the diagnosis's own tests: it is handed the simulated camera as a laboratory
+certificate (IO fixed, exact), so that what they measure is the diagnosis's sensitivity and its false-alarm rate,
+apart from any calibration error. What a user meets (the product's own self-calibration, or a certificate made on
+another simulated flight, never the truth) is tested through the pipeline in tests/test_model_loop.py (every
+catalogue effect), tests/test_rendered_discovery.py (rendered frames) and tests/test_demo.py. Seeds are printed in
+every assertion.
 """
 
 import dataclasses
