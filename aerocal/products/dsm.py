@@ -28,19 +28,10 @@ Method (what :func:`dsm_from_points` does)
    to the nearest cell that held a tie point, so users (and :mod:`aerocal.assess`) can tell measured heights
    from interpolated ones.
 
-Why tie points and no dense stereo (cv2.StereoSGBM on rectified pairs) - measured on the
-``conte-calibration`` flight (850 m, GSD 0.51 m, 12-14 frames, ~1100 tie points, i.e. one per ~200 m2,
-seed 3): the tie-point DSM differs from the true surface by a mean of -0.02 m (NMAD 0.63 m) on the
-cells within 2 m of a tie point (tests/test_dsm.py), but it is 3-6 m RMS off at the check targets,
-which stand on open ground 8 m from roofs and trees whose tie points the interpolation spreads over
-them. The orthomosaic tolerates that: a height error ``dZ`` moves a pixel by ``dZ r / H`` (``r`` the
-ground distance from the nadir of the frame used, <= ~150 m with the most-nadir choice), so the check
-targets land at 0.44 GSD RMSE on this DSM against 0.12 GSD on the true one (tests/test_mosaic.py).
-Smoothing the sparse data before filling (local median of 5-13 neighbouring cells, or median
-instead of linear fill) did not lower the error at the targets (measured 4.5-9 m RMS), and denser tie
-points did (1.1-2.5 m RMS at ~5 times the density). Dense stereo is therefore where the DSM would gain,
-mainly on building edges (true orthophotos); it is not implemented here: on 640x480 thermal frames
-the mosaic already meets 1 GSD, and SGBM would have to be measured on real thermal texture first.
+Tie points and the dense surface: on a flight with frames the pipeline grids the dense cloud
+(:mod:`aerocal.products.dense`) with this same function, at one cell per ground sample; the tie points' DSM
+remains the surface of a flight without frames and the comparison printed beside the dense one (the two against
+a true surface: ``benchmarks/RESULTS.md``, "Dense surface").
 """
 
 from __future__ import annotations
@@ -382,20 +373,30 @@ def _raster_triangles(rows: np.ndarray, values: np.ndarray, out: np.ndarray, fil
                     filled[r, c] = True
 
 
-def write_dsm(dsm: Dsm, path: str | Path) -> Path:
-    """Write ``dsm`` as a tiled, deflate-compressed float32 GeoTIFF (nodata :data:`NODATA`), atomically."""
+def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None) -> Path:
+    """Write ``dsm`` as a tiled, deflate-compressed float32 GeoTIFF (nodata :data:`NODATA`), atomically.
+
+    ``measured`` (bool, the DSM's shape), when given, is written as a second band (1: a measured height, 0: a
+    filled hole) named ``measured``: a GIS shows where the surface was interpolated; readers of the heights
+    (:func:`read_dsm`) read band 1 only."""
     path = Path(path)
     data = np.where(np.isfinite(dsm.heights), dsm.heights, NODATA).astype(np.float32)
     rows, cols = dsm.shape
+    bands = [data] if measured is None else [data, np.where(np.isfinite(dsm.heights), measured, NODATA)
+                                             .astype(np.float32)]
     profile = {
-        "driver": "GTiff", "width": cols, "height": rows, "count": 1, "dtype": "float32", "crs": dsm.crs,
+        "driver": "GTiff", "width": cols, "height": rows, "count": len(bands), "dtype": "float32", "crs": dsm.crs,
         "transform": dsm.transform(), "nodata": NODATA, "compress": "deflate", "predictor": 3,
     }
     if rows >= 256 and cols >= 256:
         profile.update(tiled=True, blockxsize=256, blockysize=256)
     with atomic_path(path) as tmp:
         with rasterio.open(tmp, "w", **profile) as dst:
-            dst.write(data, 1)
+            for k, band in enumerate(bands, start=1):
+                dst.write(band, k)
+            dst.set_band_description(1, "height")
+            if measured is not None:
+                dst.set_band_description(2, "measured")
             dst.update_tags(AREA_OR_POINT="Area", units="metre")
     return path
 

@@ -1,0 +1,450 @@
+"""Dense surface of an adjusted block: semi-global matching on rectified pairs, fused across views.
+
+What :func:`dense_cloud` does, for every frame of the block (the *reference*), as one task per frame:
+
+1. **Neighbours** (:func:`select_neighbours`): the frames whose footprints on the ground plane cover at least
+   ``min_overlap`` of the reference's, with a base-to-height ratio between ``min_base_to_height`` (depth too
+   weak) and ``max_base_to_height`` (views too different for area matching); the ``neighbours`` of them that
+   overlap most.
+2. **Rectification** (:func:`rectify`): both frames are resampled (``cv2.remap``) onto a common plane whose x
+   axis is the baseline, through the full camera model of each frame (distortion, affinity; the certificate's
+   IO): a ground point lies on the same row of both, ``d = f B / z`` pixels apart. The construction is
+   Fusiello, Trucco & Verri (2000), with the plane's z axis the mean of the two optical axes; OpenCV's
+   ``stereoRectify`` does the same for a pinhole with its own distortion model, not ours.
+3. **Semi-global matching**: OpenCV's ``StereoSGBM`` (3-way, Birchfield-Tomasi cost on the x-Sobel prefiltered
+   8-bit frames, uniqueness and speckle filters; its ``disp12MaxDiff`` is the left-right consistency check).
+   The disparity search spans the adjusted tie points seen in both frames, widened by ``disparity_margin_px``:
+   the surface cannot be where no tie point suggests it, and a narrow search is both faster and harder to fool.
+   Pixels whose neighbourhood holds less than ``min_texture`` grey levels of contrast get no disparity: SGBM
+   carries its paths' values across a uniform area, and two pairs would carry them alike.
+4. **Depth in the reference**: each disparity map is read back at the reference's own pixels (its rays through
+   the rectification), giving one depth map along the reference's optical axis per neighbour.
+5. **Multi-view fusion**: a pixel keeps a depth only where at least ``min_agreeing_pairs`` pairs agree within
+   ``agreement_px`` pixels of disparity (the reference and at least two other views: a moving object or a
+   uniform-temperature area, where the pairs disagree or find nothing, stays a hole); the depth is the mean of
+   the agreeing pairs. A point is kept by the frame whose projection centre is nearest to it in plan (each
+   ground point from the most nadir frame that saw it, once), so the cloud holds about one point per ground
+   sample, not one per view.
+
+Frames larger than ``max_image_pixels`` are matched at a reduced scale (the same for all frames); the cloud's
+ground sampling distance is then that of the reduced frames.
+
+Conventions: world coordinates are the flight's projected CRS (E, N, up, metres); frame pixels follow
+:class:`aerocal.camera.Camera` (top-left corner of the first pixel at (0, 0)); arrays passed to OpenCV use its
+convention (centre of the first pixel at (0, 0)).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from aerocal.products.mosaic import FrameGeometry
+
+#: A frame's pixels for matching: image id -> (8-bit grey frame for SGBM, frame values for the cloud's
+#: attribute (counts, grey level) at full resolution; both (height, width) of the camera)
+FrameLoader = Callable[[int], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass(frozen=True)
+class DenseConfig:
+    """How the dense surface is matched and fused. Pixels are those of the matched (possibly reduced) frames.
+
+    Defaults: 4 neighbours give each pixel up to 4 depths, enough for two to agree where one pair is occluded;
+    a 5-pixel SGBM block is the smallest that matched smooth thermal texture without speckle; one pixel of
+    disparity agreement is about 3 times SGBM's sub-pixel noise on textured frames.
+    """
+
+    neighbours: int = 4  #: neighbours matched with each reference frame
+    min_overlap: float = 0.3  #: fraction of the reference footprint a neighbour must cover
+    min_base_to_height: float = 0.03  #: weaker baselines give depth too noisy to fuse
+    max_base_to_height: float = 1.0  #: wider baselines see the surface too differently for area matching
+    max_image_pixels: int = 1_500_000  #: larger frames are matched at a reduced scale (memory and time)
+    block_size: int = 5  #: SGBM matching block, pixels (odd)
+    uniqueness_ratio: int = 10  #: SGBM: best cost must beat the second by this percentage
+    speckle_window: int = 64  #: SGBM: disparity blobs smaller than this (pixels) are removed ...
+    speckle_range: int = 2  #: ... when their disparity varies within this (pixels)
+    min_texture: float = 1.0  #: grey levels of standard deviation a pixel's neighbourhood needs to be matched
+    disparity_margin_px: float = 8.0  #: added on each side of the tie points' disparity range
+    max_disparities: int = 256  #: cap on the disparity search width (pixels; SGBM's cost grows with it)
+    agreement_px: float = 1.0  #: two pairs agree when their depths differ by at most this disparity
+    min_agreeing_pairs: int = 2  #: pairs that must agree (2: the reference and two other views)
+
+    def __post_init__(self) -> None:
+        if self.neighbours < 1:
+            raise ValueError(f"DenseConfig.neighbours must be at least 1, got {self.neighbours}")
+        if not 0.0 < self.min_overlap < 1.0:
+            raise ValueError(f"DenseConfig.min_overlap must be in (0, 1), got {self.min_overlap}")
+        if not 0.0 <= self.min_base_to_height < self.max_base_to_height:
+            raise ValueError("DenseConfig: need 0 <= min_base_to_height < max_base_to_height, got "
+                             f"{self.min_base_to_height} and {self.max_base_to_height}")
+        if self.block_size < 3 or self.block_size % 2 == 0:
+            raise ValueError(f"DenseConfig.block_size must be odd and at least 3, got {self.block_size}")
+        if self.max_image_pixels < 10_000:
+            raise ValueError(f"DenseConfig.max_image_pixels must be at least 10000, got {self.max_image_pixels}")
+        if not 16 <= self.max_disparities <= 1024:
+            raise ValueError(f"DenseConfig.max_disparities must be in [16, 1024], got {self.max_disparities}")
+        if self.min_texture < 0:
+            raise ValueError(f"DenseConfig.min_texture must be >= 0, got {self.min_texture}")
+        if not self.agreement_px > 0:
+            raise ValueError(f"DenseConfig.agreement_px must be positive, got {self.agreement_px}")
+        if self.min_agreeing_pairs < 1:
+            raise ValueError(f"DenseConfig.min_agreeing_pairs must be at least 1, got {self.min_agreeing_pairs}")
+
+
+@dataclass(frozen=True)
+class PairPlan:
+    """One reference-neighbour pair to match: the neighbour and the SGBM disparity search for it."""
+
+    other: int  #: image id of the neighbour
+    min_disparity: int  #: SGBM minDisparity (rectified pixels, may be negative)
+    num_disparities: int  #: SGBM numDisparities (a multiple of 16)
+
+
+@dataclass(frozen=True)
+class DenseCloud:
+    """The fused dense cloud. ``xyz`` (N, 3) float64 world metres; ``value`` (N,) float32 the reference frame's
+    value at the point (counts of a radiometric frame, grey level otherwise); ``views`` (N,) uint8 frames that
+    agree on it; ``image_id`` (N,) int32 the reference frame that kept it. ``gsd_m`` is the matched frames'
+    median ground sample distance; ``stats`` counts frames, pairs and points."""
+
+    xyz: np.ndarray
+    value: np.ndarray
+    views: np.ndarray
+    image_id: np.ndarray
+    gsd_m: float
+    stats: Mapping[str, float]
+
+
+def matching_scale(frames: Sequence[FrameGeometry], max_image_pixels: int) -> float:
+    """The scale (<= 1) at which frames are matched: at most ``max_image_pixels`` per frame."""
+    px = max(f.camera.width * f.camera.height for f in frames)
+    return float(min(1.0, np.sqrt(max_image_pixels / px)))
+
+
+def _border(frame: FrameGeometry, n: int = 12) -> np.ndarray:
+    w, h = float(frame.camera.width), float(frame.camera.height)
+    t = np.linspace(0.0, 1.0, n, endpoint=False)
+    return np.concatenate([np.column_stack([t * w, 0 * t]), np.column_stack([0 * t + w, t * h]),
+                           np.column_stack([w - t * w, 0 * t + h]), np.column_stack([0 * t, h - t * h])])
+
+
+def _world_rays(frame: FrameGeometry, uv: np.ndarray) -> np.ndarray:
+    """Frame pixels (..., 2) -> world ray directions (..., 3) with unit z in the camera frame."""
+    xy = frame.camera.unproject(uv)
+    ray = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+    return ray @ np.asarray(frame.R_cw)
+
+
+def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
+                      config: DenseConfig) -> dict[int, list[int]]:
+    """Image id -> the ids of the frames matched with it (best overlap first; see the module docstring).
+
+    Overlap is measured on the plane at ``ground_height_m`` (metres): the fraction of a grid of ground points
+    in the reference's footprint that the other frame sees.
+    """
+    cam_xy = np.array([f.C[:2] for f in frames])
+    heights = np.array([f.C[2] - ground_height_m for f in frames])
+    grid = np.stack(np.meshgrid(np.linspace(0.05, 0.95, 7), np.linspace(0.05, 0.95, 7)), -1).reshape(-1, 2)
+    samples = []
+    for f in frames:
+        uv = grid * [f.camera.width, f.camera.height]
+        d = _world_rays(f, uv)
+        s = (ground_height_m - f.C[2]) / np.where(d[:, 2] < -1e-9, d[:, 2], np.nan)
+        samples.append(np.column_stack([f.C[:2] + s[:, None] * d[:, :2], np.full(len(s), ground_height_m)]))
+    reach = 2.0 * np.max(heights) * max(1.0, config.max_base_to_height)
+    tree = cKDTree(cam_xy)
+    out: dict[int, list[int]] = {}
+    for i, f in enumerate(frames):
+        cand = []
+        for j in tree.query_ball_point(cam_xy[i], reach):
+            if j == i:
+                continue
+            bh = float(np.linalg.norm(frames[j].C - f.C)) / max(heights[i], 1e-9)
+            if not config.min_base_to_height <= bh <= config.max_base_to_height:
+                continue
+            X = samples[i][np.all(np.isfinite(samples[i]), axis=1)]
+            uv = frames[j].project(X)
+            seen = np.all(np.isfinite(uv), axis=1) & frames[j].camera.in_image(uv)
+            overlap = float(np.mean(seen)) if len(X) else 0.0
+            if overlap >= config.min_overlap:
+                cand.append((overlap * bh, j))
+        cand.sort(key=lambda t: -t[0])
+        out[f.image_id] = [frames[j].image_id for _, j in cand[:config.neighbours]]
+    return out
+
+
+@dataclass(frozen=True)
+class Rectification:
+    """A rectified pair at the matching scale. ``R`` (3, 3) world-to-rectified rotation; ``f`` focal length
+    (rectified pixels); ``cy`` common principal row; ``cx_left`` / ``cx_right`` principal columns of each
+    rectified frame; ``size`` (width, height); ``baseline_m`` the distance between the projection centres."""
+
+    R: np.ndarray
+    f: float
+    cy: float
+    cx_left: float
+    cx_right: float
+    size: tuple[int, int]
+    baseline_m: float
+
+    def rect_pixels(self, rays_world: np.ndarray, left: bool) -> np.ndarray:
+        """World ray directions (..., 3) from the left (or right) projection centre -> rectified pixels
+        (OpenCV convention, ..., 2); NaN behind the plane."""
+        r = rays_world @ self.R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(r[..., 2] > 1e-9, r[..., 2], np.nan)
+        cx = self.cx_left if left else self.cx_right
+        return np.stack([cx + self.f * r[..., 0] / z, self.cy + self.f * r[..., 1] / z], axis=-1)
+
+    def disparity_of(self, X: np.ndarray, C_left: np.ndarray) -> np.ndarray:
+        """Disparity (left column minus right column, rectified pixels) of world points ``X`` (N, 3)."""
+        z = (np.asarray(X) - C_left) @ self.R[2]
+        return self.f * self.baseline_m / z + (self.cx_left - self.cx_right)
+
+
+def rectify(left: FrameGeometry, right: FrameGeometry, scale: float, max_size_factor: float = 2.0) -> Rectification:
+    """The rectification of a pair (module docstring, step 2) at ``scale``; rectified frames are at most
+    ``max_size_factor`` times the matched frames' size (a strongly oblique pair is cropped, not blown up).
+
+    Raises:
+        ValueError: the projection centres coincide (no baseline).
+    """
+    base = np.asarray(right.C, dtype=float) - np.asarray(left.C, dtype=float)
+    b = float(np.linalg.norm(base))
+    if not b > 1e-6:
+        raise ValueError(f"rectify: frames {left.image_id} and {right.image_id} share a projection centre")
+    e1 = base / b
+    axis = np.asarray(left.R_cw)[2] + np.asarray(right.R_cw)[2]
+    e2 = np.cross(axis, e1)
+    e2 /= np.linalg.norm(e2)
+    R = np.stack([e1, e2, np.cross(e1, e2)])
+    f = 0.5 * (left.camera.f + right.camera.f) * scale
+    ext = []
+    for fr in (left, right):
+        r = _world_rays(fr, _border(fr)) @ R.T
+        ok = r[:, 2] > 1e-9
+        ext.append(f * r[ok, :2] / r[ok, 2:3])
+    w0, h0 = max(left.camera.width, right.camera.width) * scale, max(left.camera.height, right.camera.height) * scale
+    vmin = max(float(e[:, 1].min()) for e in ext)
+    vmax = min(float(e[:, 1].max()) for e in ext)
+    vmid, vhalf = 0.5 * (vmin + vmax), 0.5 * min(vmax - vmin, max_size_factor * h0)
+    widths = [min(float(e[:, 0].max() - e[:, 0].min()), max_size_factor * w0) for e in ext]
+    cx = [-0.5 * (float(e[:, 0].max() + e[:, 0].min())) + 0.5 * w for e, w in zip(ext, widths, strict=True)]
+    width = int(np.ceil(max(widths)))
+    height = max(int(np.ceil(2 * vhalf)), 1)
+    return Rectification(R=R, f=f, cy=vhalf - vmid, cx_left=cx[0], cx_right=cx[1], size=(width, height),
+                         baseline_m=b)
+
+
+def _rectified(frame: FrameGeometry, rect: Rectification, image: np.ndarray, left: bool,
+               scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` (the frame at ``scale``) resampled onto the rectified grid (bilinear; outside: 0), and where the
+    rectified grid lies inside the frame (bool)."""
+    w, h = rect.size
+    cx = rect.cx_left if left else rect.cx_right
+    uu, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    ray_rect = np.stack([(uu - cx) / rect.f, (vv - rect.cy) / rect.f, np.ones_like(uu)], -1)
+    ray_cam = ray_rect @ rect.R @ np.asarray(frame.R_cw).T
+    uv = frame.camera.project(ray_cam)  # frame pixels, top-left convention
+    maps = np.nan_to_num(uv * scale - 0.5, nan=-10.0).astype(np.float32)
+    h_img, w_img = image.shape[:2]
+    inside = (maps[..., 0] >= 0) & (maps[..., 0] <= w_img - 1) & (maps[..., 1] >= 0) & (maps[..., 1] <= h_img - 1)
+    out = cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=0)
+    return out, inside
+
+
+def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequence[int]], tie_xyz: np.ndarray,
+               scale: float, config: DenseConfig) -> dict[int, list[PairPlan]]:
+    """The disparity search of every pair from the tie points (world metres, (N, 3)) both frames see: their
+    2nd to 98th percentile disparity, widened by a quarter of that span and ``disparity_margin_px``; with fewer
+    than 10 shared tie points, those the reference sees. Pairs without any are left out."""
+    by_id = {f.image_id: f for f in frames}
+    tie_xyz = np.asarray(tie_xyz, dtype=float)
+    seen = {}
+    for f in frames:
+        uv = f.project(tie_xyz)
+        seen[f.image_id] = np.all(np.isfinite(uv), axis=1) & f.camera.in_image(uv)
+    out: dict[int, list[PairPlan]] = {}
+    for ref, others in neighbours.items():
+        plans = []
+        for o in others:
+            both = seen[ref] & seen[o]
+            pts = tie_xyz[both] if both.sum() >= 10 else tie_xyz[seen[ref]]
+            if len(pts) < 3:
+                continue
+            rect = rectify(by_id[ref], by_id[o], scale)
+            d = rect.disparity_of(pts, by_id[ref].C)
+            d = d[np.isfinite(d)]
+            if len(d) < 3:
+                continue
+            lo, hi = np.percentile(d, [2.0, 98.0])
+            pad = 0.25 * (hi - lo) + config.disparity_margin_px
+            lo, hi = int(np.floor(lo - pad)), int(np.ceil(hi + pad))
+            num = int(min(config.max_disparities, 16 * np.ceil(max(hi - lo, 16) / 16)))
+            if num < hi - lo:  # capped: centre the search on the median
+                lo = int(np.round(np.median(d))) - num // 2
+            plans.append(PairPlan(other=o, min_disparity=lo, num_disparities=num))
+        out[ref] = plans
+    return out
+
+
+def _reference_grid(frame: FrameGeometry, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's pixel centres at ``scale`` as frame pixels (h, w, 2), and their world rays (h, w, 3)."""
+    w, h = int(round(frame.camera.width * scale)), int(round(frame.camera.height * scale))
+    uu, vv = np.meshgrid((np.arange(w) + 0.5) / scale, (np.arange(h) + 0.5) / scale)
+    uv = np.stack([uu, vv], -1)
+    return uv, _world_rays(frame, uv)
+
+
+def _resize(image: np.ndarray, scale: float) -> np.ndarray:
+    if scale == 1.0:
+        return image
+    h, w = image.shape[:2]
+    return cv2.resize(image, (int(round(w * scale)), int(round(h * scale))), interpolation=cv2.INTER_AREA)
+
+
+def _sgbm(config: DenseConfig, plan: PairPlan) -> cv2.StereoSGBM:
+    bs = config.block_size
+    return cv2.StereoSGBM.create(
+        minDisparity=plan.min_disparity, numDisparities=plan.num_disparities, blockSize=bs,
+        P1=8 * bs * bs, P2=32 * bs * bs, disp12MaxDiff=1, preFilterCap=31,
+        uniquenessRatio=config.uniqueness_ratio, speckleWindowSize=config.speckle_window,
+        speckleRange=config.speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
+
+
+def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other8: np.ndarray, plan: PairPlan,
+               rays: np.ndarray, scale: float, config: DenseConfig) -> tuple[np.ndarray, np.ndarray]:
+    """One pair's depth at the reference's pixels: (depth along the reference's optical axis, metres, NaN where
+    the pair found none; the depth tolerance of ``config.agreement_px`` disparity pixels at each pixel, metres).
+
+    ``ref8`` / ``other8`` are the 8-bit frames at ``scale``; ``rays`` the reference's world rays
+    (:func:`_reference_grid`)."""
+    rect = rectify(ref, other, scale)
+    left, inside = _rectified(ref, rect, ref8, True, scale)
+    right, _ = _rectified(other, rect, other8, False, scale)
+    raw = _sgbm(config, plan).compute(left, right)
+    disp = raw.astype(np.float32) / np.float32(16.0)
+    disp[raw < (plan.min_disparity * 16)] = np.nan
+    disp[~inside] = np.nan
+    # semi-global matching carries disparities across a region without texture along its paths, and two pairs
+    # interpolate it alike, so the fusion would keep it: a pixel whose block holds no texture gets no depth
+    win = (2 * config.block_size + 1,) * 2
+    ref = left.astype(np.float32)
+    var = cv2.boxFilter(ref * ref, -1, win) - np.square(cv2.boxFilter(ref, -1, win))
+    disp[var < config.min_texture ** 2] = np.nan
+    at = rect.rect_pixels(rays, left=True).astype(np.float32)
+    d = cv2.remap(disp, np.nan_to_num(at[..., 0], nan=-10.0), np.nan_to_num(at[..., 1], nan=-10.0),
+                  cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    d_true = d - (rect.cx_left - rect.cx_right)
+    rz = rays @ rect.R[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_rect = np.where(d_true > 0, rect.f * rect.baseline_m / d_true, np.nan)
+        depth = z_rect / rz
+        tol = config.agreement_px * z_rect * z_rect / (rect.f * rect.baseline_m * rz)
+    return depth.astype(np.float32), tol.astype(np.float32)
+
+
+def fuse_depths(depths: np.ndarray, tols: np.ndarray, min_agreeing: int) -> tuple[np.ndarray, np.ndarray]:
+    """Fuse K depth maps (K, h, w) with their tolerances: per pixel the depth of the largest group of pairs that
+    agree with one of them (|d_k - d_l| <= max(tol_k, tol_l)), its mean; NaN where fewer than ``min_agreeing``
+    pairs agree. Returns (depth (h, w) float32, agreeing pairs (h, w) uint8)."""
+    valid = np.isfinite(depths)
+    diff = np.abs(depths[:, None] - depths[None, :])
+    agree = (diff <= np.maximum(tols[:, None], tols[None, :])) & valid[:, None] & valid[None, :]
+    count = agree.sum(axis=1)  # (K, h, w)
+    best = np.argmax(count, axis=0)
+    n = np.take_along_axis(count, best[None], 0)[0]
+    members = np.take_along_axis(agree, best[None, None], 0)[0]  # (K, h, w)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(members, 1.0 / np.square(tols), 0.0)  # inverse variance: tol is proportional to the sigma
+        total = (w * np.nan_to_num(depths)).sum(axis=0)
+        fused = np.where(n >= min_agreeing, total / w.sum(axis=0), np.nan)
+    return fused.astype(np.float32), n.astype(np.uint8)
+
+
+def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans: Sequence[PairPlan],
+                     load: FrameLoader, scale: float, centres_xy: np.ndarray, config: DenseConfig
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fused points one reference frame keeps (module docstring, steps 2-5): (xyz (N, 3) world metres,
+    value (N,) float32, views (N,) uint8). ``centres_xy`` (M, 2): every frame's projection centre in plan,
+    ``ref``'s among them; a point is kept when ``ref``'s is the nearest."""
+    empty = (np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.uint8))
+    if not plans:
+        return empty
+    ref8, ref_value = load(ref.image_id)
+    ref8 = _resize(ref8, scale)
+    _, rays = _reference_grid(ref, scale)
+    depths, tols = [], []
+    for other, plan in zip(others, plans, strict=True):
+        other8, _ = load(other.image_id)
+        d, t = pair_depth(ref, other, ref8, _resize(other8, scale), plan, rays, scale, config)
+        depths.append(d)
+        tols.append(t)
+    fused, n = fuse_depths(np.stack(depths), np.stack(tols), config.min_agreeing_pairs)
+    keep = np.isfinite(fused) & (fused > 0)
+    X = np.asarray(ref.C) + fused[keep][:, None] * rays[keep]
+    own = cKDTree(centres_xy).query(X[:, :2])[1]
+    mine = np.all(np.isclose(centres_xy[own], np.asarray(ref.C)[:2]), axis=1)
+    value = _resize(np.asarray(ref_value, dtype=np.float32), scale)
+    if value.ndim == 3:
+        value = value.mean(axis=2)
+    return X[mine], value[keep][mine].astype(np.float32), (1 + n[keep][mine]).astype(np.uint8)
+
+
+def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.ndarray, ground_height_m: float,
+                config: DenseConfig | None = None, client=None,
+                progress: Callable[[int, int], None] | None = None) -> DenseCloud:
+    """The dense cloud of an adjusted block (module docstring).
+
+    Args:
+        frames: the adjusted frames (poses and the IO that holds for each).
+        load: image id -> (8-bit frame for matching, frame values for the cloud's attribute), full resolution;
+            called on the workers (it must pickle for a Dask client).
+        tie_xyz: the adjusted tie points (N, 3) world metres: the disparity search of each pair.
+        ground_height_m: a typical ground height (metres) for the neighbours' overlap.
+        config: matching and fusion settings.
+        client: a Dask client (one task per reference frame), or ``None`` to run here.
+        progress: called with (frames done, frames) as references complete.
+
+    Returns:
+        the fused :class:`DenseCloud` (empty when no pair could be matched).
+    """
+    config = config or DenseConfig()
+    frames = list(frames)
+    scale = matching_scale(frames, config.max_image_pixels)
+    neighbours = select_neighbours(frames, ground_height_m, config)
+    plans = plan_pairs(frames, neighbours, tie_xyz, scale, config)
+    by_id = {f.image_id: f for f in frames}
+    centres = np.array([f.C[:2] for f in frames], dtype=float)
+    jobs = [(by_id[r], [by_id[p.other] for p in ps], ps) for r, ps in plans.items()]
+    results: list[tuple[int, tuple]] = []
+    if client is None:
+        for k, (ref, others, ps) in enumerate(jobs):
+            results.append((ref.image_id, reference_points(ref, others, ps, load, scale, centres, config)))
+            if progress:
+                progress(k + 1, len(jobs))
+    else:
+        from distributed import as_completed
+
+        futures = {client.submit(reference_points, ref, others, ps, load, scale, centres, config, pure=False):
+                   ref.image_id for ref, others, ps in jobs}
+        for k, fut in enumerate(as_completed(futures)):
+            results.append((futures[fut], fut.result()))
+            fut.release()
+            if progress:
+                progress(k + 1, len(jobs))
+    results.sort(key=lambda t: t[0])
+    xyz = np.concatenate([r[1][0] for r in results]) if results else np.zeros((0, 3))
+    value = np.concatenate([r[1][1] for r in results]) if results else np.zeros(0, np.float32)
+    views = np.concatenate([r[1][2] for r in results]) if results else np.zeros(0, np.uint8)
+    ids = np.concatenate([np.full(len(r[1][0]), r[0], np.int32) for r in results]) if results else np.zeros(0, np.int32)
+    gsd = float(np.median([(f.C[2] - ground_height_m) / (f.camera.f * scale) for f in frames]))
+    stats = {"frames": len(frames), "references": len(jobs), "pairs": sum(len(p) for p in plans.values()),
+             "points": int(len(xyz)), "scale": scale}
+    return DenseCloud(xyz=xyz, value=value, views=views, image_id=ids, gsd_m=gsd, stats=stats)
