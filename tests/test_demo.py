@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 
+import laspy
 import numpy as np
 import pytest
 import rasterio
@@ -81,10 +82,19 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
         band = ds.read(1)
         coverage = float(np.mean(band != ds.nodata))
     assert coverage > 0.2, f"orthomosaic covers {coverage:.0%} of its grid"
+    # ... on the dense surface matched in the frames: a LAZ cloud a viewer opens, a DSM whose band 2 flags its
+    # filled cells, and the dense and tie-point DSMs against the flight's reference surface side by side
+    las = laspy.read(summary.files["cloud"])
+    assert las.header.point_count > 100_000 and las.header.parse_crs().to_string() == ds.crs.to_string()
+    assert np.asarray(las.views).min() >= 3
+    with rasterio.open(summary.files["dsm"]) as dsm:
+        measured = dsm.read(2, masked=True).compressed()
+        assert dsm.descriptions == ("height", "measured") and 0.3 < measured.mean() < 1.0, measured.mean()
     report = json.loads((out / "run" / "summary.json").read_text())["summary"]
     assert report["mosaic_frames"] == config.frames and "rolling_shutter" in report["model_extension"]
     html = (out / "run" / "report.html").read_text()
     assert "Flight report" in html and "data:image/png;base64" in html and "The model extended by the diagnosis" in html
+    assert "Dense DSM minus reference" in html and "Tie-point DSM minus reference" in html
 
     # the camera's certificate: version 2 carries the readout, with the flight that found it
     cert = Certificate.from_json((out / "run" / "certificate.json").read_text())

@@ -22,6 +22,7 @@ from aerocal.matching import FeatureConfig, MatchConfig
 from aerocal.orient import IncrementalConfig
 from aerocal.pipeline.dataset import IngestSettings
 from aerocal.pipeline.runner import configuration_json
+from aerocal.products.dense import DenseConfig
 from aerocal.products.dsm import DsmConfig
 from aerocal.products.mosaic import MosaicConfig
 
@@ -137,6 +138,11 @@ class MosaicStepConfig:
     dsm: DsmConfig | None = None
     mosaic: MosaicConfig | None = None
     serial_max_megapixels: float = 25.0
+    #: the dense surface matched in the frames (:mod:`aerocal.products.dense`), which the DSM and orthomosaic then
+    #: stand on; ``None``: the tie points' surface only (the only one for a flight without frames)
+    dense: DenseConfig | None = DenseConfig()
+    #: how the dense cloud is gridded: about one cell per ground sample, as the cloud holds one point per sample
+    dense_dsm: DsmConfig = DsmConfig(cell_gsd=1.0)
 
     def __post_init__(self) -> None:
         if self.serial_max_megapixels < 0:

@@ -5,16 +5,21 @@ raster for FLIR radiometric frames. A flight without frames gets the DSM only.""
 
 from __future__ import annotations
 
+import functools
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
+from aerocal.assess import compare_dems
+from aerocal.camera import LinearThermalModel
 from aerocal.certificates.document import Certificate
 from aerocal.diagnose.extension import frame_terms
+from aerocal.enhance import EnhanceConfig, StretchParams, enhance, grey, stretch_params
+from aerocal.ingest import read_raw
 from aerocal.ingest.flir import common_camera_info, raw_to_celsius
 from aerocal.io import file_sha256
 from aerocal.matching import ExecutionConfig
@@ -22,8 +27,10 @@ from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, StepResult
-from aerocal.products.dsm import DsmConfig, dsm_from_points, write_dsm
+from aerocal.products.dense import DenseConfig, dense_cloud
+from aerocal.products.dsm import Dsm, DsmConfig, dsm_from_points, read_dsm, write_dsm
 from aerocal.products.mosaic import MosaicConfig, build_mosaic, frames_from_poses, write_temperature_raster
+from aerocal.products.pointcloud import write_laz
 
 
 def frame_paths(flight: dict, images: pa.Table) -> dict[int, Path]:
@@ -71,6 +78,72 @@ def temperature_output(paths: Iterable[Path], counts_path: Path, work: Path, inf
     return {"temperature": FileOutput(path, "temperature", temporary=True)}
 
 
+def dense_frame(image_id: int, paths: Mapping[int, str], params: StretchParams,
+                config: EnhanceConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(8-bit frame for dense matching, grey frame values) of one image, enhanced as for tie-point matching
+    (module level: it runs on Dask workers)."""
+    raw = read_raw(paths[image_id])
+    return enhance(raw, params, config), grey(raw).astype(np.float32)
+
+
+def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, Any]:
+    """The DSM minus a reference surface on its measured cells: n, mean, median, NMAD and RMSE (metres),
+    completeness (measured cells over the cells inside the reference); a reference that cannot be read gives
+    ``{"error": why}`` (the report says the same)."""
+    try:
+        ref = read_dsm(reference)
+    except ValueError as exc:
+        return {"error": str(exc)}
+    E, N = dsm.cell_centres()
+    inside = np.isfinite(ref.height_at(E, N))
+    diff = compare_dems(dsm, ref, mask=measured & inside, selection="measured cells")
+    return {"n": diff.n, "mean_m": diff.mean, "median_m": diff.median, "nmad_m": diff.nmad, "rmse_m": diff.rmse,
+            "completeness": float(np.count_nonzero(measured & inside) / max(np.count_nonzero(inside), 1))}
+
+
+def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Table, cert: Certificate,
+                  paths: Mapping[int, Path], ground: float, config: MosaicStepConfig,
+                  execution: ExecutionConfig | None, work: Path, info: dict[str, Any]
+                  ) -> tuple[Dsm, np.ndarray, dict[str, FileOutput]]:
+    """The dense cloud of the adjusted frames (:func:`aerocal.products.dense.dense_cloud`), its DSM at about one
+    ground sample per cell and where that DSM is measured (cells within 1.5 cells of a point; the rest is
+    filled), and the cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched.
+
+    The frames carry the certificate's IO at their temperature (a linear thermal model); the readout motion and
+    the thermal models that correct measurements are not applied to the matching: their displacements shift
+    whole rows by a fraction of a pixel between neighbours, below the disparity search's resolution."""
+    temps = {int(k): float(v) for k, v in zip(images.column("image_id").to_pylist(),
+                                              images.column("temperature_c").to_pylist(), strict=True)
+             if v is not None}
+    thermal = cert.thermal.model if cert.thermal is not None else None
+    linear = thermal if isinstance(thermal, LinearThermalModel) and set(paths) <= set(temps) else None
+    sel = poses.filter(np.isin(poses.column("image_id").to_numpy(), list(paths)))
+    frames = frames_from_poses(sel, cert.camera, temps if linear is not None else None, linear)
+    ecfg = EnhanceConfig()
+    names = {i: str(p) for i, p in paths.items()}
+    params = stretch_params(list(names.values()), percent=ecfg.percent, loader=lambda p: grey(read_raw(p)))
+    load = functools.partial(dense_frame, paths=names, params=params, config=ecfg)
+    tie = np.column_stack([points.column(c).to_numpy() for c in ("X", "Y", "Z")])
+    dcfg = config.dense or DenseConfig()
+    serial = len(frames) * cert.camera.width * cert.camera.height / 1e6 <= config.serial_max_megapixels
+    with (execution or ExecutionConfig()).client(serial) as client:
+        cloud = dense_cloud(frames, load, tie, ground, dcfg, client, step_progress("dense surface"))
+    if len(cloud.xyz) < 3:
+        raise ValueError(f"{flight.get('folder') or flight.get('name')}: dense matching found no surface in "
+                         f"{len(frames)} frames ({cloud.stats}); set MosaicStepConfig.dense = None to grid the "
+                         "tie points only")
+    dsm = dsm_from_points(cloud.xyz, flight["crs"], gsd_m=cloud.gsd_m, config=config.dense_dsm)
+    measured = dsm.distance_m <= 1.5 * dsm.cell_m
+    flir, _ = common_camera_info(list(paths.values()))
+    temperature = None if flir is None else functools.partial(raw_to_celsius, info=flir)
+    laz = write_laz(cloud, work / "cloud.laz", flight["crs"], temperature)
+    info["surface"] = "dense"
+    info["dense"] = {**dict(cloud.stats), "gsd_m": cloud.gsd_m, "dsm_cell_m": dsm.cell_m,
+                     "measured_fraction": float(np.mean(measured)),
+                     "median_views": float(np.median(cloud.views)), "temperature": flir is not None}
+    return dsm, measured, {"cloud": FileOutput(laz, "cloud", temporary=True)}
+
+
 def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certificate: str,
                 config: MosaicStepConfig | None = None, execution: ExecutionConfig | None = None) -> StepResult:
     """Outputs: ``dsm`` (GeoTIFF, float32 metres), ``orthomosaic`` (GeoTIFF/COG, when frames exist),
@@ -87,10 +160,23 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
         gsd, ground = flight_gsd(poses, points, cert.camera.f)
         work = Path(tempfile.mkdtemp(prefix="aerocal-mosaic-"))
         dsm = dsm_from_points(points, flight["crs"], gsd_m=gsd, config=config.dsm or DsmConfig())
-        out: dict[str, Any] = {"dsm": FileOutput(write_dsm(dsm, work / "dsm.tif"), "dsm", temporary=True)}
-        info: dict[str, Any] = {"gsd_m": gsd, "ground_height_m": ground, "dsm_cell_m": dsm.cell_m,
-                                "dsm_shape": list(dsm.heights.shape), "frames": 0}
+        info: dict[str, Any] = {"gsd_m": gsd, "ground_height_m": ground, "frames": 0, "surface": "tie points"}
+        out: dict[str, Any] = {}
         paths = frame_paths(flight, images)
+        reference = reference_dsm_path(flight)
+        if paths and config.dense is not None:
+            sparse = dsm
+            dsm, measured, cloud_out = dense_surface(flight, images, poses, points, cert, paths, ground, config,
+                                                     execution, work, info)
+            out.update(cloud_out)
+            out["sparse_dsm"] = FileOutput(write_dsm(sparse, work / "sparse_dsm.tif"), "dsm", temporary=True)
+            if reference is not None:
+                info["sparse_minus_reference_m"] = difference_to(sparse, reference, sparse.distance_m == 0)
+                info["dense_minus_reference_m"] = difference_to(dsm, reference, measured)
+        else:
+            measured = None
+        out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured), "dsm", temporary=True)
+        info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
         if paths:
             thermal = None if cert.thermal is None else cert.thermal.model
             temps = {int(k): float(v) for k, v in zip(images.column("image_id").to_pylist(),

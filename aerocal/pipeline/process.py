@@ -63,6 +63,8 @@ EXPORTS = {
     "report": "report.html",
     "report_summary": "summary.json",
     "dsm": "dsm.tif",
+    "sparse_dsm": "sparse_dsm.tif",
+    "cloud": "cloud.laz",
     "orthomosaic": "orthomosaic.tif",
     "temperature": "temperature.tif",
     "certificate": "certificate.json",

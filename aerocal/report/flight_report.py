@@ -494,6 +494,20 @@ def _surface_rows(mosaic: Mapping, dsm) -> list[tuple[str, str]]:
         rows.append(("DSM cell", wording.with_unit(wording.number(dsm.cell_m, 3), "m")))
         rows.append(("DSM size", f"{dsm.shape[1]} x {dsm.shape[0]} cells, "
                                  f"{100 * float(np.mean(np.isfinite(dsm.heights))):.0f} % with a height"))
+    dense = mosaic.get("dense")
+    if dense:
+        rows.append(("Surface", f"dense: {wording.number(dense['points'])} points matched in "
+                                f"{wording.number(dense['pairs'])} pairs of {wording.number(dense['frames'])} "
+                                f"frames (cloud.laz), {100 * dense['measured_fraction']:.0f} % of the DSM measured, "
+                                "the rest filled (band 2 of dsm.tif)"))
+    else:
+        rows.append(("Surface", "the adjusted tie points (no dense matching: no frames, or switched off)"))
+    for key, name in (("dense_minus_reference_m", "Dense DSM minus reference"),
+                      ("sparse_minus_reference_m", "Tie-point DSM minus reference")):
+        d = mosaic.get(key)
+        if d and "error" not in d:
+            rows.append((name, f"measured cells: mean {d['mean_m']:.2f} m, NMAD {d['nmad_m']:.2f} m, "
+                               f"RMSE {d['rmse_m']:.2f} m, {100 * d['completeness']:.0f} % of the cells"))
     rows.append(("Frames in the orthomosaic", wording.number(mosaic.get("frames") or 0)))
     if mosaic.get("temperature"):
         rows.append(("Temperature raster", str(mosaic["temperature"])))
