@@ -43,10 +43,16 @@ def _loader(raws):
     return lambda i: (enhance(raws[i], params), raws[i].astype(np.float32))
 
 
-def _dense(block, raws, config=None):
-    cloud = dense_cloud(block["frames"], _loader(raws), block["tie"], block["ground"], config or DenseConfig())
+def _dense(block, raws):
+    cloud = dense_cloud(block["frames"], _loader(raws), block["tie"], block["ground"], DenseConfig())
     dsm = dsm_from_points(cloud.xyz, block["sim"].crs, gsd_m=cloud.gsd_m, config=DsmConfig(cell_gsd=1.0))
     return cloud, dsm, dsm.distance_m <= 1.5 * dsm.cell_m
+
+
+@pytest.fixture(scope="module")
+def dense(block):
+    """The block's dense cloud, its DSM (1 GSD cells) and measured cells, with the default settings."""
+    return _dense(block, block["raws"])
 
 
 def _seen_by(frames, dsm, height_at, n_views):
@@ -60,25 +66,27 @@ def _seen_by(frames, dsm, height_at, n_views):
     return count >= n_views
 
 
-def test_the_dense_dsm_is_close_to_the_true_surface_and_covers_what_the_frames_see(block):
+def test_the_dense_dsm_is_close_to_the_true_surface_and_covers_what_the_frames_see(block, dense):
     sim, frames = block["sim"], block["frames"]
-    cloud, dsm, measured = _dense(block, block["raws"])
+    cloud, dsm, measured = dense
     gsd = cloud.gsd_m
     assert 0.45 < gsd < 0.56 and dsm.cell_m == pytest.approx(gsd), (gsd, dsm.cell_m)
     seen = _seen_by(frames, dsm, sim.scene.height_at, 2)
-    dense = compare_dems(dsm, sim.scene.height_at, mask=measured & seen, selection="measured")
+    diff = compare_dems(dsm, sim.scene.height_at, mask=measured & seen, selection="measured")
     sparse_dsm = dsm_from_points(block["tie"], sim.crs, gsd_m=gsd)
     sparse = compare_dems(sparse_dsm, sim.scene.height_at, mask=np.isfinite(sparse_dsm.heights), selection="all")
     completeness = float(np.count_nonzero(measured & seen) / np.count_nonzero(seen))
-    print(f"seed {SEED}: dense DSM - true surface on measured cells: median {dense.median:.3f} m, NMAD "
-          f"{dense.nmad:.3f} m ({dense.nmad / gsd:.2f} GSD), completeness {completeness:.1%} of the cells two frames "
-          f"see; tie-point DSM: median {sparse.median:.3f} m, NMAD {sparse.nmad:.3f} m ({sparse.nmad / gsd:.2f} GSD)")
-    # measured: NMAD 1.7 GSD (SGBM's sub-pixel noise on base-to-height ratios of 0.06-0.33 of a narrow thermal
-    # camera), against 10.7 GSD for the tie-point surface
-    assert dense.nmad < 2.5 * gsd, f"seed {SEED}: NMAD {dense.nmad:.3f} m"
-    assert abs(dense.median) < 0.75 * gsd, f"seed {SEED}: median {dense.median:.3f} m"
-    assert dense.nmad < 0.4 * sparse.nmad, f"seed {SEED}: dense {dense.nmad:.3f} m, sparse {sparse.nmad:.3f} m"
-    assert completeness > 0.7, f"seed {SEED}: completeness {completeness:.1%}"
+    seen3 = _seen_by(frames, dsm, sim.scene.height_at, 3)
+    completeness3 = float(np.count_nonzero(measured & seen3) / np.count_nonzero(seen3))
+    print(f"seed {SEED}: dense DSM - true surface on measured cells: median {diff.median:.3f} m, NMAD "
+          f"{diff.nmad:.3f} m ({diff.nmad / gsd:.2f} GSD), completeness {completeness:.1%} of the cells two frames "
+          f"see, {completeness3:.1%} of those three see; tie-point DSM: median {sparse.median:.3f} m, NMAD "
+          f"{sparse.nmad:.3f} m ({sparse.nmad / gsd:.2f} GSD)")
+    # the figures of this seed and two others: benchmarks/RESULTS.md, "Dense surface"
+    assert diff.nmad < 1.4 * gsd, f"seed {SEED}: NMAD {diff.nmad:.3f} m"
+    assert abs(diff.median) < 0.5 * gsd, f"seed {SEED}: median {diff.median:.3f} m"
+    assert diff.nmad < 0.25 * sparse.nmad, f"seed {SEED}: dense {diff.nmad:.3f} m, sparse {sparse.nmad:.3f} m"
+    assert completeness > 0.75 and completeness3 > 0.8, f"seed {SEED}: completeness {completeness:.1%}"
     assert cloud.views.min() >= 3, "every point agreed on by the reference and two other views"
 
 
@@ -110,9 +118,9 @@ def test_a_uniform_area_stays_a_flagged_hole_not_an_invented_height(block):
     assert inside.sum() < 0.01 * (100 / cloud.gsd_m) ** 2, f"seed {SEED}: {inside.sum()} points in the square"
 
 
-def test_the_cloud_and_the_dsm_open_in_a_viewer_and_a_gis(block, tmp_path):
+def test_the_cloud_and_the_dsm_open_in_a_viewer_and_a_gis(block, dense, tmp_path):
     sim = block["sim"]
-    cloud, dsm, measured = _dense(block, block["raws"], DenseConfig(neighbours=2, min_agreeing_pairs=2))
+    cloud, dsm, measured = dense
     laz = write_laz(cloud, tmp_path / "cloud.laz", sim.crs, temperature=lambda c: c / 100.0 - 273.15)
     las = laspy.read(laz)
     assert las.header.version.minor == 4 and las.header.point_format.id == 6
@@ -143,3 +151,19 @@ def test_rectified_rows_hold_the_same_ground_point(block):
     assert ok.sum() > 100
     np.testing.assert_allclose(a[ok, 1], b[ok, 1], atol=1e-6)
     np.testing.assert_allclose(a[ok, 0] - b[ok, 0], rect.disparity_of(tie[ok], left.C), atol=1e-6)
+
+
+def test_the_hillshade_lights_the_slope_that_faces_the_light_and_a_tie_point_dsm_has_no_measured_band(tmp_path):
+    from aerocal.products.dsm import Dsm, read_measured
+    from aerocal.report.figures import hillshade
+
+    e = np.arange(40, dtype=float)
+    ridge = np.tile(20.0 - np.abs(e - 20.0), (30, 1))  # a ridge running north-south: west face, east face
+    shade = hillshade(ridge, 1.0, azimuth_deg=270.0, altitude_deg=45.0)  # lit from the west
+    assert shade[15, 5] > 0.95 and shade[15, 35] < 0.05, (shade[15, 5], shade[15, 35])
+    flat = hillshade(np.zeros((5, 5)), 1.0)
+    np.testing.assert_allclose(flat, np.cos(np.radians(45.0)))
+    dsm = Dsm(heights=ridge.astype(np.float32), west=686000.0, north=4929030.0, cell_m=1.0, crs="EPSG:32632")
+    assert read_measured(write_dsm(dsm, tmp_path / "tie.tif")) is None
+    measured = ridge > 5
+    np.testing.assert_array_equal(read_measured(write_dsm(dsm, tmp_path / "dense.tif", measured)), measured)

@@ -364,7 +364,7 @@ def test_flight_report_reads_as_a_report(processed_flight, tmp_path):
     assert page.headings == [h for _, h in SECTIONS]
     # every figure drawn (the flight has a reference DSM), each an embedded PNG with content
     assert set(page.figures) == {"overview", "tie_points", "distortion", "temperature_io", "block",
-                                 "image_residuals", "dem_difference"}, page.figures
+                                 "image_residuals", "dem_difference", "surface"}, page.figures
     assert len(page.srcs) == len(page.figures)
     for src in page.srcs:
         assert src.startswith("data:image/png;base64,"), src[:40]

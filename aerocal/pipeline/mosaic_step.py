@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import tempfile
+import time
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -15,7 +16,6 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.assess import compare_dems
-from aerocal.camera import LinearThermalModel
 from aerocal.certificates.document import Certificate
 from aerocal.diagnose.extension import frame_terms
 from aerocal.enhance import EnhanceConfig, StretchParams, enhance, grey, stretch_params
@@ -29,7 +29,13 @@ from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, StepResult
 from aerocal.products.dense import DenseConfig, dense_cloud
 from aerocal.products.dsm import Dsm, DsmConfig, dsm_from_points, read_dsm, write_dsm
-from aerocal.products.mosaic import MosaicConfig, build_mosaic, frames_from_poses, write_temperature_raster
+from aerocal.products.mosaic import (
+    FrameGeometry,
+    MosaicConfig,
+    build_mosaic,
+    frames_from_poses,
+    write_temperature_raster,
+)
 from aerocal.products.pointcloud import write_laz
 
 
@@ -78,6 +84,19 @@ def temperature_output(paths: Iterable[Path], counts_path: Path, work: Path, inf
     return {"temperature": FileOutput(path, "temperature", temporary=True)}
 
 
+def frames_of(images: pa.Table, poses: pa.Table, cert: Certificate, paths: Mapping[int, Path]
+              ) -> list[FrameGeometry]:
+    """The adjusted frames that have pixels, with what the certificate holds for each: its IO (at the frame's
+    temperature under a thermal model), the readout's motion and the thermal rotation."""
+    thermal = None if cert.thermal is None else cert.thermal.model
+    temps = {int(k): float(v) for k, v in zip(images.column("image_id").to_pylist(),
+                                              images.column("temperature_c").to_pylist(), strict=True)
+             if v is not None}
+    sel = poses.filter(np.isin(poses.column("image_id").to_numpy(), list(paths)))
+    motion, turn = frame_terms(cert, images, poses)  # the certificate's readout and thermal rotation
+    return frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal, motion, turn)
+
+
 def dense_frame(image_id: int, paths: Mapping[int, str], params: StretchParams,
                 config: EnhanceConfig) -> tuple[np.ndarray, np.ndarray]:
     """(8-bit frame for dense matching, grey frame values) of one image, enhanced as for tie-point matching
@@ -109,16 +128,9 @@ def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Ta
     ground sample per cell and where that DSM is measured (cells within 1.5 cells of a point; the rest is
     filled), and the cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched.
 
-    The frames carry the certificate's IO at their temperature (a linear thermal model); the readout motion and
-    the thermal models that correct measurements are not applied to the matching: their displacements shift
-    whole rows by a fraction of a pixel between neighbours, below the disparity search's resolution."""
-    temps = {int(k): float(v) for k, v in zip(images.column("image_id").to_pylist(),
-                                              images.column("temperature_c").to_pylist(), strict=True)
-             if v is not None}
-    thermal = cert.thermal.model if cert.thermal is not None else None
-    linear = thermal if isinstance(thermal, LinearThermalModel) and set(paths) <= set(temps) else None
-    sel = poses.filter(np.isin(poses.column("image_id").to_numpy(), list(paths)))
-    frames = frames_from_poses(sel, cert.camera, temps if linear is not None else None, linear)
+    The frames are those the orthomosaic rectifies (:func:`frames_of`): the certificate's IO at each frame's
+    temperature, its readout and thermal rotation."""
+    frames = frames_of(images, poses, cert, paths)
     ecfg = EnhanceConfig()
     names = {i: str(p) for i, p in paths.items()}
     params = stretch_params(list(names.values()), percent=ecfg.percent, loader=lambda p: grey(read_raw(p)))
@@ -126,8 +138,10 @@ def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Ta
     tie = np.column_stack([points.column(c).to_numpy() for c in ("X", "Y", "Z")])
     dcfg = config.dense or DenseConfig()
     serial = len(frames) * cert.camera.width * cert.camera.height / 1e6 <= config.serial_max_megapixels
+    start = time.perf_counter()
     with (execution or ExecutionConfig()).client(serial) as client:
         cloud = dense_cloud(frames, load, tie, ground, dcfg, client, step_progress("dense surface"))
+    seconds = time.perf_counter() - start
     if len(cloud.xyz) < 3:
         raise ValueError(f"{flight.get('folder') or flight.get('name')}: dense matching found no surface in "
                          f"{len(frames)} frames ({cloud.stats}); set MosaicStepConfig.dense = None to grid the "
@@ -138,7 +152,7 @@ def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Ta
     temperature = None if flir is None else functools.partial(raw_to_celsius, info=flir)
     laz = write_laz(cloud, work / "cloud.laz", flight["crs"], temperature)
     info["surface"] = "dense"
-    info["dense"] = {**dict(cloud.stats), "gsd_m": cloud.gsd_m, "dsm_cell_m": dsm.cell_m,
+    info["dense"] = {**dict(cloud.stats), "seconds": round(seconds, 1), "gsd_m": cloud.gsd_m, "dsm_cell_m": dsm.cell_m,
                      "measured_fraction": float(np.mean(measured)),
                      "median_views": float(np.median(cloud.views)), "temperature": flir is not None}
     return dsm, measured, {"cloud": FileOutput(laz, "cloud", temporary=True)}
@@ -178,14 +192,7 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
         out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured), "dsm", temporary=True)
         info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
         if paths:
-            thermal = None if cert.thermal is None else cert.thermal.model
-            temps = {int(k): float(v) for k, v in zip(images.column("image_id").to_pylist(),
-                                                      images.column("temperature_c").to_pylist(), strict=True)
-                     if v is not None}
-            sel = poses.filter(np.isin(poses.column("image_id").to_numpy(), list(paths)))
-            motion, turn = frame_terms(cert, images, poses)  # the certificate's readout and thermal rotation
-            frames = frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal, motion,
-                                       turn)
+            frames = frames_of(images, poses, cert, paths)
             megapixels = len(frames) * cert.camera.width * cert.camera.height / 1e6
             serial = megapixels <= config.serial_max_megapixels
             with (execution or ExecutionConfig()).client(serial) as client:

@@ -4,8 +4,8 @@ What :func:`dense_cloud` does, for every frame of the block (the *reference*), a
 
 1. **Neighbours** (:func:`select_neighbours`): the frames whose footprints on the ground plane cover at least
    ``min_overlap`` of the reference's, with a base-to-height ratio between ``min_base_to_height`` (depth too
-   weak) and ``max_base_to_height`` (views too different for area matching); the ``neighbours`` of them that
-   overlap most.
+   weak) and ``max_base_to_height`` (views too different for area matching); the ``neighbours`` of them with the
+   largest overlap times base-to-height ratio (a narrow thermal camera's consecutive frames are 0.06 apart).
 2. **Rectification** (:func:`rectify`): both frames are resampled (``cv2.remap``) onto a common plane whose x
    axis is the baseline, through the full camera model of each frame (distortion, affinity; the certificate's
    IO): a ground point lies on the same row of both, ``d = f B / z`` pixels apart. The construction is
@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
+from aerocal.camera import correct_measurements
 from aerocal.products.mosaic import FrameGeometry
 
 #: A frame's pixels for matching: image id -> (8-bit grey frame for SGBM, frame values for the cloud's
@@ -54,9 +55,11 @@ FrameLoader = Callable[[int], tuple[np.ndarray, np.ndarray]]
 class DenseConfig:
     """How the dense surface is matched and fused. Pixels are those of the matched (possibly reduced) frames.
 
-    Defaults: 4 neighbours give each pixel up to 4 depths, enough for two to agree where one pair is occluded;
-    a 5-pixel SGBM block is the smallest that matched smooth thermal texture without speckle; one pixel of
-    disparity agreement is about 3 times SGBM's sub-pixel noise on textured frames.
+    Defaults: 4 neighbours give each pixel up to 4 depths, enough for two to agree where one pair is occluded.
+    The block, the smoothness and the agreement were chosen on rendered thermal frames against their true surface
+    (``benchmarks/RESULTS.md``, "Dense surface"): OpenCV's suggested penalties (``smoothness`` 1) pull low-contrast
+    roofs and trees towards the ground around them; with a twentieth of them the matching is nearly local and the
+    multi-view agreement, not the smoothness, removes the noise.
     """
 
     neighbours: int = 4  #: neighbours matched with each reference frame
@@ -64,14 +67,17 @@ class DenseConfig:
     min_base_to_height: float = 0.03  #: weaker baselines give depth too noisy to fuse
     max_base_to_height: float = 1.0  #: wider baselines see the surface too differently for area matching
     max_image_pixels: int = 1_500_000  #: larger frames are matched at a reduced scale (memory and time)
-    block_size: int = 5  #: SGBM matching block, pixels (odd)
+    block_size: int = 7  #: SGBM matching block, pixels (odd)
+    #: SGBM's penalties for disparity changes of 1 and more pixels, as a multiple of OpenCV's suggested
+    #: P1 = 8 b^2 and P2 = 32 b^2 (b the block size)
+    smoothness: float = 0.05
     uniqueness_ratio: int = 10  #: SGBM: best cost must beat the second by this percentage
     speckle_window: int = 64  #: SGBM: disparity blobs smaller than this (pixels) are removed ...
     speckle_range: int = 2  #: ... when their disparity varies within this (pixels)
     min_texture: float = 1.0  #: grey levels of standard deviation a pixel's neighbourhood needs to be matched
     disparity_margin_px: float = 8.0  #: added on each side of the tie points' disparity range
     max_disparities: int = 256  #: cap on the disparity search width (pixels; SGBM's cost grows with it)
-    agreement_px: float = 1.0  #: two pairs agree when their depths differ by at most this disparity
+    agreement_px: float = 0.5  #: two pairs agree when their depths differ by at most this disparity
     min_agreeing_pairs: int = 2  #: pairs that must agree (2: the reference and two other views)
 
     def __post_init__(self) -> None:
@@ -90,6 +96,8 @@ class DenseConfig:
             raise ValueError(f"DenseConfig.max_disparities must be in [16, 1024], got {self.max_disparities}")
         if self.min_texture < 0:
             raise ValueError(f"DenseConfig.min_texture must be >= 0, got {self.min_texture}")
+        if not self.smoothness > 0:
+            raise ValueError(f"DenseConfig.smoothness must be positive, got {self.smoothness}")
         if not self.agreement_px > 0:
             raise ValueError(f"DenseConfig.agreement_px must be positive, got {self.agreement_px}")
         if self.min_agreeing_pairs < 1:
@@ -142,10 +150,11 @@ def _world_rays(frame: FrameGeometry, uv: np.ndarray) -> np.ndarray:
 
 def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
                       config: DenseConfig) -> dict[int, list[int]]:
-    """Image id -> the ids of the frames matched with it (best overlap first; see the module docstring).
+    """Image id -> the ids of the frames matched with it, best first (see the module docstring).
 
     Overlap is measured on the plane at ``ground_height_m`` (metres): the fraction of a grid of ground points
-    in the reference's footprint that the other frame sees.
+    in the reference's footprint that the other frame sees. Candidates are ranked by overlap times
+    base-to-height ratio: the area the pair measures times the precision it measures it with.
     """
     cam_xy = np.array([f.C[:2] for f in frames])
     heights = np.array([f.C[2] - ground_height_m for f in frames])
@@ -241,16 +250,30 @@ def rectify(left: FrameGeometry, right: FrameGeometry, scale: float, max_size_fa
                          baseline_m=b)
 
 
+def viewing_depth(frame: FrameGeometry, ground_height_m: float) -> float:
+    """The depth (metres, along the optical axis) at which the frame sees the plane at ``ground_height_m``."""
+    down = -float(np.asarray(frame.R_cw)[2, 2])
+    return float((frame.C[2] - ground_height_m) / max(down, 0.2))
+
+
 def _rectified(frame: FrameGeometry, rect: Rectification, image: np.ndarray, left: bool,
-               scale: float) -> tuple[np.ndarray, np.ndarray]:
+               scale: float, depth: float) -> tuple[np.ndarray, np.ndarray]:
     """``image`` (the frame at ``scale``) resampled onto the rectified grid (bilinear; outside: 0), and where the
-    rectified grid lies inside the frame (bool)."""
+    rectified grid lies inside the frame (bool).
+
+    Each rectified pixel is looked up where the frame recorded the point at ``depth`` (metres) on its ray
+    (:meth:`FrameGeometry.project`: the rows of a rolling readout, each exposed from its own centre, and the
+    thermal models that correct measurements): the rectified frame is the frame a global shutter at ``C`` would
+    have taken, to within the readout's displacement times the relief over the depth."""
     w, h = rect.size
     cx = rect.cx_left if left else rect.cx_right
     uu, vv = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     ray_rect = np.stack([(uu - cx) / rect.f, (vv - rect.cy) / rect.f, np.ones_like(uu)], -1)
-    ray_cam = ray_rect @ rect.R @ np.asarray(frame.R_cw).T
-    uv = frame.camera.project(ray_cam)  # frame pixels, top-left convention
+    ray_w = ray_rect @ rect.R
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = ray_w @ np.asarray(frame.R_cw)[2]
+        X = np.asarray(frame.C) + depth * ray_w / np.where(along > 1e-9, along, np.nan)[..., None]
+    uv = frame.project(X)  # frame pixels, top-left convention
     maps = np.nan_to_num(uv * scale - 0.5, nan=-10.0).astype(np.float32)
     h_img, w_img = image.shape[:2]
     inside = (maps[..., 0] >= 0) & (maps[..., 0] <= w_img - 1) & (maps[..., 1] >= 0) & (maps[..., 1] <= h_img - 1)
@@ -266,10 +289,16 @@ def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequenc
     than 10 shared tie points, those the reference sees. Pairs without any are left out."""
     by_id = {f.image_id: f for f in frames}
     tie_xyz = np.asarray(tie_xyz, dtype=float)
+    tree = cKDTree(tie_xyz[:, :2])
     seen = {}
-    for f in frames:
-        uv = f.project(tie_xyz)
-        seen[f.image_id] = np.all(np.isfinite(uv), axis=1) & f.camera.in_image(uv)
+    for f in frames:  # the tie points near the frame's footprint only: a city block holds 10^5 of them
+        reach = 1.5 * float(np.max(np.linalg.norm(f.ground_footprint([float(np.median(tie_xyz[:, 2]))])
+                                                  - f.C[:2], axis=1), initial=0.0))
+        near = np.asarray(tree.query_ball_point(f.C[:2], max(reach, 1.0)), dtype=np.int64)
+        uv = f.project(tie_xyz[near])
+        mask = np.zeros(len(tie_xyz), dtype=bool)
+        mask[near[np.all(np.isfinite(uv), axis=1) & f.camera.in_image(uv)]] = True
+        seen[f.image_id] = mask
     out: dict[int, list[PairPlan]] = {}
     for ref, others in neighbours.items():
         plans = []
@@ -294,12 +323,23 @@ def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequenc
     return out
 
 
-def _reference_grid(frame: FrameGeometry, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """The reference's pixel centres at ``scale`` as frame pixels (h, w, 2), and their world rays (h, w, 3)."""
+def _reference_grid(frame: FrameGeometry, scale: float, depth: float) -> np.ndarray:
+    """The world rays (h, w, 3) from ``C`` of the reference's pixel centres at ``scale``, with unit length along the
+    optical axis: as :func:`_rectified` sees them (a thermal model's correction applied, a rolling readout's row
+    centre moved to ``C`` at ``depth`` metres)."""
     w, h = int(round(frame.camera.width * scale)), int(round(frame.camera.height * scale))
     uu, vv = np.meshgrid((np.arange(w) + 0.5) / scale, (np.arange(h) + 0.5) / scale)
     uv = np.stack([uu, vv], -1)
-    return uv, _world_rays(frame, uv)
+    if frame.thermal_model is not None:
+        uv_ideal = correct_measurements(frame.camera, uv.reshape(-1, 2), frame.temperature, frame.thermal_model)
+        rays = _world_rays(frame, uv_ideal.reshape(uv.shape))
+    else:
+        rays = _world_rays(frame, uv)
+    if frame.motion is None:
+        return rays
+    frac = uv[..., 1:2] / frame.camera.height - 0.5
+    g = frac * np.asarray(frame.motion, dtype=float) + depth * rays
+    return g / (g @ np.asarray(frame.R_cw)[2])[..., None]
 
 
 def _resize(image: np.ndarray, scale: float) -> np.ndarray:
@@ -313,21 +353,23 @@ def _sgbm(config: DenseConfig, plan: PairPlan) -> cv2.StereoSGBM:
     bs = config.block_size
     return cv2.StereoSGBM.create(
         minDisparity=plan.min_disparity, numDisparities=plan.num_disparities, blockSize=bs,
-        P1=8 * bs * bs, P2=32 * bs * bs, disp12MaxDiff=1, preFilterCap=31,
+        P1=max(1, round(8 * config.smoothness * bs * bs)), P2=max(2, round(32 * config.smoothness * bs * bs)),
+        disp12MaxDiff=1, preFilterCap=63,
         uniquenessRatio=config.uniqueness_ratio, speckleWindowSize=config.speckle_window,
         speckleRange=config.speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
 
 
 def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other8: np.ndarray, plan: PairPlan,
-               rays: np.ndarray, scale: float, config: DenseConfig) -> tuple[np.ndarray, np.ndarray]:
+               rays: np.ndarray, scale: float, config: DenseConfig,
+               ground_height_m: float) -> tuple[np.ndarray, np.ndarray]:
     """One pair's depth at the reference's pixels: (depth along the reference's optical axis, metres, NaN where
     the pair found none; the depth tolerance of ``config.agreement_px`` disparity pixels at each pixel, metres).
 
     ``ref8`` / ``other8`` are the 8-bit frames at ``scale``; ``rays`` the reference's world rays
-    (:func:`_reference_grid`)."""
+    (:func:`_reference_grid`); ``ground_height_m`` the plane at whose depth the frames are rectified."""
     rect = rectify(ref, other, scale)
-    left, inside = _rectified(ref, rect, ref8, True, scale)
-    right, _ = _rectified(other, rect, other8, False, scale)
+    left, inside = _rectified(ref, rect, ref8, True, scale, viewing_depth(ref, ground_height_m))
+    right, _ = _rectified(other, rect, other8, False, scale, viewing_depth(other, ground_height_m))
     raw = _sgbm(config, plan).compute(left, right)
     disp = raw.astype(np.float32) / np.float32(16.0)
     disp[raw < (plan.min_disparity * 16)] = np.nan
@@ -369,8 +411,8 @@ def fuse_depths(depths: np.ndarray, tols: np.ndarray, min_agreeing: int) -> tupl
 
 
 def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans: Sequence[PairPlan],
-                     load: FrameLoader, scale: float, centres_xy: np.ndarray, config: DenseConfig
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     load: FrameLoader, scale: float, centres_xy: np.ndarray, config: DenseConfig,
+                     ground_height_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The fused points one reference frame keeps (module docstring, steps 2-5): (xyz (N, 3) world metres,
     value (N,) float32, views (N,) uint8). ``centres_xy`` (M, 2): every frame's projection centre in plan,
     ``ref``'s among them; a point is kept when ``ref``'s is the nearest."""
@@ -379,11 +421,11 @@ def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans:
         return empty
     ref8, ref_value = load(ref.image_id)
     ref8 = _resize(ref8, scale)
-    _, rays = _reference_grid(ref, scale)
+    rays = _reference_grid(ref, scale, viewing_depth(ref, ground_height_m))
     depths, tols = [], []
     for other, plan in zip(others, plans, strict=True):
         other8, _ = load(other.image_id)
-        d, t = pair_depth(ref, other, ref8, _resize(other8, scale), plan, rays, scale, config)
+        d, t = pair_depth(ref, other, ref8, _resize(other8, scale), plan, rays, scale, config, ground_height_m)
         depths.append(d)
         tols.append(t)
     fused, n = fuse_depths(np.stack(depths), np.stack(tols), config.min_agreeing_pairs)
@@ -426,13 +468,16 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     results: list[tuple[int, tuple]] = []
     if client is None:
         for k, (ref, others, ps) in enumerate(jobs):
-            results.append((ref.image_id, reference_points(ref, others, ps, load, scale, centres, config)))
+            results.append((ref.image_id, reference_points(ref, others, ps, load, scale, centres, config,
+                                                             ground_height_m)))
             if progress:
                 progress(k + 1, len(jobs))
     else:
+        # lazy: distributed is slow to import; only the Dask path needs it
         from distributed import as_completed
 
-        futures = {client.submit(reference_points, ref, others, ps, load, scale, centres, config, pure=False):
+        futures = {client.submit(reference_points, ref, others, ps, load, scale, centres, config,
+                                 ground_height_m, pure=False):
                    ref.image_id for ref, others, ps in jobs}
         for k, fut in enumerate(as_completed(futures)):
             results.append((futures[fut], fut.result()))

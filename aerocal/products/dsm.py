@@ -401,6 +401,16 @@ def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None) ->
     return path
 
 
+def read_measured(path: str | Path) -> np.ndarray | None:
+    """The measured-cell band of a DSM written by :func:`write_dsm` with ``measured`` (bool, the DSM's shape), or
+    ``None`` when the file has no band named ``measured`` (a tie-point DSM, a user's surface)."""
+    with rasterio.open(path) as src:
+        if src.count < 2 or src.descriptions[1] != "measured":
+            return None
+        band = src.read(2, masked=True)
+        return np.ma.getdata(band) == 1.0
+
+
 def read_dsm(path: str | Path) -> Dsm:
     """Read a single-band north-up GeoTIFF (as :func:`write_dsm` writes) into a :class:`Dsm`."""
     path = Path(path)

@@ -301,6 +301,64 @@ def dem_difference_figure(diff, title: str = "DSM minus reference") -> Figure:
                   diff.to_dict())
 
 
+def hillshade(heights: np.ndarray, cell_m: float, azimuth_deg: float = 315.0, altitude_deg: float = 45.0
+              ) -> np.ndarray:
+    """Hillshade (0 dark to 1 lit) of a height grid (rows north to south, ``cell_m`` metres), lit from
+    ``azimuth_deg`` (clockwise from north) at ``altitude_deg`` above the horizon, as GDAL's ``gdaldem hillshade``
+    computes it (Horn's gradient); NaN where a height or a neighbour's is missing."""
+    z = np.asarray(heights, dtype=float)
+    p = np.pad(z, 1, mode="edge")
+    dzdx = ((p[:-2, 2:] + 2 * p[1:-1, 2:] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[1:-1, :-2] + p[2:, :-2])) / (8 * cell_m)
+    dzdy = ((p[2:, :-2] + 2 * p[2:, 1:-1] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[:-2, 1:-1] + p[:-2, 2:])) / (8 * cell_m)
+    slope = np.arctan(np.hypot(dzdx, dzdy))
+    aspect = np.arctan2(dzdy, -dzdx)
+    zen, az = np.radians(90.0 - altitude_deg), np.radians(360.0 - azimuth_deg + 90.0)
+    return np.clip(np.cos(zen) * np.cos(slope) + np.sin(zen) * np.sin(slope) * np.cos(az - aspect), 0.0, 1.0)
+
+
+def surface_figure(dsm, measured: np.ndarray | None, title: str = "Surface model") -> Figure:
+    """The DSM as a hillshade beside its heights, the filled cells tinted.
+
+    Args:
+        dsm: the flight's DSM (:class:`aerocal.products.dsm.Dsm`).
+        measured: bool (the DSM's shape), the cells with a measured height (the dense cloud's), or ``None`` (a
+            tie-point DSM: every cell is drawn alike).
+        title: the figure's title.
+
+    Returns:
+        :class:`Figure` ``"surface"``; ``numbers``: the cell size (m), the height range (m) and the measured
+        fraction.
+    """
+    fig = _canvas(10.0, 4.6)
+    ax_shade, ax_height = fig.subplots(1, 2)
+    west, south, east, north = dsm.bounds()
+    extent = (west, east, south, north)
+    shade = hillshade(dsm.heights, dsm.cell_m)
+    ax_shade.imshow(shade, cmap="gray", vmin=0, vmax=1, extent=extent, interpolation="nearest")
+    if measured is not None and not measured.all():
+        tint = np.zeros(dsm.heights.shape + (4,))
+        tint[~measured & np.isfinite(dsm.heights)] = (1.0, 0.55, 0.0, 0.45)
+        ax_shade.imshow(tint, extent=extent, interpolation="nearest")
+    ax_shade.set_title("hillshade" + (", filled cells in orange" if measured is not None else ""))
+    lo, hi = (np.nanpercentile(dsm.heights, [1, 99]) if np.isfinite(dsm.heights).any() else (0.0, 1.0))
+    im = ax_height.imshow(dsm.heights, cmap="terrain", vmin=lo, vmax=max(hi, lo + 0.1), extent=extent,
+                          interpolation="nearest")
+    fig.colorbar(im, ax=ax_height, label="height (m)", shrink=0.8)
+    ax_height.set_title("heights")
+    for ax in (ax_shade, ax_height):
+        ax.set_xlabel("E (m)")
+        ax.ticklabel_format(useOffset=False, style="plain")
+        ax.tick_params(axis="x", labelrotation=30)
+    ax_shade.set_ylabel("N (m)")
+    fig.suptitle(title)
+    frac = None if measured is None else float(np.mean(measured[np.isfinite(dsm.heights)]))
+    caption = (f"The DSM, {dsm.shape[1]} x {dsm.shape[0]} cells of {dsm.cell_m:.3g} m"
+               + ("." if frac is None else f"; {100 * frac:.0f} % of its cells are measured by the dense cloud, "
+                  "the rest filled by interpolation (band 2 of dsm.tif)."))
+    return Figure("surface", title, _png(fig), caption,
+                  {"cell_m": _f(dsm.cell_m), "height_range_m": [_f(lo), _f(hi)], "measured_fraction": frac})
+
+
 def overview_figure(
     centres_en: np.ndarray,
     overlap: np.ndarray | None = None,

@@ -162,7 +162,7 @@ def _same_crs(a: str, b: str) -> bool:
 
 def dem_difference_for_flight(
     dsm, reference, tie_points_en: np.ndarray | None = None, measured_within_m: float = MEASURED_WITHIN_M,
-    reference_name: str = "the reference DSM",
+    reference_name: str = "the reference DSM", measured: np.ndarray | None = None,
 ) -> Figure:
     """The flight's DSM minus a reference surface, map and histogram, on the DSM's cells inside the reference grid.
 
@@ -174,6 +174,8 @@ def dem_difference_for_flight(
             are measured rather than interpolated.
         measured_within_m: metres from a DSM cell holding a tie point (default :data:`MEASURED_WITHIN_M`, 2 m).
         reference_name: how the caption and the skip messages name the reference (default "the reference DSM").
+        measured: bool (the DSM's shape), the cells a dense cloud measured; when given it replaces the tie points
+            as the selection of ``measured_cells``.
 
     Returns:
         :class:`~aerocal.report.figures.Figure` ``"dem_difference"`` (tested minus reference); its caption gives
@@ -196,9 +198,12 @@ def dem_difference_for_flight(
     fig = dem_difference_figure(diff)
     caption = (f"The flight's DSM minus {reference_name} on {diff.n} cells of {dsm.cell_m:.3g} m: mean "
                f"{diff.mean:.3g} m, median {diff.median:.3g} m, NMAD {diff.nmad:.3g} m.")
-    if tie_points_en is not None and len(tie_points_en):
-        near = _near_tie_points(dsm, np.asarray(tie_points_en, dtype=float), measured_within_m)
-        sel = f"within {measured_within_m:g} m of a tie point"
+    if measured is not None or (tie_points_en is not None and len(tie_points_en)):
+        if measured is not None:
+            near, sel = measured, "measured by the dense cloud"
+        else:
+            near = _near_tie_points(dsm, np.asarray(tie_points_en, dtype=float), measured_within_m)
+            sel = f"within {measured_within_m:g} m of a tie point"
         m = compare_dems(dsm, reference, mask=inside & near, selection=sel)
         fig.numbers["measured_cells"] = {k: v for k, v in m.to_dict().items()
                                          if k in ("n", "mean_m", "std_m", "median_m", "nmad_m", "rmse_m",

@@ -29,10 +29,10 @@ import pyarrow as pa
 
 from aerocal.certificates.document import Certificate
 from aerocal.io import write_json_atomic, write_text_atomic
-from aerocal.products.dsm import read_dsm
+from aerocal.products.dsm import read_dsm, read_measured
 from aerocal.products.mosaic import frames_from_poses
 from aerocal.report import wording
-from aerocal.report.figures import Figure, block_figure
+from aerocal.report.figures import Figure, block_figure, surface_figure
 from aerocal.report.flight_figures import (
     MEASURED_WITHIN_M,
     FigureSkipped,
@@ -136,6 +136,7 @@ def write_flight_report(
     temps = dict(zip(images.column("image_id").to_pylist(), images.column("temperature_c").to_pylist(),
                      strict=True))
     dsm_grid = read_dsm(dsm) if dsm is not None else None
+    measured = read_measured(dsm) if dsm is not None else None
     summary = flight_summary(flight, cert, adjustment, assessment, diagnosis, mosaic, control_screening)
 
     figures: dict[str, Figure] = {}
@@ -174,12 +175,22 @@ def write_flight_report(
             raise FigureSkipped(f"DSM minus reference: not drawn, {exc}") from exc
         tie_en = np.column_stack([points.column("X").to_numpy(), points.column("Y").to_numpy()])
         return dem_difference_for_flight(dsm_grid, reference, tie_en, measured_within_m,
-                                         f"the reference DSM ({reference_dsm_name})")
+                                         f"the reference DSM ({reference_dsm_name})", measured)
+
+    def surface() -> Figure:
+        if dsm_grid is None:
+            raise FigureSkipped("Surface model: not drawn, the flight has no DSM.")
+        return surface_figure(dsm_grid, measured)
+
+    attempt("surface", surface)
 
     attempt("dem_difference", dem_difference)
     if "dem_difference" in figures:
         dem = figures["dem_difference"].numbers
         summary["dsm_minus_reference_m"] = {k: dem[k] for k in ("n", "mean_m", "median_m", "nmad_m", "rmse_m")}
+    for key in ("dense_minus_reference_m", "sparse_minus_reference_m"):  # the products step's, measured cells
+        if mosaic.get(key) and "error" not in mosaic[key]:
+            summary[key] = mosaic[key]
     if extension is not None:
         summary["model_extension"] = extension.get("named")
     summary.update(extra or {})
