@@ -3,6 +3,8 @@
 import os
 import sys
 
+import pytest
+
 
 def pytest_configure(config):
     """The CLI's consoles (:mod:`flows.cli.console`) fix a COLUMNS they find when they are made, and later follow
@@ -36,3 +38,12 @@ def pytest_sessionfinish(session, exitstatus):
     harness = sys.modules.get("prefect_harness")
     if harness is not None:
         harness.stop_shared_server()
+
+
+@pytest.fixture(scope="module")
+def prefect_server():
+    """A temporary Prefect server for a module's flow runs (tests/prefect_harness.py)."""
+    from prefect_harness import prefect_harness
+
+    with prefect_harness():
+        yield

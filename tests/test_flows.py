@@ -20,14 +20,6 @@ SEED = 3
 
 
 @pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
-
-
-@pytest.fixture(scope="module")
 def flight(tmp_path_factory):
     """A 20-image thermal calibration flight in observations mode with a hidden focal-length slope, and
     beside it a reference DSM (as a LiDAR survey would give): the scene's surface over the flight."""

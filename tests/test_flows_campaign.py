@@ -10,14 +10,6 @@ CRON = "0 3 * * *"
 
 
 @pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
-
-
-@pytest.fixture(scope="module")
 def campaign(tmp_path_factory, prefect_server):
     """Two 16-image flights of the NEC TS9260 (different seeds, same day) in campaign "seneca" with a cron
     schedule, in a fresh SQLite database."""

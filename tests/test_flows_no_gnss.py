@@ -18,14 +18,6 @@ N_IMAGES = 16
 
 
 @pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
-
-
-@pytest.fixture(scope="module")
 def bare_flight(tmp_path_factory):
     """Rendered thermal frames with no position, attitude, time or camera tags, and no EO file."""
     from aerocal.simulate import simulate_flight, write_flight

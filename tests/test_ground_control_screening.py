@@ -75,14 +75,6 @@ def test_similarity_datum_finds_a_wrong_label_and_cannot_localise_with_three_poi
     assert keep3.all() and "nothing tested" in note
 
 
-@pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
-
-
 def test_process_demotes_a_control_point_1000_m_off(tmp_path, prefect_server):
     """Through `aerocal simulate` and `aerocal process`: the blunder is named in the command's output, in
     ground_control.json and in the report; the check points stay at their clean accuracy."""

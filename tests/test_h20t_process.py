@@ -39,14 +39,6 @@ PINNED_YAW_DEG = (-3.67, 0.62)
 PINNED_LAG_S = (0.056, 0.084)
 
 
-@pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
-
-
 @pytest.mark.slow
 def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_path, prefect_server):
     import rasterio

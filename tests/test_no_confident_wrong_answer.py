@@ -23,14 +23,6 @@ from aerocal.certificates.document import Certificate
 from aerocal.simulate import PRESETS, simulate_flight, write_flight
 
 
-@pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
-
-
 def _cli(*args: str):
     from aerocal.cli import app
 

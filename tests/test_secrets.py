@@ -10,20 +10,11 @@ from __future__ import annotations
 
 import json
 
-import pytest
 from typer.testing import CliRunner
 
 pytest_plugins = ["conftest_storage"]
 
 PASSWORD = "s3cret-Pw-9431"
-
-
-@pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
 
 
 def test_a_database_password_is_never_a_flow_parameter(prefect_server, tmp_path, request):

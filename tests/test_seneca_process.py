@@ -35,14 +35,6 @@ PINNED = {"cx": (902.4, 3.7, 12.0), "cy": (661.7, 4.0, 12.0), "k1": (-0.0385, 0.
 PINNED_LAG_S = (-0.448, 0.404)
 
 
-@pytest.fixture(scope="module")
-def prefect_server():
-    from prefect_harness import prefect_harness
-
-    with prefect_harness():
-        yield
-
-
 @pytest.mark.slow
 def test_seneca_certifies_only_what_the_block_determines(tmp_path, prefect_server):
     from aerocal.cli import app
