@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 from PIL import Image
 
 from aerocal.ingest import read_raw
@@ -242,3 +243,14 @@ def test_strip_headings_come_from_the_rotation_not_the_gimbal_yaw():
         yaw = gimbal[strips == k, 2]
         yaw_spreads.append(float(angle_difference(yaw, circular_median(yaw)).max()))
     assert max(yaw_spreads) > 45.0, f"seed {seed}: recorded yaw spreads {yaw_spreads} (the point of the test)"
+
+
+def test_frames_without_radiometric_calibration_say_so_in_words(tmp_path):
+    """A folder of 16-bit TIFF counts gives no temperature raster, and the reason a user reads is that the frames
+    carry no radiometric calibration, not a JPEG parser's complaint."""
+    from aerocal.ingest.flir import common_camera_info
+
+    frame = tmp_path / "IMG_0001.tif"
+    tifffile.imwrite(frame, np.full((8, 8), 30000, dtype=np.uint16))
+    info, why = common_camera_info([frame])
+    assert info is None and "carry no radiometric calibration" in why and "IMG_0001.tif" in why, why

@@ -392,6 +392,9 @@ def common_camera_info(paths) -> tuple[FlirCameraInfo | None, str]:
     a counts mosaic then has no single temperature scale)."""
     first: FlirCameraInfo | None = None
     for p in paths:
+        if Path(p).suffix.lower() not in (".jpg", ".jpeg"):
+            return None, (f"the frames carry no radiometric calibration ({Path(p).name} is a {Path(p).suffix} file, "
+                          "not a FLIR radiometric JPEG): their values are counts, with no conversion to temperature")
         try:
             layout = flir_layout(parse_jpeg(Path(p).read_bytes()))
         except (OSError, JpegFormatError, FlirFormatError) as exc:
