@@ -167,3 +167,29 @@ def test_the_hillshade_lights_the_slope_that_faces_the_light_and_a_tie_point_dsm
     assert read_measured(write_dsm(dsm, tmp_path / "tie.tif")) is None
     measured = ridge > 5
     np.testing.assert_array_equal(read_measured(write_dsm(dsm, tmp_path / "dense.tif", measured)), measured)
+
+
+def test_the_dtm_removes_buildings_and_trees_and_lies_on_the_true_ground(block, dense):
+    from aerocal.products.terrain import dtm_from_dsm
+
+    sim = block["sim"]
+    _, dsm, measured = dense
+    terrain = dtm_from_dsm(dsm, measured)
+    assert terrain.dtm is not None, terrain.note
+    E, N = dsm.cell_centres()
+    ground, surface = sim.scene.ground_height_at(E, N), sim.scene.height_at(E, N)
+    objects = (surface - ground) > 2.0
+    removed = float(np.mean(~terrain.ground[objects & measured]))
+    d = (terrain.dtm.heights - ground)[np.isfinite(terrain.dtm.heights)]
+    above = (dsm.heights - ground)[np.isfinite(dsm.heights)]
+    print(f"seed {SEED}: {terrain.note}; object cells not taken for ground {removed:.1%}; DTM - true ground: median "
+          f"{np.median(d):.2f} m, 95th percentile of |d| {np.percentile(np.abs(d), 95):.2f} m (DSM: "
+          f"{np.percentile(np.abs(above), 95):.2f} m)")
+    # measured: 94.5 % removed, median 0.68 m, 95th percentile 4.0 m (the DSM's: 26 m)
+    assert removed > 0.85, f"seed {SEED}: {removed:.1%} of the buildings' and trees' cells removed"
+    assert abs(np.median(d)) < 1.5 and np.percentile(np.abs(d), 95) < 8.0, f"seed {SEED}: {np.percentile(d, 95)}"
+    # one roof over all but a one-cell border: too little ground for a DTM, and the reason says so
+    roof = np.zeros((40, 40), np.float32)
+    roof[1:39, 1:39] = 10.0
+    closed = dtm_from_dsm(type(dsm)(heights=roof, west=0.0, north=40.0, cell_m=1.0, crs=dsm.crs))
+    assert closed.dtm is None and "no DTM: 10% of the measured cells are ground" in closed.note, closed.note

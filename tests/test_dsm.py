@@ -142,14 +142,14 @@ def test_hole_filling_gives_scipy_griddata_values(seed):
     from scipy.interpolate import griddata
     from scipy.spatial import cKDTree
 
-    from aerocal.products.dsm import _fill
+    from aerocal.products.dsm import fill_holes
 
     rng = np.random.default_rng(seed)
     heights = np.full((120, 90), np.nan)
     r, c = rng.integers(10, 110, 300), rng.integers(5, 80, 300)
     heights[r, c] = 100.0 + 0.3 * r - 0.2 * c + rng.normal(0.0, 2.0, 300)
     has = np.isfinite(heights)
-    filled = _fill(heights, has)
+    filled = fill_holes(heights, has)
     known, holes = np.argwhere(has).astype(float), np.argwhere(~has).astype(float)
     linear = griddata(known, heights[has], holes, method="linear")
     inside = np.isfinite(linear)

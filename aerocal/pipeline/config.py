@@ -25,6 +25,7 @@ from aerocal.pipeline.runner import configuration_json
 from aerocal.products.dense import DenseConfig
 from aerocal.products.dsm import DsmConfig
 from aerocal.products.mosaic import MosaicConfig
+from aerocal.products.terrain import GroundFilterConfig
 
 
 class CertificateMode(StrEnum):
@@ -143,6 +144,8 @@ class MosaicStepConfig:
     dense: DenseConfig | None = DenseConfig()
     #: how the dense cloud is gridded: about one cell per ground sample, as the cloud holds one point per sample
     dense_dsm: DsmConfig = DsmConfig(cell_gsd=1.0)
+    #: the ground filter that makes the DTM from the dense DSM (:mod:`aerocal.products.terrain`)
+    ground_filter: GroundFilterConfig = GroundFilterConfig()
 
     def __post_init__(self) -> None:
         if self.serial_max_megapixels < 0:

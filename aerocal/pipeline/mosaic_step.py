@@ -37,6 +37,7 @@ from aerocal.products.mosaic import (
     write_temperature_raster,
 )
 from aerocal.products.pointcloud import write_laz
+from aerocal.products.terrain import dtm_from_dsm
 
 
 def frame_paths(flight: dict, images: pa.Table) -> dict[int, Path]:
@@ -183,6 +184,10 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             dsm, measured, cloud_out = dense_surface(flight, images, poses, points, cert, paths, ground, config,
                                                      execution, work, info)
             out.update(cloud_out)
+            terrain = dtm_from_dsm(dsm, measured, config.ground_filter)
+            info["dtm"] = terrain.note
+            if terrain.dtm is not None:
+                out["dtm"] = FileOutput(write_dsm(terrain.dtm, work / "dtm.tif"), "dsm", temporary=True)
             out["sparse_dsm"] = FileOutput(write_dsm(sparse, work / "sparse_dsm.tif"), "dsm", temporary=True)
             if reference is not None:
                 info["sparse_minus_reference_m"] = difference_to(sparse, reference, sparse.distance_m == 0)

@@ -64,6 +64,7 @@ EXPORTS = {
     "report_summary": "summary.json",
     "dsm": "dsm.tif",
     "sparse_dsm": "sparse_dsm.tif",
+    "dtm": "dtm.tif",
     "cloud": "cloud.laz",
     "orthomosaic": "orthomosaic.tif",
     "temperature": "temperature.tif",

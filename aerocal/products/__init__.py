@@ -2,7 +2,8 @@
 
 :mod:`dense` matches the adjusted frames pair by pair (semi-global matching on rectified pairs) and fuses the
 depths across views into a dense cloud, which :mod:`pointcloud` writes as LAZ; :mod:`dsm` grids the dense cloud
-(or, without frames, the block's tie points) into a digital surface model;
+(or, without frames, the block's tie points) into a digital surface model, and :mod:`terrain` filters the
+ground out of it (a DTM);
 :mod:`mosaic` rectifies every frame on that surface into an orthomosaic (counts and, where the frames are
 radiometric, temperature) as cloud-optimised GeoTIFFs, in tiles that run on a Dask cluster; :mod:`kernels`
 holds its numeric inner loops. Inputs are the pipeline's tables (poses, points, cameras); nothing here

@@ -290,7 +290,7 @@ def dsm_from_points(
 
     distance = ndimage.distance_transform_edt(~has).astype(np.float32) * np.float32(cell)
     if config.fill and has.sum() >= 3:
-        heights = _fill(heights, has)
+        heights = fill_holes(heights, has)
         if config.max_fill_distance_m is not None:
             heights[distance > config.max_fill_distance_m] = np.nan
     stats = {
@@ -315,7 +315,7 @@ def bulk_extent(xy: np.ndarray, tail: float = 0.01) -> tuple[np.ndarray, np.ndar
     return mid - half, mid + half
 
 
-def _fill(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
+def fill_holes(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
     """Linear interpolation on the Delaunay triangulation of the data cells, nearest outside the hull.
 
     The values of ``scipy.interpolate.griddata`` (linear, then nearest), computed differently: the data cells

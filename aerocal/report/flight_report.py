@@ -511,6 +511,8 @@ def _surface_rows(mosaic: Mapping, dsm) -> list[tuple[str, str]]:
                                 f"{wording.number(dense['pairs'])} pairs of {wording.number(dense['frames'])} "
                                 f"frames (cloud.laz), {100 * dense['measured_fraction']:.0f} % of the DSM measured, "
                                 "the rest filled (band 2 of dsm.tif)"))
+        if mosaic.get("dtm"):
+            rows.append(("Terrain", str(mosaic["dtm"]) + (" (dtm.tif)" if mosaic["dtm"].startswith("DTM") else "")))
     else:
         rows.append(("Surface", "the adjusted tie points (no dense matching: no frames, or switched off)"))
     for key, name in (("dense_minus_reference_m", "Dense DSM minus reference"),
