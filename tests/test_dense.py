@@ -9,8 +9,9 @@ import rasterio
 
 from aerocal.assess import compare_dems
 from aerocal.enhance import enhance, stretch_params
+from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.products.dense import DenseConfig, dense_cloud, rectify
-from aerocal.products.dsm import DsmConfig, dsm_from_points, write_dsm
+from aerocal.products.dsm import dsm_from_points, write_dsm
 from aerocal.products.mosaic import frames_from_poses, read_frame
 from aerocal.products.pointcloud import write_laz
 
@@ -45,7 +46,7 @@ def _loader(raws):
 
 def _dense(block, raws):
     cloud = dense_cloud(block["frames"], _loader(raws), block["tie"], block["ground"], DenseConfig())
-    dsm = dsm_from_points(cloud.xyz, block["sim"].crs, gsd_m=cloud.gsd_m, config=DsmConfig(cell_gsd=1.0))
+    dsm = dsm_from_points(cloud.xyz, block["sim"].crs, gsd_m=cloud.gsd_m, config=MosaicStepConfig().dense_dsm)
     return cloud, dsm, dsm.distance_m <= 1.5 * dsm.cell_m
 
 

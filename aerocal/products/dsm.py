@@ -68,6 +68,9 @@ class DsmConfig:
     outlier_min_m: float = 5.0  #: a point within this of the local median is always kept
     outlier_nmad: float = 4.0  #: ... and within this many local NMADs
     outlier_isolated_slope: float = 1.0  #: height change per metre allowed to far neighbours (see above)
+    #: the local-median test of step 1; off for clouds already filtered (the dense cloud's multi-view agreement),
+    #: where its neighbour search over millions of points costs more than the gridding
+    reject_outliers: bool = True
     fill: bool = True  #: interpolate holes (linear on the Delaunay triangulation, nearest outside)
     max_fill_distance_m: float | None = None  #: leave cells farther than this from data empty (None = fill all)
     margin_cells: int = 2  #: grid margin around the data (or given bounds), cells
@@ -270,7 +273,10 @@ def dsm_from_points(
             lo, hi = bulk_extent(pts[:, :2])
         spacing = float(np.sqrt(max(float(np.prod(hi - lo)), 0.0) / len(pts)))
         cell = max(cell, config.min_point_spacing * spacing)
-    keep, supported = reject_outliers(pts, config, cell, return_supported=True)
+    if config.reject_outliers:
+        keep, supported = reject_outliers(pts, config, cell, return_supported=True)
+    else:
+        keep = supported = np.ones(len(pts), dtype=bool)
     good = pts[keep]
     # the extent comes from points with neighbours: a lone point (a weakly intersected tie point far off
     # the block) would otherwise stretch the grid over kilometres of nothing
@@ -324,9 +330,12 @@ def fill_holes(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
     cell outside the hull comes from the distance transform's indices; faster than ``griddata``, with the same
     heights inside the hull to rounding, and outside it the same but where two data cells are equally near
     (``benchmarks/history/engine_measurements.md``)."""
-    rr, cc = np.nonzero(has)
     if not (~has).any():
         return heights
+    # the vertices are the data cells on a hole's rim: linear interpolation inside a hole needs no others, and a
+    # dense DSM (millions of data cells) would otherwise be triangulated whole
+    rim = has & ndimage.binary_dilation(~has, structure=np.ones((3, 3), dtype=bool))
+    rr, cc = np.nonzero(rim)
     out = heights.astype(np.float64, copy=True)
     filled = has.copy()
     try:
