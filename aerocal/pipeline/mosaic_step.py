@@ -1,7 +1,10 @@
-"""The products step: a DSM gridded from the adjusted tie points (:func:`aerocal.products.dsm.dsm_from_points`, GeoTIFF)
-and, when frames with pixels exist (``images/`` of the flight folder), the orthomosaic in the flight's CRS from
-their original radiometry (:func:`aerocal.products.mosaic.build_mosaic`, tiles on a Dask client), with a temperature
-raster for FLIR radiometric frames. A flight without frames gets the DSM only."""
+"""The products step. When the flight has frames with pixels (``images/`` of the flight folder): the dense surface
+matched in them (:mod:`aerocal.products.dense`; ``cloud.laz``), its DSM at one ground sample per cell with the
+measured cells in band 2, the DTM filtered from it, and the tie points' DSM beside it (``sparse_dsm``); without
+frames, the DSM gridded from the adjusted tie points (:func:`aerocal.products.dsm.dsm_from_points`, GeoTIFF).
+Then, on that surface, the orthomosaic in the flight's CRS from the frames' original radiometry
+(:func:`aerocal.products.mosaic.build_mosaic`, tiles on a Dask client), with a temperature raster for FLIR
+radiometric frames. A flight without frames gets the DSM only."""
 
 from __future__ import annotations
 
@@ -124,10 +127,12 @@ def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, 
 def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Table, cert: Certificate,
                   paths: Mapping[int, Path], ground: float, config: MosaicStepConfig,
                   execution: ExecutionConfig | None, work: Path, info: dict[str, Any]
-                  ) -> tuple[Dsm, np.ndarray, dict[str, FileOutput]]:
+                  ) -> tuple[Dsm, np.ndarray, dict[str, FileOutput]] | None:
     """The dense cloud of the adjusted frames (:func:`aerocal.products.dense.dense_cloud`), its DSM at about one
     ground sample per cell and where that DSM is measured (cells within 1.5 cells of a point; the rest is
-    filled), and the cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched.
+    filled), and the cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched. ``None`` when no point
+    survives the fusion (frames without texture): the products then stand on the tie points, and
+    ``info["surface"]`` says why.
 
     The frames are those the orthomosaic rectifies (:func:`frames_of`): the certificate's IO at each frame's
     temperature, its readout and thermal rotation."""
@@ -144,9 +149,9 @@ def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Ta
         cloud = dense_cloud(frames, load, tie, ground, dcfg, client, step_progress("dense surface"))
     seconds = time.perf_counter() - start
     if len(cloud.xyz) < 3:
-        raise ValueError(f"{flight.get('folder') or flight.get('name')}: dense matching found no surface in "
-                         f"{len(frames)} frames ({cloud.stats}); set MosaicStepConfig.dense = None to grid the "
-                         "tie points only")
+        info["surface"] = (f"tie points: dense matching found no surface in {len(frames)} frames (no pair with "
+                           "texture that two other views agree on)")
+        return None
     dsm = dsm_from_points(cloud.xyz, flight["crs"], gsd_m=cloud.gsd_m, config=config.dense_dsm)
     measured = dsm.distance_m <= 1.5 * dsm.cell_m
     flir, _ = common_camera_info(list(paths.values()))
@@ -179,10 +184,11 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
         out: dict[str, Any] = {}
         paths = frame_paths(flight, images)
         reference = reference_dsm_path(flight)
-        if paths and config.dense is not None:
+        dense = (dense_surface(flight, images, poses, points, cert, paths, ground, config, execution, work, info)
+                 if paths and config.dense is not None else None)
+        if dense is not None:
             sparse = dsm
-            dsm, measured, cloud_out = dense_surface(flight, images, poses, points, cert, paths, ground, config,
-                                                     execution, work, info)
+            dsm, measured, cloud_out = dense
             out.update(cloud_out)
             terrain = dtm_from_dsm(dsm, measured, config.ground_filter)
             info["dtm"] = terrain.note
