@@ -32,7 +32,7 @@ def test_plane_with_blunders_is_recovered_and_blunders_rejected():
     assert abs(np.mean(err)) < 0.02, f"seed {seed}: mean error {np.mean(err):.4f} m"
 
 
-def test_write_dsm_is_a_georeferenced_float32_geotiff(tmp_path):
+def test_write_dsm_is_a_georeferenced_float32_cloud_optimized_geotiff(tmp_path):
     rng = np.random.default_rng(3)
     pts = np.column_stack([rng.uniform(0, 100, 500) + 686000, rng.uniform(0, 80, 500) + 4929000,
                            rng.uniform(40, 45, 500)])
@@ -46,6 +46,9 @@ def test_write_dsm_is_a_georeferenced_float32_geotiff(tmp_path):
         assert (src.transform.c, src.transform.f) == (dsm.west, dsm.north)
         data = src.read(1, masked=True)
         assert data.mask.sum() == np.isnan(dsm.heights).sum()
+        # a Cloud-Optimized GeoTIFF (what GDAL's COG driver writes and says of itself), tiled
+        assert src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG", src.tags(ns="IMAGE_STRUCTURE")
+        assert src.profile.get("tiled") and src.descriptions[0] == "height", src.profile
     back = read_dsm(path)
     np.testing.assert_array_equal(np.isnan(back.heights), np.isnan(dsm.heights))
     assert np.nanmax(np.abs(back.heights - dsm.heights)) == 0.0

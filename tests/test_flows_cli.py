@@ -56,6 +56,13 @@ def test_process_of_a_missing_folder_is_one_line_naming_it(run, tmp_path):
     )
 
 
+def test_an_unknown_surface_is_one_line_naming_the_ones_there_are(run, tmp_path):
+    result = run("process", str(tmp_path), "--surface", "lidar", "--database-url", f"sqlite:///{tmp_path / 'a.db'}")
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and "--surface lidar" in lines[0] and "dense, tie-points" in lines[0], result.output
+
+
 def test_calibrate_subset_file_errors_name_the_file_and_line(run, tmp_path):
     subset = tmp_path / "subset.txt"
     subset.write_text("IMG_0001.tif\n12\n")

@@ -4,7 +4,8 @@ measured cells in band 2, the DTM filtered from it, and the tie points' DSM besi
 frames, the DSM gridded from the adjusted tie points (:func:`aerocal.products.dsm.dsm_from_points`, GeoTIFF).
 Then, on that surface, the orthomosaic in the flight's CRS from the frames' original radiometry
 (:func:`aerocal.products.mosaic.build_mosaic`, tiles on a Dask client), with a temperature raster for FLIR
-radiometric frames. A flight without frames gets the DSM only."""
+radiometric frames. A flight without frames gets the DSM only. Where the frames record a laser range along the
+camera's axis, the surface is checked against it (:mod:`aerocal.products.range_check`)."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, StepResult
-from aerocal.products.dense import DenseConfig, dense_cloud
+from aerocal.products.dense import dense_cloud
 from aerocal.products.dsm import Dsm, DsmConfig, dsm_from_points, read_dsm, write_dsm
 from aerocal.products.mosaic import (
     FrameGeometry,
@@ -40,6 +41,7 @@ from aerocal.products.mosaic import (
     write_temperature_raster,
 )
 from aerocal.products.pointcloud import write_laz
+from aerocal.products.range_check import laser_range_check
 from aerocal.products.terrain import dtm_from_dsm
 
 
@@ -124,7 +126,7 @@ def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, 
             "completeness": float(np.count_nonzero(measured & inside) / max(np.count_nonzero(inside), 1))}
 
 
-def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Table, cert: Certificate,
+def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, cert: Certificate,
                   paths: Mapping[int, Path], ground: float, config: MosaicStepConfig,
                   execution: ExecutionConfig | None, work: Path, info: dict[str, Any]
                   ) -> tuple[Dsm, np.ndarray, dict[str, FileOutput]] | None:
@@ -134,15 +136,16 @@ def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Ta
     survives the fusion (frames without texture): the products then stand on the tie points, and
     ``info["surface"]`` says why.
 
-    The frames are those the orthomosaic rectifies (:func:`frames_of`): the certificate's IO at each frame's
+    ``frames`` are those the orthomosaic rectifies (:func:`frames_of`): the certificate's IO at each frame's
     temperature, its readout and thermal rotation."""
-    frames = frames_of(images, poses, cert, paths)
     ecfg = EnhanceConfig()
     names = {i: str(p) for i, p in paths.items()}
     params = stretch_params(list(names.values()), percent=ecfg.percent, loader=lambda p: grey(read_raw(p)))
     load = functools.partial(dense_frame, paths=names, params=params, config=ecfg)
     tie = np.column_stack([points.column(c).to_numpy() for c in ("X", "Y", "Z")])
-    dcfg = config.dense or DenseConfig()
+    dcfg = config.dense
+    if dcfg is None:
+        raise ValueError("dense_surface: MosaicStepConfig.dense is None (the tie points' surface was asked for)")
     serial = len(frames) * cert.camera.width * cert.camera.height / 1e6 <= config.serial_max_megapixels
     start = time.perf_counter()
     with (execution or ExecutionConfig()).client(serial) as client:
@@ -164,6 +167,19 @@ def dense_surface(flight: dict, images: pa.Table, poses: pa.Table, points: pa.Ta
     return dsm, measured, {"cloud": FileOutput(laz, "cloud", temporary=True)}
 
 
+def surface_text(info: Mapping[str, Any]) -> str:
+    """The products step's surface in a sentence (``info``: its ``mosaic`` document): what the DSM stands on and,
+    where the frames record laser ranges, whether it agrees with them."""
+    dense = info.get("dense")
+    if info.get("surface") == "dense" and dense:
+        text = (f"dense: {dense['points']:,} points matched in {dense['pairs']} pairs of {dense['frames']} frames, "
+                f"{100 * dense['measured_fraction']:.0f} % of the DSM measured")
+    else:
+        text = str(info.get("surface") or "tie points")
+    laser = info.get("laser_range")
+    return text + (f"; {laser['verdict']}" if laser else "")
+
+
 def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certificate: str,
                 config: MosaicStepConfig | None = None, execution: ExecutionConfig | None = None) -> StepResult:
     """Outputs: ``dsm`` (GeoTIFF, float32 metres), ``orthomosaic`` (GeoTIFF/COG, when frames exist),
@@ -180,12 +196,16 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
         gsd, ground = flight_gsd(poses, points, cert.camera.f)
         work = Path(tempfile.mkdtemp(prefix="aerocal-mosaic-"))
         dsm = dsm_from_points(points, flight["crs"], gsd_m=gsd, config=config.dsm or DsmConfig())
-        info: dict[str, Any] = {"gsd_m": gsd, "ground_height_m": ground, "frames": 0, "surface": "tie points"}
+        info: dict[str, Any] = {"gsd_m": gsd, "ground_height_m": ground, "frames": 0,
+                                "surface": "tie points: the flight has no frames (images/) to match densely"}
         out: dict[str, Any] = {}
         paths = frame_paths(flight, images)
+        frames = frames_of(images, poses, cert, paths) if paths else []
         reference = reference_dsm_path(flight)
-        dense = (dense_surface(flight, images, poses, points, cert, paths, ground, config, execution, work, info)
+        dense = (dense_surface(flight, frames, points, cert, paths, ground, config, execution, work, info)
                  if paths and config.dense is not None else None)
+        if paths and config.dense is None:
+            info["surface"] = "tie points: the dense surface was not asked for (--surface tie-points)"
         if dense is not None:
             sparse = dsm
             dsm, measured, cloud_out = dense
@@ -200,10 +220,15 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
                 info["dense_minus_reference_m"] = difference_to(dsm, reference, measured)
         else:
             measured = None
+        if flight.get("laser_range_m") and paths:
+            ranges = {int(k): float(v) for k, v in flight["laser_range_m"].items()}
+            check = laser_range_check(frames, ranges, dsm,
+                                      dsm.distance_m == 0 if measured is None else measured)
+            if check is not None:
+                info["laser_range"] = check.to_json(gsd)
         out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured), "dsm", temporary=True)
         info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
         if paths:
-            frames = frames_of(images, poses, cert, paths)
             megapixels = len(frames) * cert.camera.width * cert.camera.height / 1e6
             serial = megapixels <= config.serial_max_megapixels
             with (execution or ExecutionConfig()).client(serial) as client:

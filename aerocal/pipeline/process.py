@@ -51,7 +51,7 @@ from aerocal.pipeline.extend_step import extend_step, extension_record, model_te
 from aerocal.pipeline.findings import run_findings
 from aerocal.pipeline.ingest_step import ingest_step
 from aerocal.pipeline.match_step import match_step
-from aerocal.pipeline.mosaic_step import mosaic_step
+from aerocal.pipeline.mosaic_step import mosaic_step, surface_text
 from aerocal.pipeline.orient_step import INCREMENTAL, orient_step
 from aerocal.pipeline.progress import step_started
 from aerocal.pipeline.report_step import report_step
@@ -288,7 +288,7 @@ def process(
 
     results: dict[str, Any] = {}
     if "diagnosis" in outputs:
-        docs = runner.inputs({k: outputs[k] for k in ("diagnosis", "assessment", "adjustment")})
+        docs = runner.inputs({k: outputs[k] for k in ("diagnosis", "assessment", "adjustment", "mosaic")})
         diag, assess, adjustment = docs.json("diagnosis"), docs.json("assessment"), docs.json("adjustment")
         first = runner.inputs({"a": before["adjust"]["adjustment"]}).json("a")
         calibration = (runner.inputs({"c": steps["calibrate"]["certificate"]}).json("c")
@@ -305,6 +305,7 @@ def process(
             "accuracy": assess.get("check_points"),
             "adjustment_converged": bool(adjustment.get("converged", True)),
             "adjustment_iterations": adjustment.get("iterations"),
+            "surface": surface_text(docs.json("mosaic")),
         }
     files = {}
     if out_dir is not None:

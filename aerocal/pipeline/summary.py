@@ -98,7 +98,8 @@ class RunSummary:
     and after, the terms and their gain), ``recorded_eo`` (the diagnosis's recorded-EO checks, a document),
     ``recorded_eo_corrections`` (what the first adjustment removed from the recorded positions, in words), ``twin``
     (what the simulation gets wrong, in words), ``accuracy`` (the check points' assessment document, ``None``
-    without check points), ``adjustment_converged`` and ``adjustment_iterations``.
+    without check points), ``adjustment_converged`` and ``adjustment_iterations``, and the ``surface`` the products
+    stand on, in words (dense or the tie points and why; against the frames' laser ranges where they record them).
     """
 
     run_id: str
@@ -125,6 +126,7 @@ class RunSummary:
     accuracy: dict[str, Any] | None = None
     adjustment_converged: bool | None = None
     adjustment_iterations: int | None = None
+    surface: str | None = None
 
     def __post_init__(self) -> None:
         if not self.run_id:

@@ -43,6 +43,7 @@ from pathlib import Path
 import numba
 import numpy as np
 import rasterio
+import rasterio.shutil
 from rasterio.transform import from_origin
 from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
@@ -383,7 +384,9 @@ def _raster_triangles(rows: np.ndarray, values: np.ndarray, out: np.ndarray, fil
 
 
 def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None) -> Path:
-    """Write ``dsm`` as a tiled, deflate-compressed float32 GeoTIFF (nodata :data:`NODATA`), atomically.
+    """Write ``dsm`` as a Cloud-Optimized GeoTIFF (GDAL's COG driver: 256-pixel tiles, overviews averaged, deflate
+    with the floating-point predictor), float32, nodata :data:`NODATA`, atomically: a GIS or a web map reads a
+    window of a city's DSM without the whole file.
 
     ``measured`` (bool, the DSM's shape), when given, is written as a second band (1: a measured height, 0: a
     filled hole) named ``measured``: a GIS shows where the surface was interpolated; readers of the heights
@@ -395,18 +398,22 @@ def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None) ->
                                              .astype(np.float32)]
     profile = {
         "driver": "GTiff", "width": cols, "height": rows, "count": len(bands), "dtype": "float32", "crs": dsm.crs,
-        "transform": dsm.transform(), "nodata": NODATA, "compress": "deflate", "predictor": 3,
+        "transform": dsm.transform(), "nodata": NODATA,
     }
-    if rows >= 256 and cols >= 256:
-        profile.update(tiled=True, blockxsize=256, blockysize=256)
     with atomic_path(path) as tmp:
-        with rasterio.open(tmp, "w", **profile) as dst:
-            for k, band in enumerate(bands, start=1):
-                dst.write(band, k)
-            dst.set_band_description(1, "height")
-            if measured is not None:
-                dst.set_band_description(2, "measured")
-            dst.update_tags(AREA_OR_POINT="Area", units="metre")
+        work = tmp.with_name(tmp.name + ".work.tif")  # the plain GeoTIFF the COG driver copies
+        try:
+            with rasterio.open(work, "w", **profile) as dst:
+                for k, band in enumerate(bands, start=1):
+                    dst.write(band, k)
+                dst.set_band_description(1, "height")
+                if measured is not None:
+                    dst.set_band_description(2, "measured")
+                dst.update_tags(AREA_OR_POINT="Area", units="metre")
+            rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", PREDICTOR="YES", BLOCKSIZE=256,
+                                 OVERVIEW_RESAMPLING="AVERAGE", BIGTIFF="IF_SAFER")
+        finally:
+            work.unlink(missing_ok=True)
     return path
 
 

@@ -191,6 +191,8 @@ def write_flight_report(
     for key in ("dense_minus_reference_m", "sparse_minus_reference_m"):  # the products step's, measured cells
         if mosaic.get(key) and "error" not in mosaic[key]:
             summary[key] = mosaic[key]
+    if mosaic.get("laser_range"):
+        summary["surface_minus_laser_range_m"] = {k: v for k, v in mosaic["laser_range"].items() if k != "images"}
     if extension is not None:
         summary["model_extension"] = extension.get("named")
     summary.update(extra or {})
@@ -514,13 +516,15 @@ def _surface_rows(mosaic: Mapping, dsm) -> list[tuple[str, str]]:
         if mosaic.get("dtm"):
             rows.append(("Terrain", str(mosaic["dtm"]) + (" (dtm.tif)" if mosaic["dtm"].startswith("DTM") else "")))
     else:
-        rows.append(("Surface", "the adjusted tie points (no dense matching: no frames, or switched off)"))
+        rows.append(("Surface", str(mosaic.get("surface") or "the adjusted tie points")))
     for key, name in (("dense_minus_reference_m", "Dense DSM minus reference"),
                       ("sparse_minus_reference_m", "Tie-point DSM minus reference")):
         d = mosaic.get(key)
         if d and "error" not in d:
             rows.append((name, f"measured cells: mean {d['mean_m']:.2f} m, NMAD {d['nmad_m']:.2f} m, "
                                f"RMSE {d['rmse_m']:.2f} m, {100 * d['completeness']:.0f} % of the cells"))
+    if mosaic.get("laser_range"):
+        rows.append(("Surface against the laser range finder", str(mosaic["laser_range"]["verdict"])))
     rows.append(("Frames in the orthomosaic", wording.number(mosaic.get("frames") or 0)))
     if mosaic.get("temperature"):
         rows.append(("Temperature raster", str(mosaic["temperature"])))

@@ -24,6 +24,7 @@ from flows.environment import conceal_password, quiet_prefect
 
 if TYPE_CHECKING:  # the CLI's start-up imports no engine module (see the module docstring)
     from aerocal.ingest.problems import Problem
+    from aerocal.pipeline import ProcessConfig
     from aerocal.pipeline.findings import Finding
     from aerocal.pipeline.summary import RunSummary
 
@@ -105,6 +106,9 @@ def print_run(summary: RunSummary) -> None:
         console.print("recorded positions in the block adjustment: " + "; ".join(summary.recorded_eo_corrections))
     if summary.twin:
         console.print(f"twin (what the simulation gets wrong): {summary.twin}")
+    if summary.surface:
+        colour = "yellow" if "DISAGREES" in summary.surface else "default"
+        console.print(f"[{colour}]surface[/{colour}]: {summary.surface}", highlight=False)
     for name, path in summary.files.items():
         console.print(f"{name:>13}: {path}")
 
@@ -345,6 +349,12 @@ def process(
     dask: str | None = DASK_OPTION,
     database_url: str | None = DATABASE_URL_OPTION,
     artifact_root: Path | None = ARTIFACT_ROOT_OPTION,
+    surface: str = typer.Option(
+        "dense", "--surface",
+        help="dense (the surface matched in the frames: cloud.laz, DSM and DTM at the ground sample distance; "
+        "the orthomosaic stands on it) or tie-points (the tie points' DSM only: minutes sooner on a large flight, "
+        "an orthomosaic whose roofs and walls lean).",
+    ),
     as_json: bool = typer.Option(False, "--json", help="Print the run summary as JSON."),
 ) -> None:
     """Process a flight end to end and record the run.
@@ -354,6 +364,8 @@ def process(
 
     Example: aerocal process flights/2016-03-14 --certificate auto --out runs/2016-03-14
     """
+    with user_errors():
+        config = surface_config(surface)
     require_folder(flight_dir)
     stop_if_not_processable(flight_dir)
     quiet_prefect()
@@ -367,7 +379,7 @@ def process(
                 flight_dir,
                 out,
                 certificate,
-                None,
+                config,
                 conceal_password(database_url),
                 str(artifact_root) if artifact_root else None,
                 dask,
@@ -376,6 +388,26 @@ def process(
         console.print_json(json.dumps(summary.to_json(), default=str))
     else:
         print_run(summary)
+
+
+SURFACES = ("dense", "tie-points")
+
+
+def surface_config(surface: str) -> ProcessConfig | None:
+    """The process configuration ``--surface`` asks for: ``None`` (the defaults) for ``dense``, the products
+    step without the dense surface for ``tie-points``.
+
+    Raises:
+        CommandInputError: ``surface`` is neither.
+    """
+    if surface not in SURFACES:
+        raise CommandInputError(f"--surface {surface}: unknown; give one of {', '.join(SURFACES)}")
+    if surface == "dense":
+        return None
+    from aerocal.pipeline import ProcessConfig
+
+    cfg = ProcessConfig()
+    return dataclasses.replace(cfg, mosaic=dataclasses.replace(cfg.mosaic, dense=None))
 
 
 def subset_config(subset: str) -> dict[str, Any]:
