@@ -56,6 +56,8 @@ IMAGES = pa.schema(
         pa.field("attitude_convention", pa.string()),
         pa.field("temperature_c", pa.float64()),
         pa.field("strip", pa.int32()),
+        # the range a laser range finder on the camera's axis measured (metres; DJI XMP LRFTargetDistance)
+        pa.field("laser_range_m", pa.float64()),
     ]
 )
 
@@ -138,6 +140,10 @@ POINTS = pa.schema(
     ]
 )
 
+#: nullable columns added to a schema after tables were written without them: a table that lacks one is read with
+#: the column null (the tables of earlier flights stay readable), every other missing column is an error
+ADDED_COLUMNS: dict[str, tuple[str, ...]] = {"images": ("laser_range_m",)}
+
 SCHEMAS: dict[str, pa.Schema] = {
     "images": IMAGES,
     "keypoints": KEYPOINTS,
@@ -219,13 +225,17 @@ def crs_of(table: pa.Table) -> str | None:
 def validate(table: pa.Table, kind: str, source: str | Path | None = None) -> pa.Table:
     """Check ``table`` against the schema of ``kind`` and return it cast to that schema.
 
-    Extra columns are refused (they would be silently dropped by the next writer); missing columns,
-    wrong types and nulls in required columns raise :class:`SchemaError` naming ``source``, the
-    column and what was expected.
+    Extra columns are refused (they would be silently dropped by the next writer); missing columns (but those of
+    :data:`ADDED_COLUMNS`, read as nulls), wrong types and nulls in required columns raise :class:`SchemaError`
+    naming ``source``, the column and what was expected.
     """
     schema = SCHEMAS[_kind(kind)]
     where = f"{source}: " if source else ""
     names = set(table.schema.names)
+    for name in ADDED_COLUMNS.get(kind, ()):
+        if name not in names:
+            table = table.append_column(schema.field(name), pa.nulls(table.num_rows, schema.field(name).type))
+            names.add(name)
     missing = [f.name for f in schema if f.name not in names]
     if missing:
         raise SchemaError(f"{where}{kind} table lacks column(s) {missing}; expected {schema.names}")

@@ -95,14 +95,16 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
     assert 0.02 < gsd < 0.5, gsd  # ~0.085 m: 12 um pixels at 13.5 mm from ~95 m
     assert band.count() > 0.3 * band.size and float(np.ma.std(band)) > 0, (band.count(), band.size)
 
-    # the surface against the gimbal's laser range finder (LRFTargetDistance, on the camera's axis): the dense DSM
-    # lies about 22 m farther from the cameras than the laser's 64-97 m (benchmarks/RESULTS.md, "h20t_forest
-    # against its laser range finder"): the block's depth is wrong, and the product must say so, not hand over
-    # the heights as measured. When the block is mended this turns: pin the new figures then.
+    # the surface against the gimbal's laser range finder (LRFTargetDistance, on the camera's axis), judged on the
+    # frames whose range no adjustment used (every second frame's range observes the block's depth): the dense DSM
+    # lies about 11 m farther from the cameras than the laser's 64-97 m (22 m without the ranges as observations;
+    # benchmarks/RESULTS.md, "h20t_forest against its laser range finder"). The images want a bent, deeper block
+    # than the laser allows: the model lacks something, and the product must say so, not hand over the heights as
+    # measured. When the block is mended this turns: pin the new figures then.
     report = json.loads((out / "summary.json").read_text())["summary"]
     laser = report["surface_minus_laser_range_m"]
-    assert laser["n"] >= 20 and 60 < laser["median_laser_m"] < 100, laser
-    assert laser["agrees"] is False and laser["median_m"] > 10, laser
+    assert laser["n"] >= 10 and 60 < laser["median_laser_m"] < 100 and laser["fitted"]["n"] >= 10, laser
+    assert laser["agrees"] is False and laser["median_m"] > 5, laser
     assert summary["surface"].startswith("dense") and "DISAGREES with the laser range finder" in summary["surface"]
 
     # the next survey with this camera (here the same frames, processed again as a user would): the stored

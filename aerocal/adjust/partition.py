@@ -132,6 +132,7 @@ def sub_block(block: Block, plan: Plan, k: int) -> Block:
         check_ids=[], check_xyz=np.zeros((0, 3)), check_sigma=np.zeros((0, 3)),
         check_image=np.zeros(0, np.int64), check_point=np.zeros(0, np.int64), check_uv=np.zeros((0, 2)),
         check_sigma_px=np.zeros(0), n_tie_obs=int(is_tie.sum()),
+        laser_range=None if block.laser_range is None else block.laser_range[imgs],
     )
 
 

@@ -12,6 +12,7 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal import tables
+from aerocal.adjust.laser import fitted_lasers
 from aerocal.adjust.projection import THERMAL_PARAMS
 from aerocal.adjust.schur_kernels import image_graph, point_visit_rank, stable_order
 from aerocal.adjust.thinning import ThinningConfig
@@ -82,6 +83,9 @@ class AdjustConfig:
       ones given the dropped parameters' values, and the selection's t values are those of its last model.
     * ``marginal_over``: IO parameters held at their value (not in ``free``) that the sigmas are made
       marginal over all the same, as for dropped ones (default none): the re-adjustment of a selected model.
+    * ``laser_ranges``: the ranges a laser range finder on the camera's axis measured (``images.laser_range_m``)
+      observe the block's depth (default True; :mod:`aerocal.adjust.laser`): those of alternate frames, the
+      others kept out of every fit to judge the surface (:func:`aerocal.adjust.laser.fitted_lasers`).
     """
 
     free: tuple[str, ...] = ("f", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
@@ -106,6 +110,7 @@ class AdjustConfig:
     t_limit: float = 1.96
     always_keep: tuple[str, ...] = ("f", "cx", "cy")
     marginal_over: tuple[str, ...] = ()
+    laser_ranges: bool = True
 
     def __post_init__(self) -> None:
         for field_name in ("free", "marginal_over"):
@@ -157,6 +162,9 @@ class Block:
     check_uv: np.ndarray  # (Mk, 2)
     check_sigma_px: np.ndarray  # (Mk,)
     n_tie_obs: int = field(default=0)
+    #: (N,) the range a laser range finder on each camera's axis measured, metres (NaN where none; ``None``: no image
+    #: has one): observations of the block's depth (:mod:`aerocal.adjust.laser`)
+    laser_range: np.ndarray | None = None
 
     @property
     def n_images(self) -> int:
@@ -253,6 +261,7 @@ def build_block(
             )
     origin = gnss.mean(axis=0)
     temperature = _col(images, "temperature_c", "images").astype(float)
+    laser = _col(images, "laser_range_m", "images").astype(float)
     if (config.thermal or thermal_correction is not None) and not np.isfinite(temperature).all():
         bad = int(np.flatnonzero(~np.isfinite(temperature))[0])
         raise AdjustmentError(
@@ -355,4 +364,5 @@ def build_block(
         check_uv=go_uv[sel_k],
         check_sigma_px=go_sig[sel_k],
         n_tie_obs=len(o_pt),
+        laser_range=fitted_lasers(image_ids, laser) if config.laser_ranges and np.isfinite(laser).any() else None,
     )

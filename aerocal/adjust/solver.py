@@ -28,6 +28,7 @@ import scipy.sparse.linalg as spla
 from scipy.linalg import lapack
 
 from aerocal.adjust import cholesky
+from aerocal.adjust.laser import LaserRows, laser_residuals, laser_rows
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block
 from aerocal.adjust.projection import (
     IDX,
@@ -202,6 +203,9 @@ class BundleProblem:
         self.last_depth: np.ndarray | None = None  # see :meth:`residuals`
         self._inv_sigma: np.ndarray | None = None  # 1 / the point view's sigma (:meth:`residuals`)
         self._work: dict[str, np.ndarray] = {}  # arrays reused from one Jacobian to the next (:meth:`_buffer`)
+        #: the laser rows (:mod:`aerocal.adjust.laser`), chosen at the first state the residuals see
+        self.laser: LaserRows | None = None
+        self._laser_layouts: dict[bool, PairLayout] = {}
         self.gnss_sigma = None if config.gnss_sigma_m is None else np.asarray(config.gnss_sigma_m, float)
         self.att_sigma = (
             None
@@ -268,6 +272,24 @@ class BundleProblem:
             b = self.b
             self._block_layout = image_pair_layout(b.obs_image, b.obs_point, b.n_images, b.n_points)
         return self._block_layout
+
+    def laser_rows(self, st: State) -> LaserRows:
+        """The block's laser observations (:func:`aerocal.adjust.laser.laser_rows`), chosen once, at ``st``'s
+        principal point and focal length."""
+        if self.laser is None:
+            b = self.b
+            self.laser = laser_rows(b.laser_range, b.obs_image, b.obs_point, b.obs_uv, b.obs_is_tie,
+                                    (float(st.io[IDX["cx"]]), float(st.io[IDX["cy"]])), float(st.io[IDX["f"]]))
+        return self.laser
+
+    def _with_laser_layout(self, image: np.ndarray, point: np.ndarray, point_order: bool) -> PairLayout:
+        """The pair layout of the observations followed by the laser rows (a laser row observes a pair of image
+        and point the block holds, so the image graph is the block's)."""
+        if point_order not in self._laser_layouts:
+            b = self.b
+            G, rank = self._graph if point_order else (None, None)
+            self._laser_layouts[point_order] = image_pair_layout(image, point, b.n_images, b.n_points, G, rank)
+        return self._laser_layouts[point_order]
 
     # ------------------------------------------------------------------ residuals
     def residuals(self, st: State, jac: bool, sparse: bool = True) -> tuple:
@@ -349,6 +371,16 @@ class BundleProblem:
             r = ((st.X[b.n_tie :] - b.control_xyz) / b.control_sigma).ravel()
             parts.append(r)
             cost_parts.append(float(r @ r))
+        laser = self.laser_rows(st)
+        L = len(laser)
+        if L:
+            l_res, l_pose, l_point = laser_residuals(st.R, st.C, st.X, laser)
+            l_r = l_res / laser.sigma_m
+            l_s = l_r * l_r
+            # always under a Cauchy loss: a laser that passed a canopy's gap to the ground is a blunder of tens of
+            # sigmas that no screening of the image observations sees
+            l_rho, l_w = _robust(l_s, "cauchy", self.cfg.robust_scale)
+            cost_parts.append(float(np.sum(l_rho)))
         cost = 0.5 * sum(cost_parts)
         if not jac:
             return cost, res_out, w_out
@@ -378,9 +410,24 @@ class BundleProblem:
         pgrad = np.zeros((lay.n_points, 3))
         if G:
             pgrad[b.n_tie :] = parts[-1].reshape(G, 3) / b.control_sigma
-        self.blocks = ObsBlocks(image=i, point=j, Ji=Ji, Jx=Jx, n_global=ng, Jg=Jg, r=rw, prior_info=info,
-                                prior_grad=grad, point_grad=pgrad,
-                                layout=self.block_order_layout() if view is None else pair_layout)
+        o_image, o_point, o_Ji, o_Jx, o_Jg, o_r = i, j, Ji, Jx, Jg, rw
+        laser_layout = None
+        if L:
+            # the laser rows as one more observation each of (image, point): a first row, a second of zeros
+            l_sw = np.sqrt(l_w) / laser.sigma_m
+            l_Ji, l_Jx, l_rw = np.zeros((L, 2, 6)), np.zeros((L, 2, 3)), np.zeros((L, 2))
+            l_Ji[:, 0] = l_pose * l_sw[:, None]
+            l_Jx[:, 0] = l_point * l_sw[:, None]
+            l_rw[:, 0] = l_res * l_sw
+            np.add.at(Hpp, laser.point, np.einsum("li,lj->lij", l_Jx[:, 0], l_Jx[:, 0]))
+            o_image, o_point = np.concatenate([i, laser.image]), np.concatenate([j, laser.point])
+            o_Ji, o_Jx, o_r = np.concatenate([Ji, l_Ji]), np.concatenate([Jx, l_Jx]), np.concatenate([rw, l_rw])
+            o_Jg = np.concatenate([Jg, np.zeros((L, 2, ng))])
+            laser_layout = self._with_laser_layout(o_image, o_point, view is not None)
+        self.blocks = ObsBlocks(image=o_image, point=o_point, Ji=o_Ji, Jx=o_Jx, n_global=ng, Jg=o_Jg, r=o_r,
+                                prior_info=info, prior_grad=grad, point_grad=pgrad,
+                                layout=laser_layout if L else (self.block_order_layout() if view is None
+                                                               else pair_layout))
         if G:
             Hpp[b.n_tie :] += np.einsum("gi,ij->gij", 1.0 / b.control_sigma**2, np.eye(3))
         if not sparse:
@@ -417,6 +464,15 @@ class BundleProblem:
             pr_cols.append(3 * b.n_tie + np.arange(3 * G))
             pr_vals.append((1.0 / b.control_sigma).ravel())
             row += 3 * G
+        if L:
+            rr.append(np.repeat(row + np.arange(L), 6))
+            cc.append(lay.image_cols(laser.image).ravel())
+            vv.append(l_Ji[:, 0].ravel())
+            pr_rows.append(np.repeat(row + np.arange(L), 3))
+            pr_cols.append(((3 * laser.point)[:, None] + np.arange(3)).ravel())
+            pr_vals.append(l_Jx[:, 0].ravel())
+            r_all.append(l_rw[:, 0])
+            row += L
         Jc = sp.csr_matrix(
             (np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))), shape=(row, lay.n_camera)
         )
@@ -959,7 +1015,7 @@ def redundancy(problem: BundleProblem) -> int:
     control GCP) less its unknowns; an :class:`AdjustmentError` when there is no redundancy."""
     b, lay = problem.b, problem.layout
     priors = (problem.gnss_sigma is not None) + (problem.att_sigma is not None)
-    n_res = 2 * len(b.obs_image) + 3 * b.n_images * priors + 3 * len(b.control_ids)
+    n_res = 2 * len(b.obs_image) + 3 * b.n_images * priors + 3 * len(b.control_ids) + len(problem.laser or ())
     n_unk = lay.n_camera + 3 * lay.n_points
     if n_res <= n_unk:
         raise AdjustmentError(f"the adjustment has {n_res} observations for {n_unk} unknowns: no redundancy")

@@ -172,6 +172,7 @@ def sub_block(block: Block, state: State, keep: np.ndarray, min_rays: int = 2) -
         R_rec=block.R_rec[keep],
         gnss=block.gnss[keep],
         temperature=block.temperature[keep],
+        laser_range=None if block.laser_range is None else block.laser_range[keep],
         obs_image=img_new[block.obs_image[obs_keep]],
         obs_point=pt_new[block.obs_point[obs_keep]],
         obs_uv=block.obs_uv[obs_keep],

@@ -704,6 +704,17 @@ def image_heading(convention: str | None, roll: float | None, pitch: float | Non
     return float(np.degrees(np.arctan2(v[0], v[1])) % 360.0)
 
 
+def laser_range(extra: dict) -> float | None:
+    """The range (metres) a laser range finder on the camera's axis measured for an image, from its recorded
+    metadata (DJI XMP ``LRFTargetDistance``, kept only with ``LRFStatus`` "Normal" where the status is written), or
+    ``None``."""
+    value = extra.get("dji_lrf_target_distance_m")
+    status = extra.get("dji_lrf_status")
+    if value is None or not math.isfinite(float(value)) or float(value) <= 0 or status not in (None, "Normal"):
+        return None
+    return float(value)
+
+
 def _images_table(metas, camera_ids, times, x, y, strip, crs) -> pa.Table:
     def col(values):
         return [None if v is None or (isinstance(v, float) and not math.isfinite(v)) else v for v in values]
@@ -730,6 +741,7 @@ def _images_table(metas, camera_ids, times, x, y, strip, crs) -> pa.Table:
         "attitude_convention": [m.pose.convention for m in metas],
         "temperature_c": col(m.temperature_c for m in metas),
         "strip": [None if s == -2 else int(s) for s in strip.tolist()],
+        "laser_range_m": [laser_range(m.pose.extra) for m in metas],
     }
     table = tables.from_columns("images", columns)
     return tables.with_crs(table, crs) if crs else table

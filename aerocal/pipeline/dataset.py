@@ -267,31 +267,10 @@ class FolderDataset:
         height = res.height_agl_m
         if height is None and res.gcps.num_rows == 0 and has_priors(res.images):
             height, facts["height_agl_m"] = measured_flying_height(self.folder, res.images, res.camera)
-        meta = {**res.plan, "height_agl_m": height, "laser_range_m": laser_ranges(res.images, res.extra),
+        meta = {**res.plan, "height_agl_m": height,
                 "gnss_sigma_m": None if res.gnss_sigma_m is None else list(res.gnss_sigma_m)}
         return IngestedFlight(tabs, cam_doc, meta, res.crs, FlightMode.IMAGES, [str(p) for p in res.problems],
                               list(res.skipped_images), facts)
-
-
-#: the ``extra`` columns of a laser range finder on the camera's axis: the range (m) and its status
-LASER_RANGE_COLUMN, LASER_STATUS_COLUMN = "dji_lrf_target_distance_m", "dji_lrf_status"
-
-
-def laser_ranges(images: pa.Table, extra: pa.Table) -> dict[str, float]:
-    """Image id (as text) -> the range (metres) the camera's laser range finder measured along its axis, for the
-    images ingest kept whose record has one with a normal status (DJI XMP ``LRFTargetDistance`` and
-    ``LRFStatus``): what :mod:`aerocal.products.range_check` compares with the dense surface."""
-    if LASER_RANGE_COLUMN not in extra.schema.names:
-        return {}
-    ids = dict(zip(images.column("name").to_pylist(), images.column("image_id").to_pylist(), strict=True))
-    status = (extra.column(LASER_STATUS_COLUMN).to_pylist() if LASER_STATUS_COLUMN in extra.schema.names
-              else [None] * extra.num_rows)
-    out = {}
-    for name, rng, ok in zip(extra.column("name").to_pylist(), extra.column(LASER_RANGE_COLUMN).to_pylist(),
-                             status, strict=True):
-        if name in ids and rng is not None and rng > 0 and ok in (None, "Normal"):
-            out[str(ids[name])] = float(rng)
-    return out
 
 
 def measured_flying_height(folder: Path, images: pa.Table, camera: Camera) -> tuple[float, str]:

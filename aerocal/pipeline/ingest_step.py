@@ -18,8 +18,7 @@ def flight_summary(images: pa.Table, meta: dict, crs: str | None, name: str, mod
     """The flight's summary (the ``flight`` document every later step reads): name, folder (``None`` for a
     dataset in memory), mode, CRS, date (of the first image, else the plan's start, else today), image count,
     sensor temperature range (degC), bounding box of the GNSS positions (E min, N min, E max, N max in the
-    CRS), the declared sigmas and height above ground (metres), and ``laser_range_m``: image id (as text) -> the
-    range a laser range finder on the camera's axis measured (metres; ``{}`` when no image records one)."""
+    CRS) and the declared sigmas and height above ground (metres)."""
     times = [t for t in images.column("time").to_pylist() if t is not None]
     start = meta.get("start_time")
     if times:
@@ -46,7 +45,6 @@ def flight_summary(images: pa.Table, meta: dict, crs: str | None, name: str, mod
         "tie_sigma_px": meta.get("tie_sigma_px"),
         "height_agl_m": meta.get("height_agl_m"),
         "description": meta.get("description"),
-        "laser_range_m": dict(meta.get("laser_range_m") or {}),
     }
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from aerocal.adjust.laser import fitted_lasers
 from aerocal.assess import compare_dems
 from aerocal.certificates.document import Certificate
 from aerocal.diagnose.extension import frame_terms
@@ -167,6 +168,29 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
     return dsm, measured, {"cloud": FileOutput(laz, "cloud", temporary=True)}
 
 
+def laser_output(images: pa.Table, frames: list[FrameGeometry], dsm: Dsm, measured: np.ndarray,
+                 gsd: float) -> dict[str, Any] | None:
+    """The surface against the frames' laser ranges (:mod:`aerocal.products.range_check`), judged on the ranges no
+    adjustment used (:func:`aerocal.adjust.laser.fitted_lasers` keeps every second one out of the fits), with the
+    figures of the fitted ones beside (``fitted``); ``None`` when no frame records a range."""
+    ids = np.asarray(images.column("image_id").to_pylist(), dtype=np.int64)
+    ranges = np.array([np.nan if r is None else r for r in images.column("laser_range_m").to_pylist()], float)
+    if not np.isfinite(ranges).any():
+        return None
+    fitted = np.isfinite(fitted_lasers(ids, ranges))
+    held = {int(i): float(r) for i, r, f in zip(ids, ranges, fitted, strict=True) if np.isfinite(r) and not f}
+    used = {int(i): float(r) for i, r, f in zip(ids, ranges, fitted, strict=True) if f}
+    check = laser_range_check(frames, held, dsm, measured)
+    if check is None:
+        return None
+    doc = check.to_json(gsd)
+    doc["verdict"] += " (frames whose range no adjustment used; the others' ranges observe the block's depth)"
+    fit = laser_range_check(frames, used, dsm, measured)
+    if fit is not None:
+        doc["fitted"] = {k: v for k, v in fit.to_json(gsd).items() if k != "images"}
+    return doc
+
+
 def surface_text(info: Mapping[str, Any]) -> str:
     """The products step's surface in a sentence (``info``: its ``mosaic`` document): what the DSM stands on and,
     where the frames record laser ranges, whether it agrees with them."""
@@ -220,12 +244,10 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
                 info["dense_minus_reference_m"] = difference_to(dsm, reference, measured)
         else:
             measured = None
-        if flight.get("laser_range_m") and paths:
-            ranges = {int(k): float(v) for k, v in flight["laser_range_m"].items()}
-            check = laser_range_check(frames, ranges, dsm,
-                                      dsm.distance_m == 0 if measured is None else measured)
-            if check is not None:
-                info["laser_range"] = check.to_json(gsd)
+        if paths:
+            laser = laser_output(images, frames, dsm, dsm.distance_m == 0 if measured is None else measured, gsd)
+            if laser is not None:
+                info["laser_range"] = laser
         out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured), "dsm", temporary=True)
         info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
         if paths:

@@ -9,6 +9,9 @@ the block's scale along the view and the camera's attitude are right; their diff
 surface that owes nothing to the images (the laser) and nothing to the GNSS datum (both are distances from the
 camera).
 
+Where the ranges also observe the block (:mod:`aerocal.adjust.laser`, every second frame's), the products step
+judges the surface on the others, which no fit used, and gives the fitted frames' figures beside them.
+
 What the comparison cannot tell apart: the laser's spot (a few decimetres at 100 m) against the DSM's cell, and the
 laser's axis against the camera's (a fraction of a degree moves the spot along a canopy's slopes). Over rough
 surfaces the per-image differences are therefore wide; their median is the figure to read.

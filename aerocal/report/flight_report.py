@@ -523,8 +523,12 @@ def _surface_rows(mosaic: Mapping, dsm) -> list[tuple[str, str]]:
         if d and "error" not in d:
             rows.append((name, f"measured cells: mean {d['mean_m']:.2f} m, NMAD {d['nmad_m']:.2f} m, "
                                f"RMSE {d['rmse_m']:.2f} m, {100 * d['completeness']:.0f} % of the cells"))
-    if mosaic.get("laser_range"):
-        rows.append(("Surface against the laser range finder", str(mosaic["laser_range"]["verdict"])))
+    laser = mosaic.get("laser_range")
+    if laser:
+        fitted = laser.get("fitted")
+        rows.append(("Surface against the laser range finder", str(laser["verdict"]) + (
+            f"; on the {fitted['n']} frames whose range the adjustment used: median {fitted['median_m']:+.2f} m"
+            if fitted and fitted.get("n") else "")))
     rows.append(("Frames in the orthomosaic", wording.number(mosaic.get("frames") or 0)))
     if mosaic.get("temperature"):
         rows.append(("Temperature raster", str(mosaic["temperature"])))

@@ -1,0 +1,95 @@
+"""Laser ranges along the camera's axis as observations of the block: their Jacobians, the reduced system they
+enter, and a block whose images leave its depth open (a focal length free over flat ground) that the ranges close.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+from aerocal.adjust import AdjustConfig, adjust
+from aerocal.adjust.laser import LaserRows, fitted_lasers, laser_residuals
+from aerocal.adjust.projection import rotation_update
+from aerocal.products.mosaic import frames_from_poses
+from aerocal.simulate import simulate_flight
+from aerocal.simulate.presets import PRESETS
+from aerocal.simulate.simulator import true_poses
+
+
+def test_laser_jacobians_match_central_differences():
+    rng = np.random.default_rng(5)
+    n = 4
+    R = rotation_update(np.repeat(np.diag([1.0, -1.0, -1.0])[None], n, 0), rng.normal(0, 0.05, (n, 3)))
+    C = rng.normal(0, 5, (n, 3)) + [0, 0, 90]
+    X = rng.normal(0, 10, (6, 3))
+    rows = LaserRows(np.array([0, 1, 3]), np.array([2, 5, 0]), np.array([88.0, 91.0, 95.0]), np.ones(3))
+    res, d_pose, d_point = laser_residuals(R, C, X, rows)
+    h = 1e-6
+    for k in range(3):
+        for sign_w in range(3):
+            w = np.zeros((n, 3))
+            w[rows.image[k], sign_w] = h
+            plus = laser_residuals(rotation_update(R, w), C, X, rows)[0][k]
+            minus = laser_residuals(rotation_update(R, -w), C, X, rows)[0][k]
+            assert (plus - minus) / (2 * h) == pytest.approx(d_pose[k, sign_w], abs=1e-5)
+        for axis in range(3):
+            dC = np.zeros((n, 3))
+            dC[rows.image[k], axis] = h
+            num = (laser_residuals(R, C + dC, X, rows)[0][k] - laser_residuals(R, C - dC, X, rows)[0][k]) / (2 * h)
+            assert num == pytest.approx(d_pose[k, 3 + axis], abs=1e-6)
+            dX = np.zeros((6, 3))
+            dX[rows.point[k], axis] = h
+            num = (laser_residuals(R, C, X + dX, rows)[0][k] - laser_residuals(R, C, X - dX, rows)[0][k]) / (2 * h)
+            assert num == pytest.approx(d_point[k, axis], abs=1e-6)
+
+
+def test_alternate_frames_keep_their_laser_out_of_the_fit():
+    ids = np.array([7, 3, 5, 1, 9, 2])
+    laser = np.array([80.0, np.nan, 82.0, 81.0, 79.0, 83.0])
+    fitted = fitted_lasers(ids, laser)
+    # with a range, in id order: 1 (fit), 2 (out), 5 (fit), 7 (out), 9 (fit)
+    assert np.isnan(fitted).tolist() == [True, True, False, False, False, True], fitted
+
+
+def _with_lasers(sim, seed: int) -> pa.Table:
+    """The simulated images with the range from each true camera along its true axis to the true surface."""
+    frames = frames_from_poses(true_poses(sim), sim.spec.camera_true)
+    cam = sim.spec.camera_true
+    ranges = {}
+    for f in frames:
+        xy = cam.unproject(np.array([[cam.cx, cam.cy]]))[0]
+        d = np.array([xy[0], xy[1], 1.0]) @ f.R_cw
+        d /= np.linalg.norm(d)
+        t = 0.0
+        for _ in range(50):
+            p = f.C + t * d
+            t = (f.C[2] - float(sim.scene.height_at(p[0], p[1]))) / -d[2]
+        ranges[f.image_id] = t + np.random.default_rng(seed + f.image_id).normal(0.0, 0.2)
+    col = [ranges.get(int(i)) for i in sim.images.column("image_id").to_pylist()]
+    return sim.images.set_column(sim.images.schema.get_field_index("laser_range_m"), "laser_range_m",
+                                 pa.array(col, pa.float64()))
+
+
+@pytest.mark.parametrize("seed", [41])
+def test_laser_ranges_determine_the_focal_length_a_nadir_block_leaves_open(seed):
+    """A block of nadir frames over near-flat ground, its camera calibrated on itself: the images and 2 / 5 m GNSS
+    leave the focal length against the flying height open. With every second frame's laser range the focal
+    length is determined, and it is the true one within its sigma."""
+    spec = PRESETS["xt2-survey"]
+    sim = simulate_flight(dataclasses.replace(spec, scene=dataclasses.replace(spec.scene, flat=True)), seed=seed,
+                          max_images=24)
+    s = sim.spec.sensors
+    cfg = AdjustConfig(free=("f", "cx", "cy", "k1"), gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m,
+                                                                    s.gnss_sigma_v_m))
+    start = dataclasses.replace(sim.camera_nominal, f=sim.camera_nominal.f * 1.03)
+    images = _with_lasers(sim, seed)
+    without = adjust(images, sim.observations, start, dataclasses.replace(cfg, laser_ranges=False))
+    with_laser = adjust(images, sim.observations, start, cfg)
+    f_true = sim.spec.camera_true.f
+    print(f"seed {seed}: f true {f_true:.1f}; without lasers {without.camera.f:.1f} +- {without.sigmas['f']:.1f}; "
+          f"with {with_laser.camera.f:.1f} +- {with_laser.sigmas['f']:.1f}")
+    assert with_laser.sigmas["f"] < 0.5 * without.sigmas["f"], (with_laser.sigmas, without.sigmas)
+    assert abs(with_laser.camera.f - f_true) < 3.0 * with_laser.sigmas["f"] + 0.002 * f_true, f"seed {seed}"
