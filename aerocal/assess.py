@@ -122,6 +122,18 @@ def intersect_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
+def view_counts(frames: Sequence, X: np.ndarray) -> np.ndarray:
+    """How many of ``frames`` (:class:`aerocal.products.mosaic.FrameGeometry`) see each world point ``X`` (..., 3)
+    (metres): in front of the camera and inside its image. Occlusions are not tested: on a surface, the count of
+    frames that could see it, the denominator of a dense surface's completeness."""
+    X = np.asarray(X, dtype=float)
+    count = np.zeros(X.shape[:-1], dtype=int)
+    for f in frames:
+        uv = f.project(X)
+        count += np.all(np.isfinite(uv), axis=-1) & f.camera.in_image(uv)
+    return count
+
+
 def _frame_rays(frame, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """World rays of pixels ``uv`` (N, 2) in a :class:`aerocal.products.mosaic.FrameGeometry`."""
     uv = np.atleast_2d(np.asarray(uv, dtype=float))

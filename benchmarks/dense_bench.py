@@ -21,7 +21,7 @@ import time
 import numpy as np
 from distributed import Client, LocalCluster
 
-from aerocal.assess import compare_dems
+from aerocal.assess import compare_dems, view_counts
 from aerocal.enhance import EnhanceConfig, grey, stretch_params
 from aerocal.ingest import read_raw
 from aerocal.pipeline.config import MosaicStepConfig
@@ -37,16 +37,6 @@ from benchmarks.common import city_spec, peak_rss_mb, record
 
 def _worker_peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
-def _views(frames, E: np.ndarray, N: np.ndarray, height_at) -> np.ndarray:
-    """How many frames see the true surface at the points E, N."""
-    X = np.stack([E, N, height_at(E, N)], axis=-1)
-    count = np.zeros(E.shape, dtype=int)
-    for f in frames:
-        uv = f.project(X)
-        count += np.all(np.isfinite(uv), axis=-1) & f.camera.in_image(uv)
-    return count
 
 
 def main() -> None:
@@ -86,7 +76,8 @@ def main() -> None:
     rng = np.random.default_rng(0)
     flat = rng.choice(measured.size, size=min(200_000, measured.size), replace=False)
     E, N = dsm.cell_centres()
-    views = _views(frames, E.ravel()[flat], N.ravel()[flat], sim.scene.height_at)
+    e, n = E.ravel()[flat], N.ravel()[flat]
+    views = view_counts(frames, np.stack([e, n, sim.scene.height_at(e, n)], axis=-1))
     rows = [float(np.count_nonzero(measured.ravel()[flat] & (views >= k)) / max(np.count_nonzero(views >= k), 1))
             for k in (2, 3)]
     seen = np.zeros(measured.shape, dtype=bool)

@@ -70,8 +70,9 @@ class DenseConfig:
     min_overlap: float = 0.3  #: fraction of the reference footprint a neighbour must cover
     min_base_to_height: float = 0.03  #: weaker baselines give depth too noisy to fuse
     max_base_to_height: float = 1.0  #: wider baselines see the surface too differently for area matching
-    #: larger frames are matched at a reduced scale: a 12 MP visible frame at 1 MP matches in a twelfth of the
-    #: time, and its cloud still holds a point every 3.5 pixels of the frame
+    #: larger frames are matched at a reduced scale (the same for every frame), their cloud then one point per
+    #: reduced pixel: SGBM's time and memory grow with the pixels matched, and a thermal frame (0.3 MP) is matched
+    #: whole; the default keeps a visible flight's dense step near its thermal ones' (not measured apart)
     max_image_pixels: int = 1_000_000
     block_size: int = 7  #: SGBM matching block, pixels (odd)
     #: SGBM's penalties for disparity changes of 1 and more pixels, as a multiple of OpenCV's suggested

@@ -404,6 +404,7 @@ def surface_config(surface: str) -> ProcessConfig | None:
         raise CommandInputError(f"--surface {surface}: unknown; give one of {', '.join(SURFACES)}")
     if surface == "dense":
         return None
+    # lazy: aerocal.pipeline loads the engine (OpenCV, SciPy, pyarrow); --help must not pay it
     from aerocal.pipeline import ProcessConfig
 
     cfg = ProcessConfig()
