@@ -46,12 +46,13 @@ def test_laser_jacobians_match_central_differences():
             assert num == pytest.approx(d_point[k, axis], abs=1e-6)
 
 
-def test_alternate_frames_keep_their_laser_out_of_the_fit():
+def test_alternate_frames_keep_their_laser_out_of_the_fit_in_every_sub_block():
     ids = np.array([7, 3, 5, 1, 9, 2])
     laser = np.array([80.0, np.nan, 82.0, 81.0, 79.0, 83.0])
     fitted = fitted_lasers(ids, laser)
-    # with a range, in id order: 1 (fit), 2 (out), 5 (fit), 7 (out), 9 (fit)
-    assert np.isnan(fitted).tolist() == [True, True, False, False, False, True], fitted
+    # the odd ids' ranges are fitted, the even ones' kept out; a sub-block keeps out the same ones
+    assert np.isnan(fitted).tolist() == [False, True, False, False, False, True], fitted
+    assert np.array_equal(fitted_lasers(ids[2:], laser[2:]), fitted[2:], equal_nan=True)
 
 
 def _with_lasers(sim, seed: int) -> pa.Table:
@@ -93,3 +94,35 @@ def test_laser_ranges_determine_the_focal_length_a_nadir_block_leaves_open(seed)
           f"with {with_laser.camera.f:.1f} +- {with_laser.sigmas['f']:.1f}")
     assert with_laser.sigmas["f"] < 0.5 * without.sigmas["f"], (with_laser.sigmas, without.sigmas)
     assert abs(with_laser.camera.f - f_true) < 3.0 * with_laser.sigmas["f"] + 0.002 * f_true, f"seed {seed}"
+
+
+def test_the_reduced_system_with_laser_rows_equals_the_sparse_products():
+    """The laser rows enter the structured reduced camera system (as observations of pairs the block holds) as they
+    enter the general sparse products: the same matrix, right-hand side and point back-substitution."""
+    import scipy.sparse as sp
+
+    from aerocal.adjust.bundle import initial_state
+    from aerocal.adjust.problem import build_block
+    from aerocal.adjust.solver import BundleProblem, schur_complement
+
+    seed = 43
+    spec = PRESETS["xt2-survey"]
+    sim = simulate_flight(dataclasses.replace(spec, scene=dataclasses.replace(spec.scene, flat=True)), seed=seed,
+                          max_images=12)
+    cfg = AdjustConfig(free=("f", "k1"), gnss_sigma_m=(1.5, 1.5, 3.0), robust_loss="cauchy")
+    blk, st = initial_state(build_block(_with_lasers(sim, seed), sim.observations, None, None, cfg),
+                            sim.camera_nominal)
+    prob = BundleProblem(blk, cfg, 0.0)
+    _, _, _, r, Jc, Jp, Hpp = prob.residuals(st, jac=True)
+    assert len(prob.laser) >= 5 and Jc.shape[0] == len(r), len(prob.laser)
+    structured = BundleProblem(blk, cfg, 0.0)
+    Hpp1 = structured.residuals(st, jac=True, sparse=False)[6]
+    assert np.allclose(Hpp1, Hpp, rtol=1e-12, atol=0)
+    for lam in (0.0, 1e-3):
+        S0, rhs0, Hi0, _, _ = schur_complement(Jc, Jp, Hpp, r, lam)
+        S1, rhs1, Hi1, _, _ = schur_complement(None, None, Hpp1, None, lam, structured.blocks)
+        S0, S1 = S0.toarray(), (S1.toarray() if sp.issparse(S1) else S1)
+        scale = np.abs(S0).max()
+        assert np.abs(S1 - S0).max() < 1e-9 * scale, f"seed {seed}"
+        assert np.allclose(rhs1, rhs0, rtol=1e-9, atol=1e-9 * np.abs(rhs0).max()), f"seed {seed}"
+        assert np.allclose(Hi1, Hi0, rtol=1e-9, atol=0), f"seed {seed}"

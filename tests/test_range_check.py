@@ -60,5 +60,20 @@ def test_a_surface_one_metre_high_reads_one_metre_short_and_axes_off_the_measure
     doc = check.to_json(gsd_m=0.1)
     assert doc["n"] == 10 and doc["unmatched"] == 2 and len(doc["images"]) == 10, doc
     # 1 m at a 0.1 m ground sample: beyond 2 GSD and twice the median's error; within 2 GSD at 1 m samples
-    assert not doc["agrees"] and doc["verdict"].startswith("DISAGREES") and "1.0 m closer to" in doc["verdict"], doc
+    assert not doc["agrees"] and doc["verdict"].startswith("DISAGREES") and "1.0 m (1 % of the range) closer to" \
+        in doc["verdict"], doc
+    assert doc["median_relative"] == pytest.approx(-1.0 / np.median(check.laser_m), rel=0.1), doc
     assert check.agrees(gsd_m=1.0) and check.verdict(1.0).startswith("agrees"), check.verdict(1.0)
+
+
+def test_the_flying_height_over_the_ground_is_the_cameras_height_above_it_under_them():
+    from aerocal.products.range_check import flying_height_check
+
+    frames = [_frame(i, 0.0, 0.0, C=(10.0 * i - 50, 4.0 * i, 120.0 + 0.2 * i)) for i in range(11)]
+    ground = _slope_dsm()  # h = 20 + 0.1 E
+    check = flying_height_check(frames, ground, recorded_m=98.0)
+    # the middle frame: E 0, Z 121 -> 101 m above the ground
+    assert check["frames"] == 11 and check["from_surface_m"] == pytest.approx(101.0, abs=0.01), check
+    assert check["difference_m"] == pytest.approx(3.0, abs=0.01) and check["relative"] == pytest.approx(3 / 98)
+    far = [_frame(0, 0.0, 0.0, C=(5000.0, 0.0, 120.0))]
+    assert flying_height_check(far, ground, recorded_m=98.0) is None

@@ -71,7 +71,9 @@ def _flight(work: Path, api: str, seed: int, effect: str | None = None, database
     args = ["simulate", PRESET, "--out", "flight", "--seed", str(seed), "--mode", "images", "--wind", WIND,
             "--max-images", str(N_IMAGES if effect else N_EFFECT_FREE)]
     _run(args + (["--effect", effect] if effect else []), env, here)
-    _run(["process", "flight", "--out", "run", "--database-url", db, "--artifacts", "artifacts"], env, here)
+    # what is judged here is the diagnosis: the products on the tie points' surface, as a user who wants it sooner
+    _run(["process", "flight", "--out", "run", "--database-url", db, "--artifacts", "artifacts", "--surface",
+          "tie-points"], env, here)
     return json.loads((here / "run" / "run.json").read_text()) | {"folder": str(here)}
 
 
@@ -146,7 +148,7 @@ def test_a_rendered_flat_block_without_gcps_keeps_the_nominal_focal_length(rende
     (flight / "flight.json").write_text(json.dumps(meta, indent=1))
     env = {**os.environ, "PREFECT_API_URL": prefect_api, "COLUMNS": "250"}
     _run(["process", "flight", "--certificate", "none", "--out", "run", "--database-url",
-          f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", "artifacts"], env, tmp_path)
+          f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", "artifacts", "--surface", "tie-points"], env, tmp_path)
     from aerocal.certificates.document import Certificate
 
     cert = Certificate.from_json((tmp_path / "run" / "calibration_certificate.json").read_text())

@@ -505,3 +505,16 @@ def test_effects_the_block_cannot_tell_apart_are_one_sentence_naming_each_and_ap
     assert "none is named nor applied" in text and "Strips flown at different ground speeds." in text, text
     pair = dict(group, effects=["rolling_shutter", "affinity_skew"])
     assert "neither is named nor applied" in " ".join(diagnosis_sentences({"effects": [], "pairs": [pair]}))
+
+
+def test_the_laser_figure_draws_each_frames_ranges_and_carries_the_medians():
+    from aerocal.report.figures import laser_range_figure
+
+    doc = {"verdict": "DISAGREES with the laser range finder: ...", "median_m": 11.1,
+           "images": {"2": [64.5, 76.1], "4": [65.8, 80.0], "16": [97.4, 127.0]},
+           "fitted": {"median_m": 6.6, "images": {"1": [67.7, 70.0], "3": [65.3, 71.2]}}}
+    fig = laser_range_figure(doc)
+    assert fig.name == "laser_range" and fig.png.startswith(b"\x89PNG") and fig.caption.startswith("DISAGREES")
+    assert fig.numbers == {"held_out_median_m": 11.1, "fitted_median_m": 6.6}
+    decoded = cv2.imdecode(np.frombuffer(fig.png, np.uint8), cv2.IMREAD_COLOR)
+    assert decoded is not None and decoded.shape[1] > 600, "a figure a browser shows"

@@ -45,15 +45,13 @@ class LaserRows:
 
 
 def fitted_lasers(image_ids: np.ndarray, laser_range: np.ndarray) -> np.ndarray:
-    """``laser_range`` (N,) with the ranges the fits leave out set to NaN: of the images with a range, in the order
-    of their ids, every second one is kept out (the second, fourth, ...), so that a surface made with the others
-    is judged on ranges no fit used (:mod:`aerocal.products.range_check`)."""
+    """``laser_range`` (N,) with the ranges the fits leave out set to NaN: those of the images with an even id. Ingest
+    numbers a flight's images 1, 2, 3 ... in the order of their names, so every second frame's range observes the
+    block and the others judge its surface (:mod:`aerocal.products.range_check`); a rule on the id itself, so that a
+    sub-block (the calibration's images, a held-out fold) keeps out the same ranges as the whole block."""
     laser_range = np.asarray(laser_range, dtype=float)
-    out = np.full(len(laser_range), np.nan)
-    has = np.flatnonzero(np.isfinite(laser_range))
-    fitted = has[np.argsort(np.asarray(image_ids)[has], kind="stable")][::2]
-    out[fitted] = laser_range[fitted]
-    return out
+    odd = np.asarray(image_ids, dtype=np.int64) % 2 == 1
+    return np.where(odd, laser_range, np.nan)
 
 
 def laser_rows(laser_range: np.ndarray | None, obs_image: np.ndarray, obs_point: np.ndarray, obs_uv: np.ndarray,

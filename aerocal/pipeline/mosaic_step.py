@@ -42,7 +42,7 @@ from aerocal.products.mosaic import (
     write_temperature_raster,
 )
 from aerocal.products.pointcloud import write_laz
-from aerocal.products.range_check import laser_range_check
+from aerocal.products.range_check import flying_height_check, laser_range_check
 from aerocal.products.terrain import dtm_from_dsm
 
 
@@ -187,7 +187,7 @@ def laser_output(images: pa.Table, frames: list[FrameGeometry], dsm: Dsm, measur
     doc["verdict"] += " (frames whose range no adjustment used; the others' ranges observe the block's depth)"
     fit = laser_range_check(frames, used, dsm, measured)
     if fit is not None:
-        doc["fitted"] = {k: v for k, v in fit.to_json(gsd).items() if k != "images"}
+        doc["fitted"] = fit.to_json(gsd)
     return doc
 
 
@@ -200,6 +200,10 @@ def surface_text(info: Mapping[str, Any]) -> str:
                 f"{100 * dense['measured_fraction']:.0f} % of the DSM measured")
     else:
         text = str(info.get("surface") or "tie points")
+    height = info.get("flying_height")
+    if height:
+        text += (f"; flying height above the {height['ground']} {height['from_surface_m']:.1f} m against "
+                 f"{height['recorded_m']:.1f} m recorded ({100 * height['relative']:+.1f} %)")
     laser = info.get("laser_range")
     return text + (f"; {laser['verdict']}" if laser else "")
 
@@ -239,6 +243,14 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             if terrain.dtm is not None:
                 out["dtm"] = FileOutput(write_dsm(terrain.dtm, work / "dtm.tif"), "dsm", temporary=True)
             out["sparse_dsm"] = FileOutput(write_dsm(sparse, work / "sparse_dsm.tif"), "dsm", temporary=True)
+            recorded = flight.get("height_agl_m")
+            source = str((flight.get("facts") or {}).get("height_agl_m", ""))
+            # against the ground (a DTM: over a forest the DSM is the canopy); a height measured on this block's tie
+            # points would judge itself
+            if recorded and terrain.dtm is not None and "tie points" not in source:
+                check = flying_height_check(frames, terrain.dtm, float(recorded))
+                if check is not None:
+                    info["flying_height"] = {**check, "ground": "DTM", "source": source or "flight.json"}
             if reference is not None:
                 info["sparse_minus_reference_m"] = difference_to(sparse, reference, sparse.distance_m == 0)
                 info["dense_minus_reference_m"] = difference_to(dsm, reference, measured)

@@ -66,6 +66,13 @@ class LaserRangeCheck:
         return float(1.4826 * np.median(np.abs(d - np.median(d)))) if self.image_ids else float("nan")
 
     @property
+    def median_relative(self) -> float:
+        """Median of surface over laser range, less 1: a depth scale error reads the same at every range."""
+        if not self.image_ids:
+            return float("nan")
+        return float(np.median(np.asarray(self.surface_m) / np.asarray(self.laser_m)) - 1.0)
+
+    @property
     def median_error_m(self) -> float:
         """Standard error of the median difference (metres): 1.2533 NMAD / sqrt(n), normal errors."""
         return 1.2533 * self.nmad_m / np.sqrt(len(self.image_ids)) if self.image_ids else float("nan")
@@ -84,13 +91,15 @@ class LaserRangeCheck:
         if self.agrees(gsd_m):
             return f"agrees with the laser range finder ({figures})"
         side = "farther from" if self.median_m > 0 else "closer to"
-        return (f"DISAGREES with the laser range finder: the surface lies {abs(self.median_m):.1f} m {side} the "
-                f"cameras than the laser measured ({figures}); the block's depth is wrong (a focal length or a "
-                "bending the images do not determine), and the heights of the DSM with it")
+        return (f"DISAGREES with the laser range finder: the surface lies {abs(self.median_m):.1f} m "
+                f"({100 * abs(self.median_relative):.0f} % of the range) {side} the cameras than the laser measured "
+                f"({figures}); the block's depth is wrong (a focal length or a bending the images do not "
+                "determine), and the heights of the DSM with it")
 
     def to_json(self, gsd_m: float) -> dict:
         return {"verdict": self.verdict(gsd_m), "agrees": self.agrees(gsd_m) if self.image_ids else None,
                 "n": len(self.image_ids), "unmatched": self.unmatched, "median_m": self.median_m,
+                "median_relative": self.median_relative,
                 "median_error_m": self.median_error_m, "nmad_m": self.nmad_m,
                 "median_laser_m": float(np.median(self.laser_m)) if self.image_ids else None,
                 "images": {str(i): [round(a, 3), round(b, 3)]
@@ -165,3 +174,23 @@ def laser_range_check(frames: Sequence[FrameGeometry], laser_m: Mapping[int, flo
     if not ids and not unmatched:
         return None
     return LaserRangeCheck(tuple(ids), tuple(laser), tuple(surface), unmatched)
+
+
+def flying_height_check(frames: Sequence[FrameGeometry], ground: Dsm, recorded_m: float) -> dict | None:
+    """The flying height the surface gives against the one the flight recorded (a height above take-off: DJI
+    RelativeAltitude, senseFly Height, or ``flight.json``): the median over frames of the camera's height above
+    ``ground`` (a DTM, else the DSM) at its nadir point, and its difference to ``recorded_m`` (metres). A
+    take-off point above or below the ground under the block, or a barometer's drift, differ too: a check of
+    the depth to a few per cent, not to a ground sample. ``None`` when no frame is over the ground grid."""
+    C = np.array([np.asarray(f.C, dtype=float) for f in frames]).reshape(-1, 3)
+    h = ground.height_at(C[:, 0], C[:, 1]) if len(C) else np.zeros(0)
+    col, row = ground.grid_coords(C[:, 0], C[:, 1]) if len(C) else (np.zeros(0), np.zeros(0))
+    rows, cols = ground.shape
+    over = np.isfinite(h) & (col >= 0) & (col <= cols - 1) & (row >= 0) & (row <= rows - 1)
+    if not over.any():
+        return None
+    above = C[over, 2] - h[over]
+    measured = float(np.median(above))
+    return {"recorded_m": float(recorded_m), "from_surface_m": measured, "difference_m": measured - recorded_m,
+            "relative": measured / recorded_m - 1.0, "frames": int(over.sum()),
+            "nmad_m": float(1.4826 * np.median(np.abs(above - measured)))}

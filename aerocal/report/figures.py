@@ -9,7 +9,7 @@ the top-left corner, y down, so image plots have y pointing down).
 from __future__ import annotations
 
 import io
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -357,6 +357,44 @@ def surface_figure(dsm, measured: np.ndarray | None, title: str = "Surface model
                   "the rest filled by interpolation (band 2 of dsm.tif)."))
     return Figure("surface", title, _png(fig), caption,
                   {"cell_m": _f(dsm.cell_m), "height_range_m": [_f(lo), _f(hi)], "measured_fraction": frac})
+
+
+def laser_range_figure(laser: Mapping) -> Figure:
+    """Per frame, the range along the camera's axis to the surface against the laser's, the frames no fit used
+    apart from those whose range observed the block.
+
+    Args:
+        laser: the products step's ``laser_range`` document (:func:`aerocal.pipeline.mosaic_step.laser_output`):
+            ``images`` (image id -> [laser m, surface m]) of the held-out frames, ``fitted["images"]`` of the
+            others, ``verdict``.
+
+    Returns:
+        :class:`Figure` ``"laser_range"``; ``numbers``: the held-out and fitted medians (m).
+    """
+    fig = _canvas(9.0, 4.2)
+    ax_range, ax_diff = fig.subplots(1, 2)
+    groups = (("no fit used it", laser.get("images") or {}, "o", "tab:blue"),
+              ("observed the block", (laser.get("fitted") or {}).get("images") or {}, "s", "tab:orange"))
+    for label, images, marker, colour in groups:
+        if not images:
+            continue
+        ids = np.array([int(k) for k in images])
+        pairs = np.array(list(images.values()), dtype=float)
+        order = np.argsort(ids)
+        ax_range.plot(ids[order], pairs[order, 0], marker, mfc="none", color=colour, label=f"laser, {label}")
+        ax_range.plot(ids[order], pairs[order, 1], marker, color=colour, label=f"surface, {label}")
+        ax_diff.plot(ids[order], pairs[order, 1] - pairs[order, 0], marker, color=colour, label=label)
+    ax_range.set_xlabel("image id")
+    ax_range.set_ylabel("range along the camera's axis (m)")
+    ax_range.legend(fontsize=7)
+    ax_diff.axhline(0.0, color="k", lw=0.8)
+    ax_diff.set_xlabel("image id")
+    ax_diff.set_ylabel("surface minus laser (m)")
+    ax_diff.legend(fontsize=7)
+    fig.suptitle("Surface against the laser range finder")
+    fitted = laser.get("fitted") or {}
+    return Figure("laser_range", "Surface against the laser range finder", _png(fig), str(laser.get("verdict", "")),
+                  {"held_out_median_m": _f(laser.get("median_m")), "fitted_median_m": _f(fitted.get("median_m"))})
 
 
 def overview_figure(

@@ -32,7 +32,7 @@ from aerocal.io import write_json_atomic, write_text_atomic
 from aerocal.products.dsm import read_dsm, read_measured
 from aerocal.products.mosaic import frames_from_poses
 from aerocal.report import wording
-from aerocal.report.figures import Figure, block_figure, surface_figure
+from aerocal.report.figures import Figure, block_figure, laser_range_figure, surface_figure
 from aerocal.report.flight_figures import (
     MEASURED_WITHIN_M,
     FigureSkipped,
@@ -191,8 +191,14 @@ def write_flight_report(
     for key in ("dense_minus_reference_m", "sparse_minus_reference_m"):  # the products step's, measured cells
         if mosaic.get(key) and "error" not in mosaic[key]:
             summary[key] = mosaic[key]
+    if mosaic.get("flying_height"):
+        summary["flying_height_m"] = mosaic["flying_height"]
     if mosaic.get("laser_range"):
-        summary["surface_minus_laser_range_m"] = {k: v for k, v in mosaic["laser_range"].items() if k != "images"}
+        laser_doc = mosaic["laser_range"]
+        summary["surface_minus_laser_range_m"] = {
+            k: ({kk: vv for kk, vv in v.items() if kk != "images"} if k == "fitted" else v)
+            for k, v in laser_doc.items() if k != "images"}
+        attempt("laser_range", lambda: laser_range_figure(laser_doc))
     if extension is not None:
         summary["model_extension"] = extension.get("named")
     summary.update(extra or {})
@@ -203,7 +209,7 @@ def write_flight_report(
         dict(cert.sigmas),
         info={"camera": cert.identity.key, "conditions": cert.conditions.to_dict()},
     )
-    order = ("block", "image_residuals", "temperature_io", "dem_difference", "overview", "tie_points",
+    order = ("block", "image_residuals", "temperature_io", "dem_difference", "laser_range", "overview", "tie_points",
              "distortion")
     drawn = [figures[n] for n in order if n in figures]
     notes = [skipped[n] for n in order if n in skipped]
@@ -523,6 +529,12 @@ def _surface_rows(mosaic: Mapping, dsm) -> list[tuple[str, str]]:
         if d and "error" not in d:
             rows.append((name, f"measured cells: mean {d['mean_m']:.2f} m, NMAD {d['nmad_m']:.2f} m, "
                                f"RMSE {d['rmse_m']:.2f} m, {100 * d['completeness']:.0f} % of the cells"))
+    height = mosaic.get("flying_height")
+    if height:
+        rows.append(("Flying height from the surface",
+                     f"{height['from_surface_m']:.1f} m above the {height['ground']} under the cameras (median of "
+                     f"{height['frames']} frames), against {height['recorded_m']:.1f} m recorded "
+                     f"({height['source']}): {height['difference_m']:+.1f} m, {100 * height['relative']:+.1f} %"))
     laser = mosaic.get("laser_range")
     if laser:
         fitted = laser.get("fitted")
