@@ -13,6 +13,8 @@ import pytest
 from aerocal.adjust import AdjustConfig, adjust
 from aerocal.adjust.laser import LaserRows, fitted_lasers, laser_residuals
 from aerocal.adjust.projection import rotation_update
+from aerocal.calibrate.self_calibration import held_out_laser_depth
+from aerocal.certificates.review import review_laser_depth
 from aerocal.products.mosaic import frames_from_poses
 from aerocal.simulate import simulate_flight
 from aerocal.simulate.presets import PRESETS
@@ -94,6 +96,32 @@ def test_laser_ranges_determine_the_focal_length_a_nadir_block_leaves_open(seed)
           f"with {with_laser.camera.f:.1f} +- {with_laser.sigmas['f']:.1f}")
     assert with_laser.sigmas["f"] < 0.5 * without.sigmas["f"], (with_laser.sigmas, without.sigmas)
     assert abs(with_laser.camera.f - f_true) < 3.0 * with_laser.sigmas["f"] + 0.002 * f_true, f"seed {seed}"
+
+
+@pytest.mark.parametrize("seed", [41])
+def test_the_review_rejects_a_camera_whose_depth_the_held_out_ranges_refute(seed):
+    """The self-calibration's review (data the fit did not use): the tie points around the axes of the frames whose
+    range no fit used lie at the laser's range with the true camera, and about 7 % too deep with a focal length 8 %
+    too long (the 5 m GNSS heights give way a little), which the review rejects."""
+    spec = PRESETS["xt2-survey"]
+    sim = simulate_flight(dataclasses.replace(spec, scene=dataclasses.replace(spec.scene, flat=True)), seed=seed,
+                          max_images=24)
+    s = sim.spec.sensors
+    cfg = AdjustConfig(free=(), laser_ranges=False,
+                       gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m))
+    images = _with_lasers(sim, seed)
+    true = sim.spec.camera_true
+    for camera, accepted in ((true, True), (dataclasses.replace(true, f=1.08 * true.f), False)):
+        result = adjust(images, sim.observations, camera, cfg)
+        check = held_out_laser_depth(images, sim.observations, result)
+        assert check is not None and len(check.image_ids) >= 8, check
+        assert all(i % 2 == 0 for i in check.image_ids), check.image_ids  # only the ranges no fit used
+        review = review_laser_depth(len(check.image_ids), check.median_m, check.median_error_m,
+                                    float(np.median(check.laser_m)))
+        print(f"seed {seed}: f {camera.f:.1f}: depth {check.median_relative:+.3f}, {review.summary()}")
+        assert review.accepted is accepted, (f"seed {seed}", review)
+        expected = 0.0 if accepted else 0.08
+        assert abs(check.median_relative - expected) < 0.02, (f"seed {seed}", check.median_relative)
 
 
 def test_the_reduced_system_with_laser_rows_equals_the_sparse_products():

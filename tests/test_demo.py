@@ -56,6 +56,7 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
     assert "not told to processing: rolling_shutter = 0.01 s" in printed, printed[:2000]
     assert "found and applied: rolling_shutter = " in printed and "(by the diagnosis;" in printed, printed
     assert "diagnosis of the extended block: no systematic effect found" in printed, printed
+    assert "surface: dense: " in printed and "% of the DSM measured" in printed, printed
     summary = RunSummary.from_json(json.loads((out / "run" / "run.json").read_text()))
 
     # everything under the output folder, Prefect's home included

@@ -21,8 +21,10 @@ certificate.
    errors is dropped and the block adjusted again without it. The formal t of a slope on matched tie
    points can be 7 where the held-out gain is nil (the real seneca flight).
 5. **Review** (:func:`aerocal.certificates.review.review_calibration`): plausibility against the nominal camera,
-   convergence, sigma0, check points. A rejected calibration still yields a certificate, marked rejected
-   with every reason, so that the store keeps the record; it is never used for a flight.
+   convergence, sigma0, check points; where the camera's laser range finder measured ranges no fit used, the
+   block's depth against them (:func:`held_out_laser_depth`, :func:`aerocal.certificates.review.review_laser_depth`).
+   A rejected calibration still yields a certificate, marked rejected with every reason, so that the store keeps
+   the record; it is never used for a flight.
 
 Everything is returned as fields (:class:`Calibration`), never as prose to be parsed.
 """
@@ -38,6 +40,7 @@ import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig, AdjustmentResult, adjust, corrected_to_t0, scale_tie_sigma, select_images
 from aerocal.adjust.covariance import t_critical
+from aerocal.adjust.laser import LaserRangeCheck, held_out_tie_ranges
 from aerocal.adjust.strategy import central_images
 from aerocal.calibrate.eo_checks import correct_gnss_offset
 from aerocal.calibrate.heldout import HeldOutComparison, HeldOutConfig, compare_models
@@ -53,9 +56,17 @@ from aerocal.certificates.document import (
     Quality,
     ThermalCalibration,
 )
-from aerocal.certificates.review import DecisionConfig, Review, nominal_sigma, review_calibration, undetermined_io
+from aerocal.certificates.review import (
+    DecisionConfig,
+    Review,
+    nominal_sigma,
+    review_calibration,
+    review_laser_depth,
+    undetermined_io,
+)
 from aerocal.diagnose.engine import overdispersion
 from aerocal.diagnose.model import fit_baseline
+from aerocal.poses import poses_arrays
 
 #: adjustment names of thermal slopes -> certificate names (pixels per degC)
 SLOPE_NAMES = {"df/dT": "df_dt", "dcx/dT": "dcx_dt", "dcy/dT": "dcy_dt"}
@@ -346,6 +357,16 @@ def self_calibrate(
         notes.append(result.marginal_note + (f" (formal; the certificate's are these x {np.sqrt(phi):.3g}, the "
                                              "square root of the block's overdispersion)" if phi > 1.0 else ""))
     review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
+    laser = held_out_laser_depth(sub_images, sub_obs, result)
+    if laser is not None:
+        info["laser_depth"] = {"n": len(laser.image_ids), "unmatched": laser.unmatched, "median_m": laser.median_m,
+                               "median_error_m": laser.median_error_m, "nmad_m": laser.nmad_m,
+                               "median_relative": laser.median_relative,
+                               "median_laser_m": float(np.median(laser.laser_m)) if laser.image_ids else None}
+        verdict = review_laser_depth(len(laser.image_ids), laser.median_m, laser.median_error_m,
+                                     float(np.median(laser.laser_m)) if laser.image_ids else float("nan"),
+                                     config.decision)
+        review = review.merged(verdict.problems, verdict.checks, verdict.notes)
     if input_errors:
         review = review.merged(problems=[
             f"the flight's input has {len(input_errors)} error(s) (first: {input_errors[0]}); fix them and "
@@ -353,6 +374,37 @@ def self_calibrate(
     held_sigmas = {n: nominal_sigma(n, camera, config.decision) for n in held if n in ("f", "cx", "cy")}
     return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi,
                        held_sigmas, overdispersion_measured=config.null_draws > 0 and failure is None)
+
+
+def held_out_laser_depth(images: pa.Table, observations: pa.Table, result: AdjustmentResult
+                         ) -> LaserRangeCheck | None:
+    """The adjusted block's tie points around each camera's axis against the laser ranges no fit used
+    (:func:`aerocal.adjust.laser.held_out_tie_ranges`); ``None`` when the images record no laser range."""
+    if "laser_range_m" not in images.column_names:
+        return None
+    laser = images.column("laser_range_m").to_numpy(zero_copy_only=False).astype(float)
+    if not np.isfinite(laser).any():
+        return None
+    ids, R, C = poses_arrays(result.poses)
+    by_id = dict(zip(images.column("image_id").to_pylist(), laser, strict=True))
+    laser = np.array([by_id.get(int(i), np.nan) for i in ids])
+    order = np.argsort(ids)
+    obs_ids = observations.column("image_id").to_numpy()
+    pos = np.clip(np.searchsorted(ids[order], obs_ids), 0, len(ids) - 1)
+    keep = ids[order][pos] == obs_ids
+    obs_image = order[pos][keep]
+    tracks = result.points.column("track_id").to_numpy()
+    xyz = np.column_stack([result.points.column(c).to_numpy() for c in ("X", "Y", "Z")])
+    t_order = np.argsort(tracks)
+    obs_tracks = observations.column("track_id").to_numpy()[keep]
+    tpos = np.clip(np.searchsorted(tracks[t_order], obs_tracks), 0, max(len(tracks) - 1, 0))
+    obs_X = np.full((len(obs_tracks), 3), np.nan)
+    if len(tracks):
+        found = tracks[t_order][tpos] == obs_tracks
+        obs_X[found] = xyz[t_order][tpos[found]]
+    uv = np.column_stack([observations.column("x").to_numpy()[keep], observations.column("y").to_numpy()[keep]])
+    cam = result.camera
+    return held_out_tie_ranges(ids, laser, R, C, obs_image, obs_X, uv, (cam.cx, cam.cy), cam.f)
 
 
 def _dropped_io(result: AdjustmentResult, config: AdjustConfig) -> tuple[str, ...]:

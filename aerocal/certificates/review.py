@@ -58,6 +58,12 @@ class DecisionConfig:
     * ``max_check_rho`` (3.0) with at least ``min_check_points`` (3) check points in the calibration block:
       their error against their predicted accuracy, per axis.
     * ``held_out_sigmas`` (2.0): a thermal slope needs a held-out gain beyond this many standard errors.
+    * ``max_depth_disagreement`` (0.03): where the camera's laser range finder measured ranges no fit used, the
+      calibration block's tie points around each axis must lie at the laser's range within this fraction of it
+      (plus twice the median's standard error), on at least ``min_check_points`` frames. 3 %: the tie points
+      used lie up to 3 % of the range off the axis (:data:`aerocal.adjust.laser.MAX_OFFSET_FRACTION`), where a
+      canopy's or roof's height differs from the laser's spot. A radial distortion traded against a bend of the
+      block (the dome) fits the images and fails here.
     * ``nominal_focal_tolerance`` (0.01), ``nominal_principal_point_tolerance`` (0.01): the standard deviation
       of a nominal f (fraction of f) and of a nominal principal point (fraction of the image side) when the
       block cannot determine them and they are held. Both are assumptions, not measurements: a nominal
@@ -82,6 +88,7 @@ class DecisionConfig:
     max_check_rho: float = 3.0
     min_check_points: int = 3
     held_out_sigmas: float = 2.0
+    max_depth_disagreement: float = 0.03
     nominal_focal_tolerance: float = 0.01
     nominal_principal_point_tolerance: float = 0.01
     nominal_corner_distortion: float = 0.02
@@ -272,6 +279,29 @@ def review_calibration(result, nominal: Camera, config: DecisionConfig | None = 
             checks.append(f"{n_chk} check points within their predicted accuracy: rho E/N/Up "
                                  f"{rho[0]:.2f} / {rho[1]:.2f} / {rho[2]:.2f}")
     return Review.of(problems, checks)
+
+
+def review_laser_depth(n: int, median_m: float, median_error_m: float, range_m: float,
+                       config: DecisionConfig | None = None) -> Review:
+    """The calibration block's depth against the laser ranges no fit used (data the fit did not use, as check
+    points are): ``n`` frames, the median of the block's range minus the laser's (metres) with its standard error,
+    and the median laser range (metres). Rejected when the median lies beyond ``max_depth_disagreement`` of the
+    range plus twice its standard error; fewer than ``min_check_points`` frames decide nothing (a note)."""
+    config = config or DecisionConfig()
+    figures = (f"median {median_m:+.2f} +- {median_error_m:.2f} m over {n} frames whose range no fit used, "
+               f"ranges about {range_m:.0f} m")
+    if n < max(config.min_check_points, 1):
+        return Review.of(notes=[f"the laser ranges no fit used were not compared: {n} frames see tie points on "
+                                f"their axis (at least {config.min_check_points} are needed)"])
+    limit = config.max_depth_disagreement * range_m + 2.0 * median_error_m
+    if abs(median_m) > limit:
+        side = "farther from" if median_m > 0 else "nearer to"
+        return Review.of(problems=[
+            f"the calibration block's depth disagrees with the camera's laser range finder: its tie points lie "
+            f"{abs(median_m):.1f} m ({100 * abs(median_m) / range_m:.0f} % of the range) {side} the cameras than "
+            f"the laser measured ({figures}; limit {limit:.1f} m): the distortion found bends the block (a dome) "
+            "or its scale is wrong, and the certificate would carry it to other flights"])
+    return Review.of(checks=[f"depth agrees with the laser range finder ({figures}; limit {limit:.1f} m)"])
 
 
 def nominal_parameters(camera: Camera, nominal: Camera, names) -> Camera:

@@ -20,10 +20,10 @@ surfaces the per-image differences are therefore wide; their median is the figur
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
+from aerocal.adjust.laser import LaserRangeCheck
 from aerocal.products.dsm import Dsm
 from aerocal.products.mosaic import FrameGeometry
 
@@ -31,79 +31,6 @@ from aerocal.products.mosaic import FrameGeometry
 RAY_ITERATIONS = 30
 #: the intersection has converged when a step moves the range by less than this (metres)
 RAY_TOLERANCE_M = 0.01
-
-
-@dataclass(frozen=True)
-class LaserRangeCheck:
-    """Per image, the range along the camera's axis from the DSM against the laser's.
-
-    Attributes:
-        image_ids: images with a laser range whose axis meets a measured cell of the DSM.
-        laser_m: the laser's ranges (metres).
-        surface_m: the ranges from the adjusted camera to the DSM along the axis through the principal point
-            (metres).
-        unmatched: images with a laser range whose axis met no measured cell (off the DSM, a filled cell, or
-            no convergence).
-    """
-
-    image_ids: tuple[int, ...]
-    laser_m: tuple[float, ...]
-    surface_m: tuple[float, ...]
-    unmatched: int
-
-    @property
-    def difference_m(self) -> np.ndarray:
-        """Surface minus laser range (metres): positive when the DSM lies farther from the camera (lower)."""
-        return np.asarray(self.surface_m) - np.asarray(self.laser_m)
-
-    @property
-    def median_m(self) -> float:
-        return float(np.median(self.difference_m)) if self.image_ids else float("nan")
-
-    @property
-    def nmad_m(self) -> float:
-        d = self.difference_m
-        return float(1.4826 * np.median(np.abs(d - np.median(d)))) if self.image_ids else float("nan")
-
-    @property
-    def median_relative(self) -> float:
-        """Median of surface over laser range, less 1: a depth scale error reads the same at every range."""
-        if not self.image_ids:
-            return float("nan")
-        return float(np.median(np.asarray(self.surface_m) / np.asarray(self.laser_m)) - 1.0)
-
-    @property
-    def median_error_m(self) -> float:
-        """Standard error of the median difference (metres): 1.2533 NMAD / sqrt(n), normal errors."""
-        return 1.2533 * self.nmad_m / np.sqrt(len(self.image_ids)) if self.image_ids else float("nan")
-
-    def agrees(self, gsd_m: float) -> bool:
-        """Whether the surface agrees with the laser: the median difference within 2 ground samples plus twice its
-        standard error (the issue's "within 2 GSD", widened by what the rough surfaces leave uncertain)."""
-        return bool(abs(self.median_m) <= 2.0 * gsd_m + 2.0 * self.median_error_m)
-
-    def verdict(self, gsd_m: float) -> str:
-        """The comparison in words: the median difference, its standard error and what it means."""
-        if not self.image_ids:
-            return f"not compared: none of the {self.unmatched} frames' axes meets a measured cell of the DSM"
-        figures = (f"median {self.median_m:+.2f} +- {self.median_error_m:.2f} m, NMAD {self.nmad_m:.2f} m over "
-                   f"{len(self.image_ids)} frames, laser ranges about {float(np.median(self.laser_m)):.0f} m")
-        if self.agrees(gsd_m):
-            return f"agrees with the laser range finder ({figures})"
-        side = "farther from" if self.median_m > 0 else "closer to"
-        return (f"DISAGREES with the laser range finder: the surface lies {abs(self.median_m):.1f} m "
-                f"({100 * abs(self.median_relative):.0f} % of the range) {side} the cameras than the laser measured "
-                f"({figures}); the block's depth is wrong (a focal length or a bending the images do not "
-                "determine), and the heights of the DSM with it")
-
-    def to_json(self, gsd_m: float) -> dict:
-        return {"verdict": self.verdict(gsd_m), "agrees": self.agrees(gsd_m) if self.image_ids else None,
-                "n": len(self.image_ids), "unmatched": self.unmatched, "median_m": self.median_m,
-                "median_relative": self.median_relative,
-                "median_error_m": self.median_error_m, "nmad_m": self.nmad_m,
-                "median_laser_m": float(np.median(self.laser_m)) if self.image_ids else None,
-                "images": {str(i): [round(a, 3), round(b, 3)]
-                           for i, a, b in zip(self.image_ids, self.laser_m, self.surface_m, strict=True)}}
 
 
 def axis_range(frame: FrameGeometry, dsm: Dsm, measured: np.ndarray | None) -> float | None:

@@ -106,11 +106,17 @@ def print_run(summary: RunSummary) -> None:
         console.print("recorded positions in the block adjustment: " + "; ".join(summary.recorded_eo_corrections))
     if summary.twin:
         console.print(f"twin (what the simulation gets wrong): {summary.twin}")
+    print_surface(summary)
+    for name, path in summary.files.items():
+        console.print(f"{name:>13}: {path}")
+
+
+def print_surface(summary: RunSummary) -> None:
+    """The surface the products stand on and its check against an independent measurement (a laser range finder,
+    the recorded flying height), in yellow when they disagree."""
     if summary.surface:
         colour = "yellow" if "DISAGREES" in summary.surface else "default"
         console.print(f"[{colour}]surface[/{colour}]: {summary.surface}", highlight=False)
-    for name, path in summary.files.items():
-        console.print(f"{name:>13}: {path}")
 
 
 def print_loop(summary: RunSummary) -> None:

@@ -16,7 +16,7 @@ import typer
 
 from flows.cli.console import console, print_key_values, progress, run_status
 from flows.cli.errors import BAD_INPUT, fail, user_errors
-from flows.cli.flights import print_loop
+from flows.cli.flights import print_loop, print_surface
 from flows.environment import demo_environment
 
 
@@ -126,6 +126,7 @@ def demo(
     console.print(f"steps: {steps}")
     console.print(f"certificate: {run.certificate_id} ({run.certificate_reason})")
     print_loop(run)
+    print_surface(run)
     console.print(f"flight folder: {summary.flight_dir}")
     for name, path in run.files.items():
         console.print(f"{name:>13}: {path}")
