@@ -8,13 +8,17 @@ import dataclasses
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 import pytest
 
 from aerocal.adjust import AdjustConfig, adjust
 from aerocal.adjust.laser import LaserRows, fitted_lasers, laser_residuals
 from aerocal.adjust.projection import rotation_update
+from aerocal.adjust.solver import BundleProblem
 from aerocal.calibrate.self_calibration import held_out_laser_depth
 from aerocal.certificates.review import review_laser_depth
+from aerocal.diagnose.model import fit_baseline
+from aerocal.diagnose.twin import make_twin
 from aerocal.products.mosaic import frames_from_poses
 from aerocal.simulate import simulate_flight
 from aerocal.simulate.presets import PRESETS
@@ -154,3 +158,31 @@ def test_the_reduced_system_with_laser_rows_equals_the_sparse_products():
         assert np.abs(S1 - S0).max() < 1e-9 * scale, f"seed {seed}"
         assert np.allclose(rhs1, rhs0, rtol=1e-9, atol=1e-9 * np.abs(rhs0).max()), f"seed {seed}"
         assert np.allclose(Hi1, Hi0, rtol=1e-9, atol=0), f"seed {seed}"
+
+
+@pytest.mark.parametrize("seed", [41])
+def test_the_twin_draws_its_laser_ranges_from_its_own_truth(seed):
+    """The twin simulates the block as the model has it: its laser ranges are the depths of its own truth with the
+    rows' noise, not the real ranges (which here lie 10 m beyond the surface, and would pull the twin's block)."""
+    spec = PRESETS["xt2-survey"]
+    sim = simulate_flight(dataclasses.replace(spec, scene=dataclasses.replace(spec.scene, flat=True)), seed=seed,
+                          max_images=24)
+    s = sim.spec.sensors
+    images = _with_lasers(sim, seed)
+    col = images.schema.get_field_index("laser_range_m")
+    far = pc.add(images.column("laser_range_m"), 10.0)
+    images = images.set_column(col, "laser_range_m", far)
+    cfg = AdjustConfig(free=(), gnss_sigma_m=(s.gnss_sigma_h_m, s.gnss_sigma_h_m, s.gnss_sigma_v_m))
+    base = fit_baseline(images, sim.observations, sim.spec.camera_true, cfg)
+    twin = make_twin(base, seed)
+    rows = BundleProblem(base.block, cfg, base.solution.t0).laser_rows(base.state)
+    truth = laser_residuals(base.state.R, base.state.C, base.state.X, rows)[0] + rows.range_m
+    real, drawn = base.block.laser_range[rows.image], twin.block.laser_range[rows.image]
+    assert len(rows) >= 8 and np.isfinite(drawn).all(), (len(rows), f"seed {seed}")
+    noise = drawn - truth
+    print(f"seed {seed}: real ranges minus the block's depth {np.median(real - truth):+.2f} m; the twin's "
+          f"{np.median(noise):+.2f} +- {np.std(noise):.2f} m over {len(rows)} frames")
+    # the real block gave way to the far ranges but not all the way: its depth misses them by metres
+    assert np.median(real - truth) > 1.0, f"seed {seed}"
+    # the twin's ranges: its truth's depths with the rows' 1 m noise
+    assert abs(np.median(noise)) < 0.6 and 0.4 < np.std(noise) < 1.8, f"seed {seed}: {noise}"

@@ -66,7 +66,7 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
     # 1.4 m from the cameras over 21 frames at ~76 m, limit 5.2 m) and the block uses the nominal camera
     assert cert.status == "rejected" and len(cert.review.problems) == 1, text
     assert "depth disagrees with the camera's laser range finder" in cert.review.problems[0], text
-    depth = calibration["subset"]["laser_depth"]
+    depth = calibration["laser_depth"]
     assert depth["n"] >= 15 and 0.05 < depth["median_relative"] < 0.15, depth
     assert summary["certificate_id"] == cert.id, summary["certificate_reason"]
     assert "stored as REJECTED" in summary["certificate_reason"] and "nominal camera instead" in summary[

@@ -128,6 +128,8 @@ class Calibration:
       deviation of each nominal value held (the certificate records it for the diagnosis).
     * ``held_out``: the k-fold comparison of each thermal slope tested, by adjustment name (``df/dT``).
     * ``review``: the verdict.
+    * ``laser_depth``: the block's tie points around each axis against the laser ranges no fit used
+      (:func:`held_out_laser_depth`; ``None`` when the images record none), which the review judged.
     * ``overdispersion``: how many times larger than chi-square the statistics of pure-noise hypotheses are
       on the block (1: the formal sigmas hold); calibrated sigmas are the formal ones times its square root.
       ``overdispersion_measured``: False when it was not measured (``null_draws`` 0, or the null could not be
@@ -146,6 +148,7 @@ class Calibration:
     #: standard deviation (px) of each nominal value held (:func:`aerocal.certificates.review.nominal_sigma`)
     held_sigmas: dict[str, float] = dataclasses.field(default_factory=dict)
     overdispersion_measured: bool = True
+    laser_depth: LaserRangeCheck | None = None
 
     def summary(self) -> dict:
         """JSON-ready figures a user checks."""
@@ -157,6 +160,12 @@ class Calibration:
             "held_out": {k: v.to_dict() for k, v in self.held_out.items()},
             "review": self.review.to_dict(),
             "overdispersion": self.overdispersion,
+            "laser_depth": None if self.laser_depth is None else {
+                "n": len(self.laser_depth.image_ids), "unmatched": self.laser_depth.unmatched,
+                "median_m": self.laser_depth.median_m, "median_error_m": self.laser_depth.median_error_m,
+                "nmad_m": self.laser_depth.nmad_m, "median_relative": self.laser_depth.median_relative,
+                "median_laser_m": float(np.median(self.laser_depth.laser_m)) if self.laser_depth.image_ids
+                else None},
         }
 
 
@@ -359,10 +368,6 @@ def self_calibrate(
     review = review_calibration(result, camera, config.decision, calibration=float(np.sqrt(phi))).merged(notes=notes)
     laser = held_out_laser_depth(sub_images, sub_obs, result)
     if laser is not None:
-        info["laser_depth"] = {"n": len(laser.image_ids), "unmatched": laser.unmatched, "median_m": laser.median_m,
-                               "median_error_m": laser.median_error_m, "nmad_m": laser.nmad_m,
-                               "median_relative": laser.median_relative,
-                               "median_laser_m": float(np.median(laser.laser_m)) if laser.image_ids else None}
         verdict = review_laser_depth(len(laser.image_ids), laser.median_m, laser.median_error_m,
                                      float(np.median(laser.laser_m)) if laser.image_ids else float("nan"),
                                      config.decision)
@@ -373,7 +378,8 @@ def self_calibrate(
             "calibrate again"])
     held_sigmas = {n: nominal_sigma(n, camera, config.decision) for n in held if n in ("f", "cx", "cy")}
     return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi,
-                       held_sigmas, overdispersion_measured=config.null_draws > 0 and failure is None)
+                       held_sigmas, overdispersion_measured=config.null_draws > 0 and failure is None,
+                       laser_depth=laser)
 
 
 def held_out_laser_depth(images: pa.Table, observations: pa.Table, result: AdjustmentResult

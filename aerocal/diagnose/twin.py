@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from aerocal.adjust.laser import laser_residuals
 from aerocal.adjust.projection import project, rotation_log, rotation_update
 from aerocal.adjust.solver import BundleProblem, solve
 from aerocal.diagnose.model import CHI2_2_MEDIAN, TAIL_CHI2, Baseline
@@ -457,7 +458,15 @@ def make_twin(base: Baseline, seed: int, extensions: dict[str, float] | None = N
     control = b.control_xyz
     if len(b.control_ids):
         control = st.X[b.n_tie :] + rng.normal(0.0, 1.0, b.control_xyz.shape) * b.control_sigma
-    block = dataclasses.replace(b, obs_uv=uv, gnss=gnss, R_rec=R_rec, control_xyz=control)
+    laser = b.laser_range
+    rows = prob.laser_rows(st)
+    if len(rows):
+        # the twin's ranges are its own truth's (the depth of each laser row's point) with the rows' noise: the real
+        # ranges would pull a simulated block toward wherever the real one disagrees with its laser
+        laser = np.full(b.n_images, np.nan)
+        depth = laser_residuals(st.R, st.C, st.X, rows)[0] + rows.range_m
+        laser[rows.image] = depth + rng.normal(0.0, 1.0, len(rows)) * rows.sigma_m
+    block = dataclasses.replace(b, obs_uv=uv, gnss=gnss, R_rec=R_rec, control_xyz=control, laser_range=laser)
     # it starts at its own truth: a few iterations reach its optimum (the real block's budget would multiply the
     # time of every twin)
     quick = dataclasses.replace(cfg, max_iterations=min(cfg.max_iterations, TWIN_ITERATIONS))
