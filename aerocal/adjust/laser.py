@@ -109,12 +109,16 @@ class LaserRangeCheck:
                 f"({figures}); the block's depth is wrong (a focal length or a bending the images do not "
                 "determine), and the heights of the DSM with it")
 
-    def to_json(self, gsd_m: float) -> dict:
-        return {"verdict": self.verdict(gsd_m), "agrees": self.agrees(gsd_m) if self.image_ids else None,
-                "n": len(self.image_ids), "unmatched": self.unmatched, "median_m": self.median_m,
+    def figures(self) -> dict:
+        """The comparison's figures as plain JSON (metres; ``median_relative`` dimensionless)."""
+        return {"n": len(self.image_ids), "unmatched": self.unmatched, "median_m": self.median_m,
                 "median_relative": self.median_relative,
                 "median_error_m": self.median_error_m, "nmad_m": self.nmad_m,
-                "median_laser_m": float(np.median(self.laser_m)) if self.image_ids else None,
+                "median_laser_m": float(np.median(self.laser_m)) if self.image_ids else None}
+
+    def to_json(self, gsd_m: float) -> dict:
+        return {"verdict": self.verdict(gsd_m), "agrees": self.agrees(gsd_m) if self.image_ids else None,
+                **self.figures(),
                 "images": {str(i): [round(a, 3), round(b, 3)]
                            for i, a, b in zip(self.image_ids, self.laser_m, self.surface_m, strict=True)}}
 

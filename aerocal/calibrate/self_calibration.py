@@ -160,12 +160,7 @@ class Calibration:
             "held_out": {k: v.to_dict() for k, v in self.held_out.items()},
             "review": self.review.to_dict(),
             "overdispersion": self.overdispersion,
-            "laser_depth": None if self.laser_depth is None else {
-                "n": len(self.laser_depth.image_ids), "unmatched": self.laser_depth.unmatched,
-                "median_m": self.laser_depth.median_m, "median_error_m": self.laser_depth.median_error_m,
-                "nmad_m": self.laser_depth.nmad_m, "median_relative": self.laser_depth.median_relative,
-                "median_laser_m": float(np.median(self.laser_depth.laser_m)) if self.laser_depth.image_ids
-                else None},
+            "laser_depth": None if self.laser_depth is None else self.laser_depth.figures(),
         }
 
 
