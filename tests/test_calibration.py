@@ -2,10 +2,12 @@
 
 import dataclasses
 
+import pytest
 from tolerance import assert_within_sigma
 
 from aerocal.adjust import AdjustConfig
 from aerocal.calibrate.self_calibration import CalibrationConfig, self_calibrate
+from aerocal.certificates.review import DecisionConfig
 from aerocal.simulate import PRESETS, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
 
@@ -73,3 +75,48 @@ def test_a_slope_no_lens_has_is_dropped_not_the_whole_certificate():
     assert not cal.result.thermal_slopes, f"seed {seed}: {cal.review.notes}"
     assert any("no lens drifts that fast" in n for n in cal.review.notes), cal.review.notes
     assert cal.review.status == "accepted", f"seed {seed}: {cal.review.problems}"
+
+
+
+def _off_centre_flight(n_strips: int, seed: int):
+    """An xt2-survey flight (2 / 5 m GNSS, no GCPs) whose lens sits 15 px (3 % of the side) below the frame's
+    centre, and the self-calibration's settings with f, cx, cy, k1, k2 free."""
+    spec = PRESETS["xt2-survey"]
+    true = dataclasses.replace(spec.camera_true, cy=spec.camera_nominal.cy + 15.0)
+    spec = dataclasses.replace(spec, camera_true=true, plan=dataclasses.replace(spec.plan, n_strips=n_strips),
+                               sensors=dataclasses.replace(spec.sensors, gnss_sigma_h_m=2.0, gnss_sigma_v_m=5.0))
+    sim = simulate_flight(spec, seed=seed)
+    cfg = AdjustConfig(free=("f", "cx", "cy", "k1", "k2"), gnss_sigma_m=(2.0, 2.0, 5.0), adaptive=True)
+    return spec, sim, cfg
+
+
+@pytest.mark.parametrize("seed", [61])
+def test_a_principal_point_the_prediction_holds_is_freed_when_held_out_images_refute_the_centre(seed):
+    """Two strips, and a determinability threshold strict enough (0.2 % of the side) that the geometry's prediction
+    holds cx and cy at the centre: the k-fold over the block shows that freed they predict images the fit did not
+    use better, so they are freed, and cy is the true one."""
+    spec, sim, cfg = _off_centre_flight(2, seed)
+    strict = CalibrationConfig(null_draws=0, decision=DecisionConfig(determined_principal_point=0.002))
+    cal = self_calibrate(sim.images, sim.observations, spec.camera_nominal, sim.gcps, sim.gcp_observations,
+                         height_agl_m=spec.plan.height_agl_m, config=strict, adjust_config=cfg)
+    text = "\n".join(cal.review.notes)
+    print(f"seed {seed}:", text)
+    assert "cx, cy freed although the geometry's prediction held them" in text, f"seed {seed}: {text}"
+    assert not {"cx", "cy"} & set(cal.held_at_nominal), cal.held_at_nominal
+    cy, sigma = cal.result.camera.cy, cal.result.sigmas["cy"]
+    assert abs(cy - spec.camera_true.cy) <= min(3.0 * sigma, 2.0) + 0.5, f"seed {seed}: cy {cy} +- {sigma}"
+    assert cal.held_out["cy"].beyond(2.0), cal.held_out
+
+
+@pytest.mark.parametrize("seed", [61])
+def test_a_principal_point_held_out_images_do_not_support_stays_held(seed):
+    """One strip of 8 frames cannot tell the principal point from the poses: held by the prediction, and freed it
+    predicts the held-out frames no better, so it stays at the centre and the review says why."""
+    spec, sim, cfg = _off_centre_flight(1, seed)
+    cal = self_calibrate(sim.images, sim.observations, spec.camera_nominal, sim.gcps, sim.gcp_observations,
+                         height_agl_m=spec.plan.height_agl_m, config=CalibrationConfig(null_draws=0),
+                         adjust_config=cfg)
+    text = "\n".join(cal.review.notes)
+    print(f"seed {seed}:", text)
+    assert {"cx", "cy"} <= set(cal.held_at_nominal), f"seed {seed}: {cal.held_at_nominal}"
+    assert "cx, cy held at the nominal all the same: freed, they do not predict held-out images better" in text, text

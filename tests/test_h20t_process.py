@@ -9,19 +9,19 @@ self-calibration.
 What a user checks, pinned to what the product measured when it was judged right (each figure's calibrated sigma,
 with a cap; a change beyond them is a changed answer to explain):
 
-* the self-calibration converges: the block determines the radial distortion of this lens (k1 about -0.25) and
-  not its focal length or principal point (two strips at one height, no GCPs), which stay at the nominal values
-  with the reason; and its certificate is REJECTED: the block it makes lies deeper than the camera's laser range
-  finder measured on the frames whose range no fit used (the k1 the images choose bends the block; benchmarks/
-  RESULTS.md, "h20t_forest against its laser range finder"), so the block uses the nominal camera and no later
-  flight inherits the bend;
+* the self-calibration converges: the block determines the radial distortion of this lens (k1 about -0.16) and
+  not its focal length (two strips at one height, no GCPs), which stays at the nominal value with the reason;
+  the principal point, which the geometry's prediction would hold at the frame's centre, is freed because freed
+  it predicts held-out frames better, and it lies 18 px above the centre (held there, it bent the block and put
+  its surface 8-14 % too deep: benchmarks/RESULTS.md, "h20t_forest: the principal point");
+* the calibration block's depth agrees with the laser ranges no fit used, and the certificate is accepted;
 * no thermal slope is estimated: the frames carry no documented sensor temperature;
 * the block adjustment converges, and the diagnosis names no catalogue effect;
 * the recorded attitudes are checked against the adjusted ones: the recorded yaw is the gimbal's, turned by
   about 3.7 degrees from the camera's the images give;
 * the orthomosaic is a georeferenced GeoTIFF a GIS opens;
-* the dense surface is compared with the gimbal's laser range finder, and the disagreement found is said.
-* processed again, the rejected certificate is not reused.
+* the dense surface agrees with the gimbal's laser range finder on the frames whose range no fit used;
+* processed again, the stored certificate is reused and the block names nothing.
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from aerocal.certificates.document import Certificate
 
 H20T = Path(__file__).resolve().parents[2] / "shared" / "data" / "h20t_forest"
 #: the certificate when it was judged right: parameter -> (value, calibrated sigma, cap on the tolerance)
-PINNED = {"k1": (-0.2517, 0.0154, 0.03)}
+PINNED = {"k1": (-0.1562, 0.0186, 0.03), "cx": (323.76, 1.27, 3.0), "cy": (237.84, 1.10, 3.0)}
 #: the recorded attitudes' offset about the camera's z axis then (deg): estimate, sigma
 PINNED_YAW_DEG = (-3.67, 0.62)
 #: the GNSS time lag on the whole block then (s): estimate, sigma; "consistent with zero", not named
@@ -62,21 +62,19 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
     print(text, "\n", summary["certificate_reason"])
 
     # the self-calibration converged (it crept for 150 iterations before the solver re-intersected the points
-    # of a failed step); its certificate is rejected by the laser ranges no fit used (measured: tie points +5.8 +-
-    # 1.4 m from the cameras over 21 frames at ~76 m, limit 5.2 m) and the block uses the nominal camera
-    assert cert.status == "rejected" and len(cert.review.problems) == 1, text
-    assert "depth disagrees with the camera's laser range finder" in cert.review.problems[0], text
+    # of a failed step); the principal point freed on its held-out gain (measured +4.6 +- 1.2 % of the held-out
+    # frames' misfit); the block's depth against the laser ranges no fit used (measured +0.00 +- 0.22 m over 20
+    # frames; +5.8 m, 8 %, with the principal point held at the centre); the certificate is the one the block used
+    assert cert.status == "accepted", text
+    assert any("cx, cy freed although the geometry's prediction held them" in n for n in cert.review.notes), text
     depth = calibration["laser_depth"]
-    assert depth["n"] >= 15 and 0.05 < depth["median_relative"] < 0.15, depth
+    assert depth["n"] >= 15 and abs(depth["median_relative"]) < 0.03, depth
+    assert any(c.startswith("depth agrees with the laser range finder") for c in cert.review.checks), text
     assert summary["certificate_id"] == cert.id, summary["certificate_reason"]
-    assert "stored as REJECTED" in summary["certificate_reason"] and "nominal camera instead" in summary[
-        "certificate_reason"], summary["certificate_reason"]
     assert not any("without converging" in s for s in calibration["adjustment"]["selection"]), calibration
     assert summary["adjustment_converged"], summary["adjustment_iterations"]
-    # what the block determines: the radial distortion, pinned; f, cx, cy held at the nominal camera, with why
-    for name in ("f", "cx", "cy"):
-        assert name not in cert.estimated, text
-        assert "not determined" in cert.significance[name].dropped, text
+    # what the block determines: the radial distortion and the principal point, pinned; f held at the nominal, with why
+    assert "f" not in cert.estimated and "not determined" in cert.significance["f"].dropped, text
     assert cert.camera.f == pytest.approx(13.5 / 0.012), text  # 13.5 mm over 12 um pixels
     for name, (value, sigma, cap) in PINNED.items():
         assert name in cert.estimated, f"{name} was estimated when pinned: {text}"
@@ -107,27 +105,26 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
 
     # the surface against the gimbal's laser range finder (LRFTargetDistance, on the camera's axis), judged on the
     # frames whose range no adjustment used (every second frame's range observes the block's depth): the dense DSM
-    # lies about 11 m farther from the cameras than the laser's 64-97 m with the self-calibrated camera (22 m without
-    # the ranges as observations), 12.6 m nearer with the nominal camera the block now uses (benchmarks/RESULTS.md,
-    # "h20t_forest against its laser range finder"). The images want a bent block that the laser refutes: the
-    # model lacks something, and the product must say so, not hand over the heights as measured. When the block
-    # is mended this turns: pin the new figures then.
+    # agrees with them (measured -0.32 +- 0.24 m, NMAD 0.58 m over 9 frames). With the principal point held at the
+    # frame's centre it lay 11 m farther from the cameras (22 m before the ranges observed the block), and the run
+    # said DISAGREES (benchmarks/RESULTS.md, "h20t_forest: the principal point").
     report = json.loads((out / "summary.json").read_text())["summary"]
     laser = report["surface_minus_laser_range_m"]
-    assert laser["n"] >= 10 and 60 < laser["median_laser_m"] < 100 and laser["fitted"]["n"] >= 10, laser
-    assert laser["agrees"] is False and laser["median_m"] < -5, laser
-    assert summary["surface"].startswith("dense") and "DISAGREES with the laser range finder" in summary["surface"]
+    # (the dense DSM is measured under 9 of the 21 held-out axes, mostly over the clearing: 24 % of a canopy's cells)
+    assert laser["n"] >= 6 and 60 < laser["median_laser_m"] < 100 and laser["fitted"]["n"] >= 5, laser
+    assert laser["agrees"] is True and abs(laser["median_m"]) < 1.5, laser
+    assert summary["surface"].startswith("dense") and "agrees with the laser range finder" in summary["surface"]
 
-    # the next survey with this camera (here the same frames, processed again as a user would): the rejected
-    # certificate is never chosen; the block uses the nominal camera again and names nothing
+    # the next survey with this camera (here the same frames, processed again as a user would): the stored
+    # certificate is chosen, not made again, and the block adjusted with it names nothing
     again = tmp_path / "again"
     # (the tie points' surface, as a user who needs the certificate and the mosaic sooner asks for it)
     result = CliRunner().invoke(app, ["process", str(H20T), "--out", str(again), "--surface", "tie-points", *store],
                                 env={"COLUMNS": "250"})
     assert result.exit_code == 0, result.output
     reused = json.loads((again / "run.json").read_text())
-    assert "REJECTED" in reused["certificate_reason"] and "nominal camera instead" in reused["certificate_reason"], (
-        reused["certificate_reason"])
+    assert reused["certificate_id"] == cert.id, reused["certificate_reason"]
+    assert reused["steps"].get("calibrate", {}).get("status") != "computed", reused["steps"]
     assert not reused["findings"] and not json.loads((again / "diagnosis.json").read_text())["effects"], reused
     assert reused["surface"].startswith("tie points: the dense surface was not asked for"), reused["surface"]
     assert not (again / "cloud.laz").exists() and (again / "orthomosaic.tif").is_file()

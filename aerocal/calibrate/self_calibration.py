@@ -32,6 +32,7 @@ Everything is returned as fields (:class:`Calibration`), never as prose to be pa
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -321,6 +322,15 @@ def self_calibrate(
             run_cfg = _held_at_nominal(late, run_cfg)
             result = fit(run_cfg)
     held_out: dict[str, HeldOutComparison] = {}
+    point = [n for n in ("cx", "cy") if n in held and n in acfg.free]
+    if point and not any(n in held for n in ("cx", "cy") if n not in point) and held.get(point[0], "").startswith(
+            f"{point[0]} not determined by this block: predicted"):
+        freed, cmp = _free_if_it_predicts(point, held, run_cfg, result, fit, sub_images, sub_obs, camera, gcps,
+                                          sub_gobs, config, notes, float(np.sqrt(phi)))
+        if freed is not None:
+            for n in point:
+                held_out[n] = cmp
+            run_cfg, result = freed
     if result.thermal_slopes:
         final = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal,
                                     adaptive=False, marginal_over=_dropped_io(result, run_cfg))
@@ -375,6 +385,63 @@ def self_calibrate(
     return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi,
                        held_sigmas, overdispersion_measured=config.null_draws > 0 and failure is None,
                        laser_depth=laser)
+
+
+def _free_if_it_predicts(names: list[str], held: dict[str, str], run_cfg: AdjustConfig, result: AdjustmentResult,
+                         fit: Callable[[AdjustConfig], AdjustmentResult], images: pa.Table, observations: pa.Table,
+                         camera: Camera, gcps: pa.Table | None, gcp_observations: pa.Table | None,
+                         config: CalibrationConfig, notes: list[str], calibration: float
+                         ) -> tuple[tuple[AdjustConfig, AdjustmentResult] | None, HeldOutComparison]:
+    """Test the IO parameters ``names`` that the geometry's prediction held at their nominal values on data the fit
+    did not use: the selected model against it with ``names`` free, k-fold over strips
+    (:func:`aerocal.calibrate.heldout.compare_models`). Freed (``held`` and ``notes`` updated in place, the
+    block adjusted again with ``fit``) when the gain is beyond ``held_out_sigmas`` standard errors, the values stay
+    within the decision rule's band and their sigmas, calibrated by ``calibration`` (the square root of the block's
+    overdispersion), pass its determinability test; else held, with the comparison in the notes.
+
+    Why: the prediction models the block as a tie grid on a plane; a real block can determine more than that,
+    and a principal point held at the frame's centre when the lens sits off it is a confident wrong answer that
+    the other parameters absorb (real h20t_forest: cy 17 px off centre, held, bent the block by a k1 that put
+    its surface 8 % too deep by the camera's laser range finder)."""
+    k = config.decision.held_out_sigmas
+    selected = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal, adaptive=False,
+                                   marginal_over=_dropped_io(result, run_cfg))
+    extended = dataclasses.replace(selected, free=selected.free + tuple(names))
+    cmp = compare_models(images, observations, camera, selected, extended, gcps, gcp_observations, config.held_out)
+    label = ", ".join(names)
+    if not cmp.beyond(k):
+        notes.append(f"{label} held at the nominal all the same: freed, they do not predict held-out images better "
+                     f"beyond {k:g} sigma ({cmp.describe()})")
+        return None, cmp
+    free_cfg = dataclasses.replace(run_cfg, free=run_cfg.free + tuple(names),
+                                   always_keep=run_cfg.always_keep + tuple(names))
+    freed = fit(free_cfg)
+    band = config.decision.principal_point_band
+    off = {n: getattr(freed.camera, n) - getattr(camera, n) for n in names}
+    sides = {"cx": camera.width, "cy": camera.height}
+    late = undetermined_io({n: float(freed.sigmas.get(n, np.inf)) * calibration for n in names}, camera,
+                           config.decision, "calibrated sigma")
+    why = ("the adjustment did not converge" if not freed.converged
+           else "; ".join(late[n] for n in names if n in late) if any(n in late for n in names)
+           else ("the adjustment moves them beyond " + f"{100 * band:g} % of the image side ("
+                 + ", ".join(f"{n} {v:+.1f} px" for n, v in off.items()) + ")")
+           if any(abs(v) > band * sides[n] for n, v in off.items()) else "")
+    if why:
+        notes.append(f"{label} held at the nominal all the same: freed, they predict held-out images better "
+                     f"({cmp.describe()}), but {why}")
+        return None, cmp
+    for n in names:
+        notes.remove(held.pop(n))
+    for n in ("p1", "p2"):
+        if n in held:
+            notes.remove(held[n])
+            held[n] = (f"{n} held at 0: decentring distortion moves the image as a principal-point error does, and "
+                       "the principal point was freed on its held-out gain alone")
+            notes.append(held[n])
+    notes.append(f"{label} freed although the geometry's prediction held them: with them free the model predicts "
+                 f"held-out images better ({cmp.describe()}); " + ", ".join(
+                     f"{n} {getattr(freed.camera, n):.2f} px ({v:+.1f} from the nominal)" for n, v in off.items()))
+    return (free_cfg, freed), cmp
 
 
 def held_out_laser_depth(images: pa.Table, observations: pa.Table, result: AdjustmentResult
