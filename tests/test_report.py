@@ -518,3 +518,15 @@ def test_the_laser_figure_draws_each_frames_ranges_and_carries_the_medians():
     assert fig.numbers == {"held_out_median_m": 11.1, "fitted_median_m": 6.6}
     decoded = cv2.imdecode(np.frombuffer(fig.png, np.uint8), cv2.IMREAD_COLOR)
     assert decoded is not None and decoded.shape[1] > 600, "a figure a browser shows"
+
+
+def test_the_laser_figure_of_fitted_frames_no_surface_met_says_not_measured():
+    """On the tie points' surface no fitted frame's axis may meet a measured cell: its median is null in the run's
+    JSON, and the report is made all the same (h20t_forest with --surface tie-points)."""
+    from aerocal.report.figures import laser_range_figure
+
+    doc = {"verdict": "agrees with the laser range finder (...)", "median_m": -0.3,
+           "images": {"2": [93.5, 93.2], "4": [94.0, 93.6]},
+           "fitted": {"median_m": None, "n": 0, "unmatched": 21, "images": {}}}
+    fig = laser_range_figure(doc)
+    assert fig.numbers == {"held_out_median_m": -0.3, "fitted_median_m": None}

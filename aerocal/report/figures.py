@@ -53,6 +53,9 @@ def _nice(x: float) -> float:
 
 
 def _f(v) -> float | None:
+    """``v`` as a finite float, or ``None`` (a figure not measured: ``None`` or NaN in the run's JSON)."""
+    if v is None:
+        return None
     v = float(v)
     return v if np.isfinite(v) else None
 
