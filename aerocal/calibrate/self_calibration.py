@@ -327,9 +327,9 @@ def self_calibrate(
             f"{point[0]} not determined by this block: predicted"):
         freed, cmp = _free_if_it_predicts(point, held, run_cfg, result, fit, sub_images, sub_obs, camera, gcps,
                                           sub_gobs, config, notes, float(np.sqrt(phi)))
+        for n in point:
+            held_out[n] = cmp
         if freed is not None:
-            for n in point:
-                held_out[n] = cmp
             run_cfg, result = freed
     if result.thermal_slopes:
         final = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal,
@@ -395,7 +395,8 @@ def _free_if_it_predicts(names: list[str], held: dict[str, str], run_cfg: Adjust
     """Test the IO parameters ``names`` that the geometry's prediction held at their nominal values on data the fit
     did not use: the selected model against it with ``names`` free, k-fold over strips
     (:func:`aerocal.calibrate.heldout.compare_models`). Freed (``held`` and ``notes`` updated in place, the
-    block adjusted again with ``fit``) when the gain is beyond ``held_out_sigmas`` standard errors, the values stay
+    block adjusted again with ``fit``) when the gain is beyond ``held_out_sigmas`` standard errors and at least
+    ``min_freeing_gain`` of the held-out misfit, the values stay
     within the decision rule's band and their sigmas, calibrated by ``calibration`` (the square root of the block's
     overdispersion), pass its determinability test; else held, with the comparison in the notes.
 
@@ -409,9 +410,10 @@ def _free_if_it_predicts(names: list[str], held: dict[str, str], run_cfg: Adjust
     extended = dataclasses.replace(selected, free=selected.free + tuple(names))
     cmp = compare_models(images, observations, camera, selected, extended, gcps, gcp_observations, config.held_out)
     label = ", ".join(names)
-    if not cmp.beyond(k):
+    floor = config.decision.min_freeing_gain
+    if not (cmp.beyond(k) and cmp.gain >= floor):
         notes.append(f"{label} held at the nominal all the same: freed, they do not predict held-out images better "
-                     f"beyond {k:g} sigma ({cmp.describe()})")
+                     f"beyond {k:g} sigma and {100 * floor:g} % ({cmp.describe()})")
         return None, cmp
     free_cfg = dataclasses.replace(run_cfg, free=run_cfg.free + tuple(names),
                                    always_keep=run_cfg.always_keep + tuple(names))
@@ -558,7 +560,8 @@ def certificate_from_calibration(
         significance[SLOPE_NAMES.get(n, n)] = ParameterSignificance(float(t) if np.isfinite(t) else 0.0, False, why,
                                                                      **tested(n))
     for n, why in calibration.held_at_nominal.items():
-        significance[n] = ParameterSignificance(0.0, False, why, prior_sigma=calibration.held_sigmas.get(n))
+        significance[n] = ParameterSignificance(0.0, False, why, prior_sigma=calibration.held_sigmas.get(n),
+                                                **tested(n))
     temps = np.array([t for t in sub_images.column("temperature_c").to_pylist() if t is not None], dtype=float)
     trange = (float(temps.min()), float(temps.max())) if temps.size else None
     thermal = None
