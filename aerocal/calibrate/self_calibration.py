@@ -402,8 +402,9 @@ def _free_if_it_predicts(names: list[str], held: dict[str, str], run_cfg: Adjust
 
     Why: the prediction models the block as a tie grid on a plane; a real block can determine more than that,
     and a principal point held at the frame's centre when the lens sits off it is a confident wrong answer that
-    the other parameters absorb (real h20t_forest: cy 17 px off centre, held, bent the block by a k1 that put
-    its surface 8 % too deep by the camera's laser range finder)."""
+    the other parameters absorb (real h20t_forest: the lens 18 px off the centre, held there, bent the block by a
+    k1 that put its surface 8 % too deep by the camera's laser range finder; ``benchmarks/RESULTS.md``,
+    "h20t_forest: the principal point")."""
     k = config.decision.held_out_sigmas
     selected = dataclasses.replace(run_cfg, free=result.config.free, thermal=result.config.thermal, adaptive=False,
                                    marginal_over=_dropped_io(result, run_cfg))
