@@ -106,8 +106,8 @@ class LaserRangeCheck:
         side = "farther from" if self.median_m > 0 else "closer to"
         return (f"DISAGREES with the laser range finder: the surface lies {abs(self.median_m):.1f} m "
                 f"({100 * abs(self.median_relative):.0f} % of the range) {side} the cameras than the laser measured "
-                f"({figures}); the block's depth is wrong (a focal length or a bending the images do not "
-                "determine), and the heights of the DSM with it")
+                f"({figures}); the block's depth is wrong (a focal length, a principal point or a bending the "
+                "images do not determine), and the heights of the DSM with it")
 
     def figures(self) -> dict:
         """The comparison's figures as plain JSON (metres; ``median_relative`` dimensionless)."""

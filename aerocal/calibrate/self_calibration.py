@@ -265,11 +265,13 @@ def self_calibrate(
         predicted = predict_io_sigmas(images, camera, gcps, dataclasses.replace(
             scfg, adjust=dataclasses.replace(run_cfg, adaptive=False, robust_loss="none")), ids)
     held: dict[str, str] = {}
+    by_prediction: set[str] = set()  # held on the geometry's prediction alone (not on the fit's own sigmas)
     if predicted is None:
         notes.append("the terrain height is unknown (no GCPs, no height above ground): the IO precision could not "
                      "be predicted before the fit; the review checks the estimate afterwards")
     else:
         held = undetermined_io(predicted, camera, config.decision)
+        by_prediction = set(held)
         if held:
             run_cfg = _held_at_nominal(held, run_cfg)
             notes.extend(held.values())
@@ -322,9 +324,8 @@ def self_calibrate(
             run_cfg = _held_at_nominal(late, run_cfg)
             result = fit(run_cfg)
     held_out: dict[str, HeldOutComparison] = {}
-    point = [n for n in ("cx", "cy") if n in held and n in acfg.free]
-    if point and not any(n in held for n in ("cx", "cy") if n not in point) and held.get(point[0], "").startswith(
-            f"{point[0]} not determined by this block: predicted"):
+    point = [n for n in ("cx", "cy") if n in by_prediction and n in acfg.free]
+    if point:
         freed, cmp = _free_if_it_predicts(point, held, run_cfg, result, fit, sub_images, sub_obs, camera, gcps,
                                           sub_gobs, config, notes, float(np.sqrt(phi)))
         for n in point:
