@@ -6,7 +6,7 @@ re-adjustment of the block with what was named within 60 s each on 2 cores, on t
 sub-block, or the whole flight with ``--seneca-full``). Baseline measured in the same run: the block's first
 adjustment (the ``adjust`` step), so that the ratios say what the loop costs against one adjustment.
 
-    python -m benchmarks.loop_bench [--skip-city] [--skip-seneca] [--seneca-full] [--xt2]
+    python -m benchmarks.loop_bench [--skip-city] [--skip-seneca] [--seneca-full] [--xt2 [--xt2-strips N]]
 
 ``--xt2``: the loop across flights of one camera, on rendered frames as they come off the drone (FLIR radiometric
 JPEGs, no camera or flight files, no ground control): an XT2 survey in a wind with a 30 ms readout and a 0.3 s
@@ -78,15 +78,19 @@ def seneca(full: bool) -> None:
     record(f"The loop on real seneca ({'whole' if full else 'quick'})", lines)
 
 
-def xt2() -> None:
+def xt2(n_strips: int = 0) -> None:
     from aerocal.pipeline.certificates import MemoryCertificates
     from aerocal.simulate import write_flight
+    from benchmarks.detection_rate_bench import with_strips
 
     work = Path(tempfile.mkdtemp(prefix="aerocal-loop-xt2-"))
     spec = PRESETS["xt2-survey"].flown((2.5, 1.0))
+    if n_strips:
+        spec = with_strips(spec, n_strips)
     hidden = {"rolling_shutter": (0.030,), "gnss_time_offset": (0.3,)}
-    lines = ["rendered xt2-survey in a wind (2.5, 1) m/s, frames as recorded, no GCPs; each pair of flights shares "
-             "one certificate store (the second reuses what the first wrote)", "",
+    size = f"{spec.plan.n_strips} strips of {spec.plan.images_per_strip} images"
+    lines = [f"rendered xt2-survey ({size}) in a wind (2.5, 1) m/s, frames as recorded, no GCPs; each pair of "
+             "flights shares one certificate store (the second reuses what the first wrote)", "",
              "| flight | hidden | found | after the extension | certificate | time |", "|---|---|---|---|---|---|"]
     for label, effects, seeds in (("with effects", hidden, (1, 2)), ("effect-free", {}, (3, 4))):
         store = MemoryCertificates()
@@ -115,13 +119,14 @@ def main() -> None:
     parser.add_argument("--skip-seneca", action="store_true")
     parser.add_argument("--seneca-full", action="store_true")
     parser.add_argument("--xt2", action="store_true", help="also the loop across rendered XT2 flights (~20 min)")
+    parser.add_argument("--xt2-strips", type=int, default=0, help="strips of the XT2 flights (0: the preset's 3)")
     args = parser.parse_args()
     if not args.skip_city:
         city()
     if not args.skip_seneca:
         seneca(args.seneca_full)
     if args.xt2:
-        xt2()
+        xt2(args.xt2_strips)
 
 
 if __name__ == "__main__":
