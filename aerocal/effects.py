@@ -250,6 +250,29 @@ def thermal_rotation_angle(rate_px_per_c: float, dt_c, corner_radius_px: float):
     return rate_px_per_c * np.asarray(dt_c, dtype=float) / corner_radius_px
 
 
+def rotation_zero_point(names: set[str] | list[str], values, sigmas) -> bool:
+    """Whether a boresight (``values``, ``sigmas``: degrees about the camera's x, y, z) named beside the effects
+    ``names`` is a thermal rotation's zero point: a thermal rotation is among them and the boresight turns the
+    frames about the optical axis alone (x and y within two sigmas of zero, or not applied).
+
+    A thermal rotation turns the frames by its rate times the temperature's distance from a reference that one
+    flight cannot know (the block's mean temperature is used); the frames' turn at that reference is a constant
+    rotation about the optical axis, which the block sees as a boresight about z. One flight cannot tell it from
+    a yaw mounting offset, so the two are reported as one finding (:func:`rotation_zero_point_text`)."""
+    v = np.asarray(values, dtype=float)
+    s = np.asarray([np.inf if x is None else x for x in sigmas], dtype=float)
+    return ("thermal_rotation" in names and len(v) == 3 and v[2] != 0.0
+            and bool(np.all((v[:2] == 0.0) | (np.abs(v[:2]) <= 2.0 * s[:2]))))
+
+
+def rotation_zero_point_text(turn_deg: float, sigma_deg: float | None) -> str:
+    """The words for a thermal rotation's zero point (:func:`rotation_zero_point`) of ``turn_deg`` +- ``sigma_deg``."""
+    sigma = "?" if sigma_deg is None else f"{sigma_deg:.2g}"
+    return (f"the frames turned {turn_deg:+.4g} +- {sigma} deg about the optical axis at the thermal rotation's "
+            "reference temperature (its zero point, or a yaw mounting offset: one flight cannot tell them apart; "
+            "applied as a boresight)")
+
+
 def image_rotation(theta_rad: float) -> np.ndarray:
     """Rotation of camera coordinates about the optical axis by ``theta_rad`` (x towards y): applied as
     ``R_cw' = image_rotation(theta) @ R_cw`` it rotates the image about the principal point."""

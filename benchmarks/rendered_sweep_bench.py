@@ -64,7 +64,7 @@ def flight(work: Path, seed: int, effects: dict, warming: bool, n: int, store: M
     write_flight(sim, folder, mode="images")
     t0 = time.perf_counter()
     try:
-        summary = process(folder, ProcessConfig(), certificates=store).summary
+        summary = process(folder, ProcessConfig(), certificates=store).summary.to_json()
     except Exception as exc:  # every failure of a run is what this benchmark reports
         summary = {"failed": f"{type(exc).__name__}: {exc}"}
     return summary, time.perf_counter() - t0
@@ -75,7 +75,7 @@ def _row(line: str) -> str:
     return line
 
 
-def _findings(summary: dict) -> str:
+def _findings(summary: dict) -> str:  # the run summary as JSON (run.json)
     if "failed" in summary:
         return f"the run failed ({summary['failed']})"
     return "; ".join(f"{f['name']} {', '.join(f'{v:.4g}' for v in f['values'])} ({f['found_by']})"

@@ -263,3 +263,32 @@ def test_a_lag_and_a_real_boresight_are_both_found():
     lag, bore = found(fr.summary, "gnss_time_offset"), found(fr.summary, "boresight")
     assert lag is not None and abs(lag.values[0] - 0.3) < 0.25 * 0.3, f"seed {seed}: {fr.summary.findings}"
     assert bore is not None and along(bore.values, (0.2, -0.1, 0.0)) < 0.25, f"seed {seed}: {fr.summary.findings}"
+
+
+def test_a_thermal_rotations_zero_point_is_reported_with_it_not_as_a_boresight():
+    """A thermal rotation of 0.05 px/degC on a camera warming 10 -> 23 degC: the simulated frames are unturned at
+    20 degC, the block's model at its mean temperature, so the frames' turn there (-0.02 deg) is a constant rotation
+    about the optical axis that the recorded attitudes see as a boresight about z. One flight cannot tell it from a
+    yaw mounting offset: it stays applied, and is reported as the rotation's zero point, not as a second effect."""
+    seed = 904
+    fr, _ = run(conte(), seed, {"thermal_rotation": (0.05,)})
+    s = fr.summary
+    f = found(s, "thermal_rotation")
+    assert f is not None and along(f.values, (0.05,)) < 0.25, f"seed {seed}: {s.findings}"
+    assert [g.name for g in s.findings] == ["thermal_rotation"], f"seed {seed}: {s.findings}"
+    if "about the optical axis" in f.applied:  # the turn was large enough to be named on this seed
+        assert "boresight 0, 0" not in (s.diagnosis or "") and "zero point" in (s.diagnosis or ""), s.diagnosis
+        terms = [t["name"] for t in s.model_extension["terms"]]
+        assert "boresight" in terms, f"seed {seed}: the turn is applied to the block: {terms}"
+
+
+def test_the_zero_point_rule_leaves_a_tilted_boresight_and_a_lone_one_alone():
+    """A boresight with a component about x or y beyond two sigmas is a boresight, and so is one found without a
+    thermal rotation."""
+    from aerocal.effects import rotation_zero_point
+
+    assert rotation_zero_point({"thermal_rotation", "boresight"}, (0.0, 0.0, -0.02), (0.05, 0.05, 0.003))
+    assert rotation_zero_point({"thermal_rotation"}, (0.01, 0.0, -0.02), (0.05, None, 0.003))
+    assert not rotation_zero_point({"thermal_rotation"}, (0.2, 0.0, -0.02), (0.05, 0.05, 0.003))
+    assert not rotation_zero_point({"boresight"}, (0.0, 0.0, 4.0), (0.05, 0.05, 0.01))
+    assert not rotation_zero_point({"thermal_rotation"}, (0.0, 0.0, 0.0), (0.05, 0.05, 0.01))

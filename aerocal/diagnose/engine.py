@@ -58,7 +58,7 @@ from aerocal.diagnose.prediction import (
     held_out_gain,
 )
 from aerocal.diagnose.twin import compare as compare_twins
-from aerocal.effects import CATALOGUE
+from aerocal.effects import CATALOGUE, rotation_zero_point, rotation_zero_point_text
 
 #: A switch effect (refraction) has a known size: on = 1. An estimate further than this many sigmas from
 #: 1 is a signal of the effect's shape but not the effect, and is not named. Measured on a rendered,
@@ -269,12 +269,17 @@ class Diagnosis:
                         f"{', '.join(differs)}: the model lacks something (see the twin)")
             return "no systematic effect found"
         parts = []
+        names = {e.name for e in self.effects}
         for e in self.effects:
             mag = ", ".join(f"{m:.4g}" for m in e.magnitude)
             sig = ", ".join(f"{s:.2g}" for s in e.sigma)
             alt = f" (or {', '.join(e.alternatives)}: not separable here)" if e.alternatives else ""
+            if e.name == "boresight" and rotation_zero_point(names, e.magnitude, e.sigma):
+                parts.append(rotation_zero_point_text(e.magnitude[2], e.sigma[2]))
+                continue
             parts.append(f"{e.name} = {mag} +- {sig} {e.units}{alt}")
         return "; ".join(parts + ([pairs] if pairs else []))
+
 
 
 def _io_columns(base: Baseline, lin, io: IOUncertainty) -> np.ndarray:

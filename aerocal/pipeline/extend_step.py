@@ -21,6 +21,7 @@ from aerocal.diagnose.extension import (
     extend_certificate,
     terms_of_diagnosis,
 )
+from aerocal.effects import rotation_zero_point, rotation_zero_point_text
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
 
@@ -100,6 +101,9 @@ def extension_record(runner: Runner, before: dict, after: dict, terms: dict) -> 
     where = ["the block adjusted again with them"]
     if terms["camera_terms"]:
         where.append(f"{', '.join(terms['camera_terms'])} written into certificate {after['certificate_id']}")
-    named = "; ".join(f"{t.text()} ({t.evidence})" for t in applied) + f": applied, {', '.join(where)}"
+    names = {t.name for t in applied}
+    named = "; ".join(rotation_zero_point_text(t.values[2], t.sigmas[2])
+                      if t.name == "boresight" and rotation_zero_point(names, t.values, t.sigmas)
+                      else f"{t.text()} ({t.evidence})" for t in applied) + f": applied, {', '.join(where)}"
     return {"terms": terms["terms"], "camera_terms": terms["camera_terms"], "block_terms": terms["block_terms"],
             "before": b, "after": a, "named": named}
