@@ -240,16 +240,18 @@ def test_a_readout_is_told_from_an_affinity_where_ingest_left_a_strips_first_fra
     assert not found(s, "affinity_skew"), f"seed {seed}: {s.findings}"
 
 
-def test_a_large_lag_is_removed_whole_and_its_remainder_is_not_named_a_boresight():
-    """A 0.3 s lag (18 m along the track at 60 m/s): the first round's linearised estimate leaves a few percent of
-    it in the records, which tilts the cameras about their x axis as a boresight of a few hundredths of a degree
-    would. That remainder is refined away or, within the lag's sigma, reported as the lag's and never named a
-    boresight (this seed named a 0.067 deg boresight beside a lag of 0.272 s)."""
-    seed = 508
-    fr, _ = run(conte(warming=False), seed, {"gnss_time_offset": (0.3,)}, max_images=16)
+@pytest.mark.parametrize("seed,lag,warming,max_images", [(508, 0.3, False, 16), (956, 0.05, True, None)])
+def test_a_lags_remainder_is_removed_with_it_and_not_named_a_boresight(seed, lag, warming, max_images):
+    """A lag's first estimate leaves a few percent of it in the records, which tilts the cameras about their x axis
+    as a boresight of a few hundredths of a degree would. That remainder is refined away or, where a tilt within
+    the lag's sigma stands for it, removed with the lag from the positions, never named a boresight: seed 508 (a
+    0.3 s lag, 18 m along the track) named a 0.067 deg boresight beside a lag of 0.272 s; seed 956 (0.05 s), with the
+    tilt held back and not removed as lag, lost the comparison of the two orders to a 0.22 deg boresight and a GNSS
+    offset that nothing hid."""
+    fr, _ = run(conte(warming=warming), seed, {"gnss_time_offset": (lag,)}, max_images=max_images)
     f = found(fr.summary, "gnss_time_offset")
-    assert f is not None and abs(f.values[0] - 0.3) < 0.25 * 0.3, f"seed {seed}: {fr.summary.findings}"
-    assert not found(fr.summary, "boresight"), f"seed {seed}: {fr.summary.findings}"
+    assert f is not None and abs(f.values[0] - lag) < 0.25 * lag, f"seed {seed}: {fr.summary.findings}"
+    assert [g.name for g in fr.summary.findings] == ["gnss_time_offset"], f"seed {seed}: {fr.summary.findings}"
 
 
 def test_a_lag_and_a_real_boresight_are_both_found():

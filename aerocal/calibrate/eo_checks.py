@@ -232,6 +232,9 @@ class AttitudeCorrection:
     offset_deg: list[float] | None = None
     check: AttitudeOffset | None = None
     notes: list[str] = field(default_factory=list)
+    #: the GNSS time lag (s) a tilt held back as a just-removed lag's remainder stands for (``lag_sigma_s`` of
+    #: :func:`correct_attitude_offset`), to be removed from the positions with that lag; None where there is none
+    lag_remainder_s: float | None = None
 
 
 def correct_attitude_offset(images: pa.Table, observations: pa.Table, camera: Camera, config: AdjustConfig,
@@ -274,11 +277,12 @@ def correct_attitude_offset(images: pa.Table, observations: pa.Table, camera: Ca
         within = np.isfinite(lag_like) & (np.abs(lag_like) <= MIN_Z * lag_sigma_s) & (offset != 0)
         if within.any():
             axes = ", ".join("xyz"[k] for k in np.flatnonzero(within))
+            out.lag_remainder_s = float(np.sum(lag_like[within]))
             out.notes.append(
                 f"recorded attitudes: the offset about the camera's {axes} axis moves the footprints along their "
-                f"tracks as a GNSS time lag of {', '.join(f'{abs(v):.3g}' for v in lag_like[within])} s would, within "
-                f"{MIN_Z:g} sigma ({lag_sigma_s:.2g} s) of the lag just removed: what is left of that lag is not told "
-                f"apart from a tilt here, so it is not removed{where}")
+                f"tracks as a GNSS time lag of {out.lag_remainder_s:+.3g} s would, within {MIN_Z:g} sigma "
+                f"({lag_sigma_s:.2g} s) of the lag just removed: taken for what is left of that lag, and removed with "
+                f"it from the positions, not from the attitudes{where}")
             offset = np.where(within, 0.0, offset)
             if not offset.any():
                 out.notes.append(f"recorded attitudes: {check.text()}; used as recorded{where}")
@@ -326,7 +330,7 @@ def lag_equivalent_s(base, images: pa.Table, offset_deg: np.ndarray) -> np.ndarr
         a = np.einsum("ni,ni->n", shift, along)
         whole = np.linalg.norm(shift, axis=1)
         if np.median(np.abs(a)) > 0.7 * np.median(whole):
-            out[k] = float(np.median(a / speed[moving]))
+            out[k] = -float(np.median(a / speed[moving]))
     return out
 
 
@@ -360,6 +364,10 @@ def correct_recorded_eo(images: pa.Table, observations: pa.Table, camera: Camera
             positioned = positioned.set_column(positioned.schema.get_field_index(c), c, images.column(c))
         att = correct_attitude_offset(positioned, *check, block,
                                       lag_sigma_s=eo.time_sigma_s if eo.time_offset_s is not None else None)
+        if att.lag_remainder_s is not None and eo.time_offset_s is not None:
+            att.images = shift_gnss_in_time(att.images, att.lag_remainder_s)
+            return att, dataclasses.replace(eo, images=att.images,
+                                            time_offset_s=eo.time_offset_s + att.lag_remainder_s)
         return att, dataclasses.replace(eo, images=att.images)
 
     att = correct_attitude_offset(images, *check, block)
