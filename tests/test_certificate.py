@@ -467,3 +467,19 @@ def test_hostile_values_anywhere_are_one_line_certificate_errors(variant):
         except Exception as exc:  # the assertion: nothing else is raised
             pytest.fail(f"{case}: {type(exc).__name__}: {exc}")
         assert Certificate.from_json(cert.to_json()) == cert, case
+
+
+def test_a_term_the_calibration_dropped_and_a_diagnosis_found_makes_a_valid_next_version():
+    """k3 and b2 dropped by the self-calibration, then found by a flight's diagnosis: the extended certificate
+    estimates them with the diagnosis's significance, and validates (it raised "k3 is marked dropped but is listed
+    in estimated", stopping `aerocal process` on a simulated UltraCam block with refraction hidden)."""
+    from aerocal.diagnose.extension import ModelTerm, extend_certificate
+
+    cert = make_certificate()
+    terms = (ModelTerm("radial_k3", (2.2e-4,), (3.5e-5,), "held-out gain +0.05 +- 0.01 %"),
+             ModelTerm("affinity_skew", (0.0, 0.3), (0.05, 0.1), "held-out gain +1.0 +- 0.2 %"))
+    new = extend_certificate(cert, terms, "survey")
+    assert {"k3", "b2"} <= set(new.estimated)
+    assert new.significance["k3"].dropped is None and new.significance["k3"].t == pytest.approx(2.2e-4 / 3.5e-5)
+    assert new.significance["b2"].dropped is None and new.significance["b2"].significant
+    assert Certificate.from_dict(new.to_dict()).camera.k3 == pytest.approx(2.2e-4)

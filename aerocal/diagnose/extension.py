@@ -29,7 +29,7 @@ import numpy as np
 import pyarrow as pa
 
 from aerocal.camera import Camera, LinearThermalModel
-from aerocal.certificates.document import CameraTerm, Certificate, ThermalCalibration
+from aerocal.certificates.document import CameraTerm, Certificate, ParameterSignificance, ThermalCalibration
 from aerocal.certificates.schema import CAMERA_TERMS
 from aerocal.diagnose import hypotheses as hyp
 from aerocal.diagnose.model import image_strips, image_times_s, point_geometry
@@ -384,9 +384,16 @@ def extend_certificate(cert: Certificate, terms: tuple[ModelTerm, ...], flight: 
                                      t.reference_temperature)
         notes.append(f"{t.text()} added from the diagnosis of flight {flight} ({t.evidence})")
     review = cert.review.merged(notes=notes) if cert.review is not None else None
+    # a parameter the self-calibration dropped (k3 correlated with k2, b1 and b2 without gain) and the diagnosis
+    # then found is estimated now: its significance is the diagnosis's, no longer a drop
+    significance = dict(cert.significance)
+    for name in set(estimated) - set(cert.estimated):
+        value, sigma = float(getattr(cam, name)), float(sigmas[name])
+        t = value / sigma if sigma > 0 else float("inf")
+        significance[name] = ParameterSignificance(t=t, significant=bool(abs(t) > 1.96))
     return dataclasses.replace(cert, camera=cam, sigmas=sigmas, estimated=tuple(estimated), thermal=thermal,
-                               terms=records, review=review, id=_new_id(), issued=_now(), version=None,
-                               supersedes=None)
+                               terms=records, review=review, significance=significance, id=_new_id(), issued=_now(),
+                               version=None, supersedes=None)
 
 
 def _add_slopes(thermal: ThermalCalibration | None, term: ModelTerm, cert: Certificate,
