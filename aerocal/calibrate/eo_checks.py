@@ -42,7 +42,7 @@ from aerocal.diagnose.engine import DiagnoseConfig, diagnose
 from aerocal.diagnose.extension import turn_recorded_attitudes
 from aerocal.diagnose.hypotheses import velocities
 from aerocal.diagnose.io_uncertainty import IOUncertainty
-from aerocal.diagnose.model import fit_baseline, image_strips, image_times_s
+from aerocal.diagnose.model import Baseline, fit_baseline, image_strips, image_times_s
 from aerocal.geometry import small_rotation
 
 #: control GCPs the offset needs in the block (a translation of the datum is determined by three points)
@@ -249,7 +249,8 @@ def correct_attitude_offset(images: pa.Table, observations: pa.Table, camera: Ca
     correction applies to every image); ``block``: which block this is, in words, added to every note.
     ``lag_sigma_s``: the sigma (s) of a GNSS time lag just removed from the positions; a tilt that moves the
     footprints along their tracks as a lag within :data:`MIN_Z` of that sigma would is what is left of the lag as
-    far as this block can tell (:func:`lag_equivalent_s`), and is reported, not removed."""
+    far as this block can tell (:func:`lag_equivalent_s`): it is not removed from the attitudes, and the lag it
+    stands for is returned in ``lag_remainder_s`` for the caller to remove from the positions with the lag."""
     out = AttitudeCorrection(images)
     if config.attitude_sigma_deg is None or config.gnss_sigma_m is None:
         return out
@@ -296,7 +297,7 @@ def correct_attitude_offset(images: pa.Table, observations: pa.Table, camera: Ca
     return out
 
 
-def lag_equivalent_s(base, images: pa.Table, offset_deg: np.ndarray) -> np.ndarray:
+def lag_equivalent_s(base: Baseline, images: pa.Table, offset_deg: np.ndarray) -> np.ndarray:
     """Per camera axis, the GNSS time lag (s) whose shift moves the footprints as the attitude offset about that
     axis does, where that axis's tilt moves them along their tracks; NaN for an axis whose tilt moves them across
     the tracks or not at all (about the optical axis), and for a block without times.

@@ -281,7 +281,6 @@ class Diagnosis:
         return "; ".join(parts + ([pairs] if pairs else []))
 
 
-
 def _io_columns(base: Baseline, lin, io: IOUncertainty) -> np.ndarray:
     """d(whitened residuals)/d(fixed IO parameters ``io.names``): (rows, k), image rows only."""
     b = base.block
