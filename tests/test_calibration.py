@@ -16,13 +16,15 @@ CONFIG = AdjustConfig(gnss_sigma_m=(0.10, 0.10, 0.15), thermal=("f",), adaptive=
 
 
 def test_a_calibration_from_input_with_errors_is_rejected():
-    """One bad input cell must not become the camera's certificate for every later flight."""
+    """One bad input cell must not become the camera's certificate for every later flight; the fit never saw the
+    skipped item, so the flight it was made on may use it (``usable_on_its_flight``)."""
     seed = 43
     sim = simulate_flight(SPEC, seed=seed, max_images=20)
     error = "eo.csv:7: alt 'abc' is not a number [error]"
     cal = self_calibrate(sim.images, sim.observations, SPEC.camera_nominal, sim.gcps, sim.gcp_observations,
                          config=CalibrationConfig(null_draws=0), adjust_config=CONFIG, input_errors=(error,))
     assert cal.review.status == "rejected" and error in cal.review.problems[-1], cal.review
+    assert len(cal.review.problems) == 1 and cal.usable_on_its_flight, cal.review
 
 
 def test_an_overdispersion_that_could_not_be_measured_is_said(monkeypatch):

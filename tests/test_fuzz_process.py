@@ -10,6 +10,7 @@ re-run succeeds.
 
 from __future__ import annotations
 
+import json
 import os
 
 import pytest
@@ -73,3 +74,23 @@ def test_undecodable_pixels_stop_with_one_line_without_a_prefect_server(corpus):
     assert out.exit_code == 2 and not out.problems, f"flight seed {SEED}: {out.problems}\n{out.output[-3000:]}"
     assert len(lines) == 1 and "IMG_0011.tif" in lines[0] and "Fix:" in lines[0], out.output
     assert steps[-1] == "match", out.output  # where the pixels are first decoded
+
+
+def test_a_flight_whose_calibration_only_its_input_errors_reject_uses_it(corpus):
+    """A measurement of gcp_list.txt that cannot be read is skipped at ingest and its error rejects the flight's
+    calibration for later flights ("fix them and calibrate again"); the fit never saw it, so the flight's own
+    block uses that calibration rather than the nominal camera, and the run says so. Its own store: no
+    certificate of an earlier case is selected instead of a self-calibration."""
+    base, work, _, _, env = corpus
+    seed = 1015
+    out = run_case(base, "gcp-measurement", seed, work, work / "own-calibration.db", work / "own-artifacts", env)
+    assert out.exit_code == 0 and not out.problems, (f"fault seed {seed}, flight seed {SEED}: {out.fault.detail}: "
+                                                    f"{out.problems}\n{out.output[-3000:]}")
+    run = work / f"gcp-measurement-{seed}" / "run"
+    made = json.loads((run / "calibration_certificate.json").read_text())
+    used = json.loads((run / "certificate.json").read_text())
+    summary = json.loads((run / "run.json").read_text())
+    problems = made["review"]["problems"]
+    assert made["review"]["status"] == "rejected" and len(problems) == 1 and "gcp_list.txt" in problems[0], problems
+    assert used["id"] == made["id"] and used["camera"] == made["camera"], (used["id"], made["id"])
+    assert "this flight's block uses it" in summary["certificate_reason"], summary["certificate_reason"]

@@ -129,6 +129,9 @@ class Calibration:
       deviation of each nominal value held (the certificate records it for the diagnosis).
     * ``held_out``: the k-fold comparison of each thermal slope tested, by adjustment name (``df/dT``).
     * ``review``: the verdict.
+    * ``usable_on_its_flight``: the fit passed its review and only the flight's input errors rejected it: the
+      items they name were skipped at ingest and never reached the fit, so the flight it was made on may use it,
+      while later flights never do (they are told to fix the input and calibrate again).
     * ``laser_depth``: the block's tie points around each axis against the laser ranges no fit used
       (:func:`held_out_laser_depth`; ``None`` when the images record none), which the review judged.
     * ``overdispersion``: how many times larger than chi-square the statistics of pure-noise hypotheses are
@@ -150,6 +153,7 @@ class Calibration:
     held_sigmas: dict[str, float] = dataclasses.field(default_factory=dict)
     overdispersion_measured: bool = True
     laser_depth: LaserRangeCheck | None = None
+    usable_on_its_flight: bool = False
 
     def summary(self) -> dict:
         """JSON-ready figures a user checks."""
@@ -160,6 +164,7 @@ class Calibration:
             "held_at_nominal": self.held_at_nominal,
             "held_out": {k: v.to_dict() for k, v in self.held_out.items()},
             "review": self.review.to_dict(),
+            "usable_on_its_flight": self.usable_on_its_flight,
             "overdispersion": self.overdispersion,
             "laser_depth": None if self.laser_depth is None else self.laser_depth.figures(),
         }
@@ -378,6 +383,7 @@ def self_calibrate(
                                      float(np.median(laser.laser_m)) if laser.image_ids else float("nan"),
                                      config.decision)
         review = review.merged(verdict.problems, verdict.checks, verdict.notes)
+    usable_here = review.accepted
     if input_errors:
         review = review.merged(problems=[
             f"the flight's input has {len(input_errors)} error(s) (first: {input_errors[0]}); fix them and "
@@ -385,7 +391,7 @@ def self_calibrate(
     held_sigmas = {n: nominal_sigma(n, camera, config.decision) for n in held if n in ("f", "cx", "cy")}
     return Calibration(result, [int(i) for i in ids], info, transversal, predicted, held, held_out, review, phi,
                        held_sigmas, overdispersion_measured=config.null_draws > 0 and failure is None,
-                       laser_depth=laser)
+                       laser_depth=laser, usable_on_its_flight=usable_here)
 
 
 def _free_if_it_predicts(names: list[str], held: dict[str, str], run_cfg: AdjustConfig, result: AdjustmentResult,

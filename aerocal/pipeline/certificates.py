@@ -134,24 +134,33 @@ def choose_stored(store: CertificateStore, cam_doc: dict, flight: dict, pin: str
 
 
 def issue_calibration(store: CertificateStore, document: dict, cam_doc: dict, run_id: str,
-                      computed_by: str) -> tuple[str, dict, str]:
+                      computed_by: str, usable_here: bool = False) -> tuple[str, dict, str]:
     """Issue the flight's own certificate (once) and say which document the block adjustment uses:
     ``(certificate id, document, reason)``. A certificate its review rejected is stored as rejected (never
-    selected for a flight) and the block uses the nominal camera; the reason says so."""
+    selected for a flight) and the block uses the nominal camera; the reason says so. ``usable_here``: only the
+    flight's input errors rejected it (:attr:`aerocal.calibrate.self_calibration.Calibration.usable_on_its_flight`:
+    the items they name never reached the fit), so this flight's block uses it all the same: a lens model made on
+    the flight's own data is closer to its camera than the nominal one, and later flights still never select it."""
     stored = store.issue(document)
     reason = ("made by this flight's self-calibration" + (f" (run {computed_by}), issued before"
                                                            if stored.issued_before else "")
               + f"; version {stored.version} of camera {stored.camera_label}")
-    return _used(stored, cam_doc, run_id, reason, f"this flight's calibration {stored.id} was rejected")
+    return _used(stored, cam_doc, run_id, reason, f"this flight's calibration {stored.id} was rejected", usable_here)
 
 
-def _used(stored: Issued, cam_doc: dict, run_id: str, reason: str, rejected: str) -> tuple[str, dict, str]:
+def _used(stored: Issued, cam_doc: dict, run_id: str, reason: str, rejected: str,
+          usable_here: bool = False) -> tuple[str, dict, str]:
     """``(certificate id, document the block uses, reason)`` for a certificate just issued: its own document when
-    the store accepted it; else the nominal camera (:func:`nominal_certificate`, with ``rejected`` as its reason)
-    and the review's problems added to ``reason``."""
+    the store accepted it, or when it was rejected for the flight's input errors alone (``usable_here``); else the
+    nominal camera (:func:`nominal_certificate`, with ``rejected`` as its reason). The review's problems are added
+    to ``reason``."""
     if stored.status == "accepted":
         return stored.id, stored.document, reason
     problems = "; ".join((stored.document.get("review") or {}).get("problems") or [])
+    if usable_here:
+        return stored.id, stored.document, (
+            f"{reason}, stored as REJECTED for later flights ({problems}); this flight's block uses it: its fit "
+            "passed the review and the items in error were skipped before it")
     reason += f", stored as REJECTED ({problems}): the block uses the nominal camera instead"
     return stored.id, nominal_certificate(cam_doc, run_id, rejected), reason
 
@@ -167,15 +176,15 @@ def extended_certificate(document: dict, terms: dict, flight: dict) -> dict:
 
 
 def issue_extension(store: CertificateStore, document: dict, cam_doc: dict, run_id: str, previous: str,
-                    terms: dict) -> tuple[str, dict, str]:
+                    terms: dict, usable_here: bool = False) -> tuple[str, dict, str]:
     """Issue the certificate extended by the flight's camera terms as the camera's next version and say which
     document the extended block uses: ``(certificate id, document, reason)``; ``previous`` is why the block used
     the certificate it had. Rejected (the review of a re-calibration failed), it is stored as such and the block
-    uses the nominal camera, as :func:`issue_calibration` does."""
+    uses the nominal camera, as :func:`issue_calibration` does (``usable_here`` as there)."""
     stored = store.issue(document)
     reason = (f"version {stored.version} of camera {stored.camera_label}, extended by this flight's diagnosis with "
               f"{', '.join(terms['camera_terms'])} (before: {previous})")
-    return _used(stored, cam_doc, run_id, reason, f"the extended certificate {stored.id} was rejected")
+    return _used(stored, cam_doc, run_id, reason, f"the extended certificate {stored.id} was rejected", usable_here)
 
 
 def term_agreement(store: CertificateStore, cam_doc: dict, flight: dict, terms: dict) -> list[str]:

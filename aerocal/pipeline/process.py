@@ -223,8 +223,11 @@ def process(
         cal = steps["calibrate"] = calibrate_step(runner, ing, observations, config.calibration,
                                                   adjustments.calibration)
         outputs["calibration"], outputs["calibration_certificate"] = cal["calibration"], cal["certificate"]
-        made = runner.inputs({"certificate": cal["certificate"]}).json("certificate")
-        cert_id, document, reason = issue_calibration(store, made, cam_doc, runner.run_id, cal.computed_by)
+        made_docs = runner.inputs({"certificate": cal["certificate"], "calibration": cal["calibration"]})
+        made = made_docs.json("certificate")
+        cert_id, document, reason = issue_calibration(
+            store, made, cam_doc, runner.run_id, cal.computed_by,
+            usable_here=bool(made_docs.json("calibration").get("usable_on_its_flight")))
         if certificate == "auto":
             reason = f"{reason} ({why_not})"
     else:
@@ -256,12 +259,14 @@ def process(
                                                                   config.calibration, adjustments.calibration,
                                                                   name="recalibrate")
                     outputs["calibration"] = recal["calibration"]
-                    made = runner.inputs({"c": recal["certificate"]}).json("c")
-                    extended_doc = extended_certificate(made, terms, flight_doc)
+                    made_docs = runner.inputs({"c": recal["certificate"], "calibration": recal["calibration"]})
+                    extended_doc = extended_certificate(made_docs.json("c"), terms, flight_doc)
+                    usable_here = bool(made_docs.json("calibration").get("usable_on_its_flight"))
                 else:
                     extended_doc = runner.inputs({"c": ext["certificate"]}).json("c")
+                    usable_here = False
                 cert_id, document, reason = issue_extension(store, extended_doc, cam_doc, runner.run_id, reason,
-                                                            terms)
+                                                            terms, usable_here)
                 record.certificate(cert_id, reason)
                 cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
             adj = steps["adjust_extended"] = adjust_step(runner, ext_ing, ext["observations"], cert_ref, config.block,
