@@ -338,3 +338,22 @@ def test_a_look_alike_too_small_to_name_is_still_a_rival(monkeypatch):
     pairs = [set(p["effects"]) for p in fr.json("diagnosis")["pairs"]]
     assert not s.findings and {"rolling_shutter", "affinity_skew"} in pairs, (
         f"seed {seed}: sizes {shift}, floor {engine.MATERIAL_SHIFT_PX:.3f} px; found {s.findings}; {s.diagnosis}")
+
+
+def test_a_certificates_readout_is_checked_by_every_flight_that_applies_it():
+    """A readout a flight wrote into the camera's certificate is applied by later flights, and each says whether it
+    holds there: the remainder its diagnosis finds of the readout (named or not), against the certificate's sigma
+    and its own. A later flight whose camera reads out as the certificate says: it holds; one whose readout is half
+    as long again: it does not, by many sigmas (and the new remainder, named, is not compared with the whole
+    readout as if it were another flight's value)."""
+    seed = 1311
+    first, store = run(conte(), seed, {"rolling_shutter": (0.006,)})
+    assert found(first.summary, "rolling_shutter") is not None, f"seed {seed}: {first.summary.diagnosis}"
+    for k, readout, verdict in ((1, 0.006, "holds on this flight"), (2, 0.009, "does not hold on this flight")):
+        later, _ = run(conte(), seed + k, {"rolling_shutter": (readout,)}, store=store)
+        s = later.summary
+        lines = [x for x in s.certificate_terms if x.startswith("rolling_shutter of certificate")]
+        assert len(lines) == 1 and verdict in lines[0], (
+            f"seeds {seed}, {seed + k}: readout {readout} s; {s.certificate_terms}; {s.diagnosis}")
+        agreement = (s.model_extension or {}).get("agreement") or []
+        assert not any(x.startswith("rolling_shutter") for x in agreement), agreement

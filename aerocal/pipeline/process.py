@@ -28,6 +28,7 @@ from aerocal.pipeline.calibrate_step import calibrate_step
 from aerocal.pipeline.certificates import (
     CertificateStore,
     MemoryCertificates,
+    certificate_term_remainders,
     choose_stored,
     extended_certificate,
     identity_of,
@@ -236,6 +237,7 @@ def process(
     cert_ref = outputs["certificate"] = runner.put(JsonOutput(document, "certificate"))
 
     extension: dict[str, Any] | None = None
+    remainders: list[str] = []
     if not calibrate_only:
         calibrated_here = "calibrate" in steps
         adj = steps["adjust"] = adjust_step(runner, ing, observations, cert_ref, config.block, adjustments.block,
@@ -245,6 +247,11 @@ def process(
                                                 adjustments.block, adj, config.block.thermal_correction,
                                                 calibrated_on_flight=calibrated_here)
         before = {"adjust": adj, "assess": ass, "diagnose": dia, "certificate_id": cert_id}
+        used = document
+        # a stored certificate's camera terms, applied to this block: does each hold here (the remainder the
+        # diagnosis finds of it, named or not)
+        remainders = ([] if calibrated_here else
+                      certificate_term_remainders(used, runner.inputs({"d": dia["diagnosis"]}).json("d")))
         if config.extend and model_terms(runner.inputs({"d": dia["diagnosis"]}).json("d")):
             # the loop: what the diagnosis named becomes the block's model, and the camera's in its certificate
             ext = steps["extend"] = extend_step(runner, ing, observations, cert_ref, dia, adj)
@@ -252,7 +259,7 @@ def process(
             ext_ing = ing.with_outputs(images=ext["images"], gcp_observations=ext["gcp_observations"])
             agreement: list[str] = []
             if terms["camera_terms"]:
-                agreement = term_agreement(store, cam_doc, flight_doc, terms)
+                agreement = term_agreement(store, cam_doc, flight_doc, terms, in_use=used)
                 if calibrated_here:  # the camera calibrated again on the measurements without the named terms
                     cal_ing = ext_ing.with_outputs(gcp_observations=ext["calibration_gcp_observations"])
                     recal = steps["recalibrate"] = calibrate_step(runner, cal_ing, ext["calibration_observations"],
@@ -307,6 +314,7 @@ def process(
             # what the first adjustment removed from the records (the extended one tests them again, corrected)
             "recorded_eo_corrections": tuple((first.get("recorded_eo_corrections") or {}).get("notes") or ()),
             "twin": (diag.get("twin") or {}).get("summary"),
+            "certificate_terms": tuple(remainders),
             "accuracy": assess.get("check_points"),
             "adjustment_converged": bool(adjustment.get("converged", True)),
             "adjustment_iterations": adjustment.get("iterations"),

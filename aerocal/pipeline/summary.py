@@ -97,9 +97,12 @@ class RunSummary:
     block's, where the block was extended), ``model_extension`` (the ``extension.json`` document: the block before
     and after, the terms and their gain), ``recorded_eo`` (the diagnosis's recorded-EO checks, a document),
     ``recorded_eo_corrections`` (what the first adjustment removed from the recorded positions, in words), ``twin``
-    (what the simulation gets wrong, in words), ``accuracy`` (the check points' assessment document, ``None``
-    without check points), ``adjustment_converged`` and ``adjustment_iterations``, and the ``surface`` the products
-    stand on, in words (dense or the tie points and why; against the frames' laser ranges where they record them).
+    (what the simulation gets wrong, in words), ``certificate_terms`` (whether each camera term of the stored
+    certificate the block used holds on this flight, one sentence each:
+    :func:`aerocal.pipeline.certificates.certificate_term_remainders`), ``accuracy`` (the check points' assessment
+    document, ``None`` without check points), ``adjustment_converged`` and ``adjustment_iterations``, and the
+    ``surface`` the products stand on, in words (dense or the tie points and why; against the frames' laser ranges
+    where they record them).
     """
 
     run_id: str
@@ -123,6 +126,7 @@ class RunSummary:
     recorded_eo: dict[str, Any] | None = None
     recorded_eo_corrections: tuple[str, ...] = ()
     twin: str | None = None
+    certificate_terms: tuple[str, ...] = ()
     accuracy: dict[str, Any] | None = None
     adjustment_converged: bool | None = None
     adjustment_iterations: int | None = None
@@ -171,7 +175,7 @@ class RunSummary:
         kw["steps"] = {k: StepRecord.from_json(v) for k, v in (doc.get("steps") or {}).items()}
         kw["ground_control"] = GroundControlSummary.from_json(doc.get("ground_control"))
         kw["findings"] = tuple(Finding.from_dict(f) for f in doc.get("findings") or ())
-        for name in ("images_skipped_at_ingest", "ingest_problems", "recorded_eo_corrections"):
+        for name in ("images_skipped_at_ingest", "ingest_problems", "recorded_eo_corrections", "certificate_terms"):
             kw[name] = tuple(doc.get(name) or ())
         for name in ("flight_facts", "outputs", "files", "storage"):
             kw[name] = dict(doc.get(name) or {})

@@ -132,6 +132,8 @@ def print_loop(summary: RunSummary) -> None:
             console.print(f"  {finding_text(f)}", markup=False, highlight=False)
     if summary.diagnosis:
         console.print(f"diagnosis: {summary.diagnosis}", markup=False, highlight=False)
+    for line in summary.certificate_terms:
+        console.print(f"certificate term: {line}", markup=False, highlight=False)
     if summary.model_extension:
         for line in extension_lines(summary.model_extension):
             console.print(f"  {line}", markup=False, highlight=False)
