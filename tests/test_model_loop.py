@@ -16,6 +16,9 @@ cannot separate (tests/test_diagnose.py). Seeds are printed in every assertion.
 from __future__ import annotations
 
 import dataclasses
+import html
+import json
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -357,3 +360,9 @@ def test_a_certificates_readout_is_checked_by_every_flight_that_applies_it():
             f"seeds {seed}, {seed + k}: readout {readout} s; {s.certificate_terms}; {s.diagnosis}")
         agreement = (s.model_extension or {}).get("agreement") or []
         assert not any(x.startswith("rolling_shutter") for x in agreement), agreement
+        # the report says it too, in its calibration section and its summary.json
+        files = later.runner.inputs({"r": later.outputs["report"], "s": later.outputs["report_summary"]})
+        summary_json = json.loads(Path(files.path("s")).read_text())
+        assert summary_json["summary"]["certificate_terms"] == list(s.certificate_terms)
+        page = Path(files.path("r")).read_text()
+        assert "camera terms on this flight" in page and html.escape(lines[0], quote=False) in page

@@ -293,8 +293,10 @@ def process(
             outputs["diagnosis_before_extension"] = before["diagnose"]["diagnosis"]
         mos = steps["mosaic"] = mosaic_step(runner, ing, adj, cert_ref, config.mosaic, execution)
         seconds = {name: res.seconds for name, res in steps.items() if not res.skipped}
+        if remainders:
+            outputs["certificate_terms"] = runner.put(JsonOutput({"lines": remainders}, "certificate-terms"))
         rep = steps["report"] = report_step(runner, ing, cert_ref, adj, mos, ass, dia, config.report, seconds,
-                                            outputs.get("extension"))
+                                            outputs.get("extension"), outputs.get("certificate_terms"))
         for res in (adj, mos, ass, dia, rep):
             outputs.update({k: v for k, v in res.outputs.items() if not k.startswith("block_")})
 

@@ -20,7 +20,8 @@ from aerocal.report.html import REPORT_NAME, SUMMARY_NAME
 
 def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: StepResult, mosaic: StepResult,
                 assessment: StepResult, diagnosis: StepResult, config: ReportStepConfig | None = None,
-                step_seconds: Mapping[str, float] | None = None, extension: str | None = None) -> StepResult:
+                step_seconds: Mapping[str, float] | None = None, extension: str | None = None,
+                certificate_terms: str | None = None) -> StepResult:
     """Outputs ``report`` (self-contained HTML) and ``report_summary`` (its numbers as JSON).
 
     Inputs beyond the step outputs: the flight folder's reference DSM, when it exists, is kept by the runner
@@ -28,6 +29,8 @@ def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: 
     not compared. ``step_seconds`` (step name -> wall time, s) are shown in the report; they do not key the
     step. ``extension``: the record of the block's extension by its diagnosis
     (:func:`aerocal.pipeline.extend_step.extension_record`), shown as the block before and after.
+    ``certificate_terms``: a JSON document whose ``lines`` say whether each camera term of the stored certificate
+    the block used holds on this flight (:func:`aerocal.pipeline.certificates.certificate_term_remainders`).
     """
     config = config or ReportStepConfig()
     inputs = {
@@ -45,6 +48,8 @@ def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: 
     }
     if extension is not None:
         inputs["extension"] = extension
+    if certificate_terms is not None:
+        inputs["certificate_terms"] = certificate_terms
     for name, result in (("control_screening", ingest), ("orthomosaic", mosaic)):
         if name in result.outputs:
             inputs[name] = result[name]
@@ -64,6 +69,7 @@ def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: 
             inp.path("orthomosaic") if inp.has("orthomosaic") else None,
             config.title, config.extra, config.measured_within_m, seconds or None, REFERENCE_DSM.as_posix(),
             inp.json("extension") if inp.has("extension") else None,
+            tuple(inp.json("certificate_terms")["lines"]) if inp.has("certificate_terms") else (),
         )
         return {
             "report": FileOutput(work / REPORT_NAME, "report", temporary=True),

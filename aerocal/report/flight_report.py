@@ -21,7 +21,7 @@ pixels with the origin at the top-left corner of the frame; temperatures degC; t
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -86,6 +86,7 @@ def write_flight_report(
     step_seconds: Mapping[str, float] | None = None,
     reference_dsm_name: str = "reference/dsm.tif",
     extension: Mapping | None = None,
+    certificate_terms: Sequence[str] = (),
 ) -> dict:
     """Write ``out_dir/report.html`` and ``out_dir/summary.json`` for a processed flight.
 
@@ -120,6 +121,8 @@ def write_flight_report(
         extension: the record of the block's extension by its diagnosis
             (:func:`aerocal.pipeline.extend_step.extension_record`): the terms applied and the block before and
             after (``adjustment``, ``assessment`` and ``diagnosis`` are then the extended block's).
+        certificate_terms: whether each camera term of the stored certificate the block used holds on this flight,
+            one sentence each (:func:`aerocal.pipeline.certificates.certificate_term_remainders`).
 
     Returns:
         The summary document, what ``summary.json`` holds (:func:`aerocal.report.html.machine_summary`, plus
@@ -201,6 +204,8 @@ def write_flight_report(
         attempt("laser_range", lambda: laser_range_figure(laser_doc))
     if extension is not None:
         summary["model_extension"] = extension.get("named")
+    if certificate_terms:
+        summary["certificate_terms"] = list(certificate_terms)
     summary.update(extra or {})
 
     table = CertificateTable.from_values(
@@ -229,6 +234,7 @@ def write_flight_report(
         "skipped": skipped,
         "tie_points": _tie_point_rows(adjustment, points, assessment),
         "certificate": _certificate_view(cert),
+        "certificate_terms": list(certificate_terms),
         "control": _control_view(adjustment, gcps),
         "check": _check_view(adjustment, gcps, assessment),
         "screening": _screening_view(control_screening),
