@@ -568,8 +568,9 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
             notes.append(f"{e.name}: a signal of its shape, {e.estimate[0]:.3g} +- {e.sigma[0]:.2g} times its "
                          "physical size (1 = on): not named, another cause shares its signature (for refraction "
                          "at a constant flying height: a focal length or radial distortion off the certificate's)")
-        # too small to name, but still a rival: a signal a look-alike explains is not told apart from it (a readout
-        # 2 % off the certificate's is a sub-floor readout residual, and was named as an affinity of 0.125 px)
+        # too small to name, but still a rival: a look-alike over the floor that it explains as well is not told
+        # apart from it (a readout's remainder under the floor was named as an affinity over it: benchmarks/
+        # RESULTS.md, the XT2 loop of 2026-12-05)
         small = [e for e in candidates if e.shift_px is not None and e.shift_px < MATERIAL_SHIFT_PX]
         for e in small:
             candidates.remove(e)

@@ -220,6 +220,11 @@ def term_agreement(store: CertificateStore, cam_doc: dict, flight: dict, terms: 
     return out
 
 
+def _floats(values) -> np.ndarray:
+    """A JSON list of numbers as floats, null (a sigma not determined) as NaN."""
+    return np.array([np.nan if v is None else float(v) for v in np.atleast_1d(values)], dtype=float)
+
+
 def certificate_term_remainders(certificate: dict, diagnosis: dict) -> list[str]:
     """What this flight says of each camera term of the certificate its block used (a readout, an affinity, k3,
     thermal slopes): the block applied the term, so the diagnosis's estimate of the same hypothesis is the term's
@@ -229,9 +234,9 @@ def certificate_term_remainders(certificate: dict, diagnosis: dict) -> list[str]
     remainder, and whether it is zero within :data:`AGREEMENT_SIGMAS` of the combined sigma (the remainder's and
     the certificate's own); a term the diagnosis did not test on this block is said to be untested.
 
-    Why: a second flight is the certificate's only check on data its fit did not use. A readout found 2 % short
-    with a sigma a quarter of its error (rendered XT2, 29.35 +- 0.15 ms for 30 ms) showed on the next flight as a
-    remainder of +0.67 ms, too small to name, and nothing said the certificate had not held."""
+    Why: a later flight is the certificate's only check on data its fit did not use, and a remainder too small to
+    name is no reason to be silent about it (a rendered XT2 readout certified 2 % short, with a sigma a quarter
+    of its error: ``benchmarks/RESULTS.md``, the XT2 loop of 2026-12-05)."""
     cert = Certificate.from_dict(certificate)
     if not cert.terms:
         return []
@@ -243,11 +248,11 @@ def certificate_term_remainders(certificate: dict, diagnosis: dict) -> list[str]
         held = (f"{name} of certificate {cert.id} ({', '.join(f'{v:.4g}' for v in term.values)} +- "
                 f"{', '.join(f'{v:.2g}' for v in term.sigmas)} {term.units}, flights {', '.join(term.flights)})")
         if name in named:
-            r, s = (np.atleast_1d(np.asarray(x, dtype=float)) for x in named[name])
+            r, s = (_floats(x) for x in named[name])
             how = "named on this flight"
-        elif name in first and first[name].get("estimate") and np.all(np.isfinite(first[name]["sigma"])):
-            r = np.asarray(first[name]["estimate"], dtype=float)
-            s = np.asarray(first[name]["sigma"], dtype=float) * np.sqrt(phi)
+        elif name in first and first[name].get("estimate") and np.all(np.isfinite(_floats(first[name]["sigma"]))):
+            r = _floats(first[name]["estimate"])
+            s = _floats(first[name]["sigma"]) * np.sqrt(phi)
             how = "not named"
         else:
             out.append(f"{held}: not tested on this flight")
