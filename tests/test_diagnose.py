@@ -474,3 +474,37 @@ def test_held_out_folds_of_a_three_strip_block_keep_both_directions_in_every_fit
     five, units5 = fold_of_images(Covariates(time_s=np.arange(40.0), strip=np.repeat(np.arange(5), 8)),
                                   PredictionConfig())
     assert units5 == "strips" and five.tolist() == np.repeat(np.arange(5), 8).tolist()
+
+
+def _grouped_folds(rng, groups: int, sigma_group: float, extra: float):
+    """A mean over ``groups`` equal groups (each its estimate with sigma ``sigma_group`` and, where ``extra`` > 0, a
+    scatter between groups its formal sigma does not hold) left out one at a time: the whole block's estimate and
+    formal sigma, and a :class:`HeldOutGain` whose folds carry the leave-one-out estimates and sigmas."""
+    from aerocal.diagnose.prediction import HeldOutGain
+
+    g = 0.03 + rng.normal(0.0, sigma_group, groups) + rng.normal(0.0, extra, groups)
+    folds = [{"fold": k, "estimate": [float(np.delete(g, k).mean())],
+              "sigma": [sigma_group / np.sqrt(groups - 1)]} for k in range(groups)]
+    return float(g.mean()), sigma_group / np.sqrt(groups), HeldOutGain(0.1, 0.01, "strips", folds=folds)
+
+
+def test_the_folds_scatter_of_an_estimate_is_measured_against_its_formal_sigmas():
+    """lambda is chi-square with K - 1 degrees of freedom over K - 1 when the groups agree within their sigmas: its
+    mean is 1 and it passes the 95 % bound about one time in twenty; groups scattered twice their sigma beyond it
+    (variance x 5) are flagged three times in four and their mean lambda is 5."""
+    seed = 4242
+    rng = np.random.default_rng(seed)
+    held = [_grouped_folds(rng, 5, 1e-3, 0.0) for _ in range(2000)]
+    ratio = np.array([h.fold_dispersion(t, s).ratio[0] for t, s, h in held])
+    flagged = np.mean([h.fold_dispersion(t, s).excess()[0] > 1.0 for t, s, h in held])
+    assert abs(ratio.mean() - 1.0) < 0.08, f"seed {seed}: mean lambda {ratio.mean():.3f}"
+    assert 0.03 < flagged < 0.07, f"seed {seed}: {flagged:.3f} of agreeing blocks flagged"
+    scattered = [_grouped_folds(rng, 5, 1e-3, 2e-3) for _ in range(2000)]
+    excess = np.array([h.fold_dispersion(t, s).excess()[0] for t, s, h in scattered])
+    assert np.mean(excess > 1.0) > 0.6, f"seed {seed}: {np.mean(excess > 1.0):.3f} of scattered blocks flagged"
+    mean = np.mean([h.fold_dispersion(t, s).ratio[0] for t, s, h in scattered])
+    assert 4.5 < mean < 5.5, f"seed {seed}: mean lambda {mean:.2f} where the variance is 5x the formal one"
+    # a component a fold set to zero, or too few folds, measure nothing
+    t, s, h = held[0]
+    h.folds = h.folds[:2]
+    assert h.fold_dispersion(t, s) is None

@@ -119,6 +119,9 @@ def evidence_text(effect: dict) -> str:
     if check.get("gain") is not None:
         parts.append(f"check points {100 * check['gain']:+.1f} +- {100 * (check.get('sigma') or 0):.1f} % of their "
                      "squared error")
+    excess = max((effect.get("fold_dispersion") or {}).get("excess") or [1.0])
+    if excess > 1.0:
+        parts.append(f"its folds' estimates scatter {excess ** 0.5:.1f}x their formal sigmas: its sigma widened so")
     return "; ".join(parts) or "named by the diagnosis"
 
 

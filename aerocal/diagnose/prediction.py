@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy import stats
 
 from aerocal.adjust.problem import AdjustmentError, Block
 from aerocal.adjust.projection import rotation_log
@@ -72,6 +73,34 @@ class PredictionConfig:
                              f"needed, got {self.min_images}, {self.min_measurements}, {self.iterations}")
 
 
+#: folds whose estimates :meth:`HeldOutGain.fold_dispersion` needs: fewer leave its chi-square with 1 degree of
+#: freedom, whose 95 % point (3.84) no real overdispersion short of 4x would pass
+MIN_DISPERSION_FOLDS = 3
+#: one-sided level at which :meth:`FoldDispersion.excess` takes the folds' scatter for more than their sigmas
+#: allow (the level of the per-image null's bound in :func:`aerocal.diagnose.engine.overdispersion`)
+DISPERSION_LEVEL = 0.05
+
+
+@dataclass(frozen=True)
+class FoldDispersion:
+    """The folds' scatter of an estimate against its formal sigmas (:meth:`HeldOutGain.fold_dispersion`): per
+    component, ``ratio`` (lambda: 1 when the formal sigmas hold) and the number of folds it is measured on."""
+
+    ratio: list[float]
+    folds: list[int]
+
+    def to_dict(self) -> dict:
+        return {"ratio": [None if not np.isfinite(r) else r for r in self.ratio], "folds": self.folds,
+                "excess": self.excess()}
+
+    def excess(self) -> list[float]:
+        """Per component, the factor by which the estimate's variance exceeds its formal one: ``ratio`` where it
+        is beyond the chi-square's one-sided :data:`DISPERSION_LEVEL` bound for its folds, else 1 (a scatter
+        within sampling of the formal sigmas is no evidence against them)."""
+        return [r if np.isfinite(r) and r > stats.chi2.ppf(1.0 - DISPERSION_LEVEL, k - 1) / (k - 1) else 1.0
+                for r, k in zip(self.ratio, self.folds, strict=True)]
+
+
 @dataclass
 class HeldOutGain:
     """The outcome of a k-fold comparison (module docstring). ``gain``: relative reduction of the held-out
@@ -103,6 +132,41 @@ class HeldOutGain:
     def worse_beyond(self, k_sigma: float) -> bool:
         """True when the gain is negative beyond ``k_sigma`` standard errors (the extension predicts worse)."""
         return self.measured and self.gain < -k_sigma * max(self.sigma, 1e-12)
+
+    def fold_dispersion(self, estimate, sigma) -> FoldDispersion | None:
+        """How much more the folds' estimates scatter about the whole block's than their formal sigmas allow.
+
+        ``estimate`` and ``sigma``: the whole block's estimate of the hypothesis and its formal sigma (the units
+        of the folds' ``estimate`` and ``sigma``). Each fold's fit leaves out one group of images, so its estimate
+        differs from the whole block's by what that group alone says; for an efficient estimator that difference
+        has variance ``sigma_k**2 - sigma**2`` (Hausman's test of nested estimators), and
+
+            lambda = sum_k ((theta_k - theta) / sqrt(sigma_k**2 - sigma**2))**2 / K
+
+        is chi-square with K - 1 degrees of freedom over K - 1 when the formal sigmas hold (the K differences of a
+        delete-one-group jackknife are tied by one constraint). Measurement errors correlated within an image
+        or a strip, or a signature the model reproduces differently strip by strip, make it larger: the
+        per-image null of :func:`aerocal.diagnose.engine.overdispersion` does not see either. Per component;
+        NaN for a component with fewer than :data:`MIN_DISPERSION_FOLDS` folds whose estimate and a sigma above
+        the block's are known; None when no component has as many."""
+        theta, s = np.atleast_1d(np.asarray(estimate, float)), np.atleast_1d(np.asarray(sigma, float))
+        z2, n = np.zeros(len(theta)), np.zeros(len(theta), dtype=int)
+        for fold in self.folds:
+            if "estimate" not in fold or "sigma" not in fold or len(fold["estimate"]) != len(theta):
+                continue
+            tk, sk = np.asarray(fold["estimate"], float), np.asarray(fold["sigma"], float)
+            var = sk ** 2 - s ** 2
+            # a component a fit set to zero (within its noise of it: aerocal.diagnose.engine._extend) or the
+            # whole block did not estimate (NaN) says nothing of the scatter
+            ok = np.isfinite(tk) & np.isfinite(theta) & np.isfinite(var) & (var > 0) & (tk != 0) & (theta != 0)
+            z2[ok] += (tk[ok] - theta[ok]) ** 2 / var[ok]
+            n[ok] += 1
+        if n.max(initial=0) < MIN_DISPERSION_FOLDS:
+            return None
+        enough = n >= MIN_DISPERSION_FOLDS
+        return FoldDispersion([float(v) if k else float("nan") for v, k in zip(z2 / np.maximum(n, 1), enough,
+                                                                                strict=True)],
+                              [int(v) for v in n])
 
     def describe(self) -> str:
         if not self.measured:
@@ -280,10 +344,12 @@ def _image_chi2(problem: BundleProblem, block: Block, st: State) -> np.ndarray:
     return out
 
 
-#: ``extend(training, keep) -> (extended, correct)``: the hypothesis estimated on a training block (a
-#: :class:`Baseline` of the images where ``keep`` is True) and removed from its data; ``correct(block, state)``
-#: removes the same estimate from a held-out block at a state of it
-Extension = Callable[[Baseline, np.ndarray], tuple[Baseline, Callable[[Block, State], Block]]]
+#: ``extend(training, keep) -> (extended, correct, estimate, sigma)``: the hypothesis estimated on a training block
+#: (a :class:`Baseline` of the images where ``keep`` is True) and removed from its data; ``correct(block, state)``
+#: removes the same estimate from a held-out block at a state of it; ``estimate`` and its formal ``sigma``: the
+#: training block's (the hypothesis's units)
+Extension = Callable[[Baseline, np.ndarray],
+                     tuple[Baseline, Callable[[Block, State], Block], np.ndarray, np.ndarray]]
 
 
 def held_out_gain(base: Baseline, extend: Extension, config: PredictionConfig | None = None) -> HeldOutGain:
@@ -299,7 +365,7 @@ def held_out_gain(base: Baseline, extend: Extension, config: PredictionConfig | 
             continue
         try:
             fit = sub_baseline(base, keep)
-            extended, correct = extend(fit, keep)
+            extended, correct, estimate, estimate_sigma = extend(fit, keep)
         except UndeterminedFold as exc:
             notes.append(f"fold {k}: {exc}")
             continue
@@ -325,7 +391,9 @@ def held_out_gain(base: Baseline, extend: Extension, config: PredictionConfig | 
         red.append(chi_a[ok] - chi_b[ok])
         chi_base.append(chi_a[ok])
         folds.append({"fold": k, "held_out_images": int(ok.sum()), "chi2_baseline": float(np.sum(chi_a[ok])),
-                      "chi2_extended": float(np.sum(chi_b[ok]))})
+                      "chi2_extended": float(np.sum(chi_b[ok])),
+                      "estimate": [float(v) for v in np.atleast_1d(estimate)],
+                      "sigma": [float(v) for v in np.atleast_1d(estimate_sigma)]})
     if not ids:
         return HeldOutGain(float("nan"), float("nan"), units, notes=notes)
     image_ids, d, a = np.concatenate(ids), np.concatenate(red), np.concatenate(chi_base)
