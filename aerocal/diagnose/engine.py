@@ -664,7 +664,7 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
                                                      sigma=[s_ * float(np.sqrt(f_))
                                                             for s_, f_ in zip(e.sigma, factor, strict=True)]))
             else:
-                why = (f"its folds' estimates scatter {max(excess):.1f}x beyond their sigmas"
+                why = (f"its folds' estimates scatter {np.sqrt(max(excess)):.1f}x their formal sigmas"
                        if max(excess) > phi_e else "the statistics are calibrated on this block")
                 notes.append(f"{e.name} ({e.statistic:.1f} formally) is not significant once {why} ({stat:.1f}, p "
                              f"{p_adj:.2g} after {m} tests): not named")
@@ -882,8 +882,9 @@ def _try_extension(current: Baseline, ctx: hyp.Context, best: Evidence, accepted
     estimate be physical, and the extension predict data the fit did not use better: held-out images, or the
     check points (a GNSS offset shows against ground control only, which held-out images resected into a block
     that floats on the same offset do not see), one of them beyond :data:`HELD_OUT_SIGMAS` standard errors and
-    neither worse beyond as many. Returns (extended baseline, settled estimate, held-out gain, check-point gain),
-    or a note saying why the effect is not named."""
+    neither worse beyond as many. Returns (extended baseline, settled estimate, held-out gain, check-point gain,
+    the folds' :class:`~aerocal.diagnose.prediction.FoldDispersion` or None), or a note saying why the effect is not
+    named."""
     extended_base, total, first = _extend(current, ctx, best.name, accepted, config.refine_iterations, round_no,
                                           config.family_alpha)
     settled = dataclasses.replace(best, estimate=[float(v) for v in total])
