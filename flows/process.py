@@ -13,6 +13,7 @@ lineage; the run folder gets the report, the products and ``provenance.json``.
 from __future__ import annotations
 
 import dataclasses
+import gc
 import traceback
 import uuid
 from pathlib import Path
@@ -80,10 +81,16 @@ def _run_flow(
                       execution=ExecutionConfig(dask_address), calibrate_only=calibrate_only)
     except BaseException as exc:
         status = "cancelled" if isinstance(exc, KeyboardInterrupt) or was_interrupted() else "failed"
+        # the run folder first: it needs no database
+        _record_failure(out, ctx.run_id, status, exc)
+        # a Ctrl-C landing inside a database transaction leaves its session in the traceback's frames, holding
+        # SQLite's write lock: recording the run then waited the 30 s busy timeout and failed, and the run
+        # folder was never written (seen once in the full test suite). The frames' locals are let go first.
+        traceback.clear_frames(exc.__traceback__)
+        gc.collect()
         with ctx.database.session() as session:
             finish_run(session, ctx.run_id, status, error=f"{type(exc).__name__}: {exc}")
             session.commit()
-        _record_failure(out, ctx.run_id, status, exc)
         raise
     with ctx.database.session() as session:
         finish_run(session, ctx.run_id, "completed")

@@ -119,3 +119,27 @@ def test_a_killed_run_is_not_listed_as_running(tmp_path):
     assert "ended without recording an end" in " ".join(listed.stderr.split()), listed.stderr
     assert "running" not in listed.stdout and "failed" in listed.stdout, listed.stdout
     assert _statuses(db) == ["failed"]
+
+
+def test_a_run_interrupted_inside_a_database_transaction_is_still_recorded(tmp_path, monkeypatch):
+    """Ctrl-C landing while a step holds SQLite's write lock (its session left open in the interrupted frame):
+    the run folder says "cancelled" and how to resume, and the database records it, without waiting out the
+    busy timeout (30 s) for a lock the interrupted run itself holds."""
+    from sqlalchemy import text
+
+    import flows.process as fp
+
+    def interrupted_in_a_transaction(*args, runner, **kwargs):
+        session = runner.ctx.database.session()
+        session.execute(text("SELECT 1"))  # BEGIN IMMEDIATE: the write lock, held while this frame lives
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fp, "process", interrupted_in_a_transaction)
+    flight = _flight(tmp_path / "flight", 6)
+    db = tmp_path / "a.db"
+    with pytest.raises(KeyboardInterrupt):  # not the database's "locked" error of the wait
+        fp._run_flow("process_flight", flight, tmp_path / "run", "auto", None, f"sqlite:///{db}",
+                     str(tmp_path / "art"), None, None, calibrate_only=False)
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["status"] == "cancelled" and "run the same command again" in run["resume"], run
+    assert _statuses(db) == ["cancelled"]
