@@ -204,6 +204,19 @@ def test_rectified_rows_hold_the_same_ground_point(block):
     np.testing.assert_allclose(a[ok, 0] - b[ok, 0], rect.disparity_of(tie[ok], left.C), atol=1e-6)
 
 
+def test_a_pair_whose_disparity_search_leaves_no_columns_to_match_is_left_out(block):
+    """A neighbour whose search lies beyond the rectified frames' width (frames that barely overlap, or the tie
+    points of one frame only, as on the real seneca block) is left out and counted; OpenCV's SGBM fails on such a
+    search with a negative allocation, which stopped a whole run."""
+    frames = block["frames"]
+    # points 5 m under each camera: each frame sees only its own, at disparities of f B / 5 m, ~10^4 px
+    grid = [(dx, dy) for dx in (-0.5, 0, 0.5) for dy in (-0.5, 0, 0.5)]
+    near = np.array([np.asarray(f.C) + [dx, dy, -5.0] for f in frames for dx, dy in grid])
+    cloud = dense_cloud(frames, _loader(block["raws"]), near, block["ground"], DenseConfig())
+    assert cloud.stats["pairs"] == 0 and cloud.stats["pairs_left_out"] > 0, cloud.stats
+    assert len(cloud.xyz) == 0
+
+
 def test_the_hillshade_lights_the_slope_that_faces_the_light_and_a_tie_point_dsm_has_no_measured_band(tmp_path):
     from aerocal.products.dsm import Dsm, read_measured
     from aerocal.report.figures import hillshade

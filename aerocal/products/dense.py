@@ -53,6 +53,9 @@ FrameLoader = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
 #: the rectification maps are computed every MAP_STEP rectified pixels and interpolated between
 MAP_STEP = 8
+#: columns of a rectified pair a disparity search must leave to be matched (SGBM matches column x of the left
+#: frame with x - d of the right for every d searched)
+MIN_SEARCH_COLUMNS = 32
 
 
 @dataclass(frozen=True)
@@ -312,7 +315,8 @@ def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequenc
                scale: float, config: DenseConfig) -> dict[int, list[PairPlan]]:
     """The disparity search of every pair from the tie points (world metres, (N, 3)) both frames see: their
     2nd to 98th percentile disparity, widened by a quarter of that span and ``disparity_margin_px``; with fewer
-    than 10 shared tie points, those the reference sees. Pairs without any are left out."""
+    than 10 shared tie points, those the reference sees. Pairs without any are left out, and pairs whose search
+    leaves fewer than :data:`MIN_SEARCH_COLUMNS` columns of the rectified frame to match."""
     by_id = {f.image_id: f for f in frames}
     tie_xyz = np.asarray(tie_xyz, dtype=float)
     tree = cKDTree(tie_xyz[:, :2])
@@ -344,6 +348,11 @@ def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequenc
             num = int(min(config.max_disparities, 16 * np.ceil(max(hi - lo, 16) / 16)))
             if num < hi - lo:  # capped: centre the search on the median
                 lo = int(np.round(np.median(d))) - num // 2
+            # SGBM matches the columns x with x - d inside the right frame for every searched d: a search that
+            # leaves fewer than MIN_SEARCH_COLUMNS of them (frames that barely overlap once rectified) gives no
+            # depth, and OpenCV's 3-way SGBM fails on it with a negative allocation instead of an empty map
+            if rect.size[0] + min(lo, 0) - max(lo + num, 0) < MIN_SEARCH_COLUMNS:
+                continue
             plans.append(PairPlan(other=o, min_disparity=lo, num_disparities=num))
         out[ref] = plans
     return out
@@ -516,6 +525,8 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     views = np.concatenate([r[1][2] for r in results]) if results else np.zeros(0, np.uint8)
     ids = np.concatenate([np.full(len(r[1][0]), r[0], np.int32) for r in results]) if results else np.zeros(0, np.int32)
     gsd = float(np.median([(f.C[2] - ground_height_m) / (f.camera.f * scale) for f in frames]))
-    stats = {"frames": len(frames), "references": len(jobs), "pairs": sum(len(p) for p in plans.values()),
+    n_pairs = sum(len(p) for p in plans.values())
+    stats = {"frames": len(frames), "references": len(jobs), "pairs": n_pairs,
+             "pairs_left_out": sum(len(v) for v in neighbours.values()) - n_pairs,
              "points": int(len(xyz)), "scale": scale}
     return DenseCloud(xyz=xyz, value=value, views=views, image_id=ids, gsd_m=gsd, stats=stats)
