@@ -1,7 +1,7 @@
 """A flight without GNSS/IMU (like the copr images) through ``process_flight``: rendered frames stripped of
-every metadata field, matched exhaustively, oriented by incremental SfM on our matches, georeferenced on
-the control points and adjusted without position or attitude observations; the blunders of the matching
-are removed by the robust screening before the least-squares adjustment."""
+every metadata field, matched on the pairs a coarse match of all pairs retrieves, oriented by incremental SfM
+on our matches, georeferenced on the control points and adjusted without position or attitude observations;
+the blunders of the matching are removed by the robust screening before the least-squares adjustment."""
 
 from __future__ import annotations
 
@@ -44,6 +44,11 @@ def test_flight_without_gnss_is_oriented_by_sfm_and_georeferenced_on_control(pre
     print("orient:", orient.extra)
     assert orient.extra["method"] == "incremental", f"seed {SEED}: {orient}"
     assert orient.extra["registered"] == N_IMAGES, f"seed {SEED}: {orient.extra}"
+    # the pairs matched in full were retrieved by a coarse match of all pairs, not all of them
+    match = summary.steps["match"].extra
+    print("match:", match)
+    assert match["pairs_from"].startswith("a coarse match of all 120 pairs"), match
+    assert match["pairs"] < 120, f"seed {SEED}: every pair matched in full: {match}"
 
     with connect(url).session() as session:
         conf = provenance(session, summary.run_id).to_dict()["configuration"]

@@ -13,6 +13,7 @@ streamed as one set of tasks (a pair is matched as soon as its two images are de
 
 Modules: :mod:`.features` (detection on tiles), :mod:`.pairs` (footprint overlap),
 :mod:`.verify` (FLANN, ratio test, RANSAC), :mod:`.tracks` (connected components),
+:mod:`.retrieval` (candidate pairs from a coarse match, for flights without records),
 :mod:`.stream` (detection and matching streamed on Dask), :mod:`.cluster` (Dask), :mod:`.config` (the
 configuration dataclasses).
 """

@@ -19,6 +19,7 @@ from aerocal.calibrate.self_calibration import CalibrationConfig
 from aerocal.diagnose.engine import DiagnoseConfig
 from aerocal.enhance import EnhanceConfig
 from aerocal.matching import FeatureConfig, MatchConfig
+from aerocal.matching.retrieval import RetrievalConfig
 from aerocal.orient import IncrementalConfig
 from aerocal.pipeline.dataset import IngestSettings
 from aerocal.pipeline.runner import configuration_json
@@ -53,8 +54,10 @@ CalibrationStepConfig = CalibrationConfig
 class MatchStepConfig:
     """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
     :class:`aerocal.matching.FeatureConfig`, :class:`aerocal.matching.MatchConfig`); ``min_overlap`` of
-    candidate footprints (0.1); flights without a recorded position and attitude for every image are matched
-    exhaustively (all pairs) up to ``exhaustive_max_images`` (150, ~11,000 pairs). Flights of at most
+    candidate footprints (0.1); flights without a recorded position and attitude for every image score all
+    pairs by a coarse match of their strongest keypoints and match in full those it retrieves (``retrieval``,
+    default :class:`aerocal.matching.retrieval.RetrievalConfig`), up to ``exhaustive_max_images`` (150, ~11,000
+    pairs scored). Flights of at most
     ``serial_max_megapixels`` (10) in all are matched in this process without a local cluster: a fresh
     cluster's start and worker imports cost more than the work for small flights
     (``benchmarks/history/engine_measurements.md``)."""
@@ -62,6 +65,7 @@ class MatchStepConfig:
     enhance: EnhanceConfig | None = None
     features: FeatureConfig | None = None
     match: MatchConfig | None = None
+    retrieval: RetrievalConfig | None = None
     min_overlap: float = 0.1
     exhaustive_max_images: int = 150
     serial_max_megapixels: float = 10.0

@@ -17,9 +17,11 @@ from aerocal.matching import (
     build_tracks,
     candidate_pairs_from_footprints,
     detect_and_match,
-    exhaustive_pairs,
+    extract_features,
+    match_pairs_detailed,
 )
 from aerocal.matching.cluster import ExecutionConfig, Progress
+from aerocal.matching.retrieval import retrieve_pairs
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.dataset import FlightInputError
 from aerocal.pipeline.progress import step_progress
@@ -55,6 +57,16 @@ def terrain_height(images: pa.Table, gcps: pa.Table, flight: dict) -> float:
     )
 
 
+def capture_order(images: pa.Table) -> np.ndarray:
+    """Image ids in capture order: by the recorded time where every image has one, else by file name (cameras
+    number their frames in order)."""
+    ids = images.column("image_id").to_numpy()
+    times = images.column("time")
+    if times.null_count == 0 and len(ids):
+        return ids[np.argsort(times.cast("int64").to_numpy(), kind="stable")]
+    return ids[np.argsort(np.asarray(images.column("name").to_pylist(), dtype=object), kind="stable")]
+
+
 def match_images(
     images: pa.Table,
     camera: Camera,
@@ -67,32 +79,54 @@ def match_images(
     """Enhance and match the frames of an ``images`` table: (keypoints, matches, observations, pairs tried).
 
     Candidate pairs come from the GNSS/IMU footprints on a plane at :func:`terrain_height`; without GNSS/IMU
-    for every image, all pairs (up to ``config.exhaustive_max_images``). SIFT and the pairs run on the Dask
-    cluster of ``execution`` (in this process for a flight of at most ``config.serial_max_megapixels``),
-    streamed (:func:`aerocal.matching.detect_and_match`); ``progress(done, total)`` counts images detected plus
+    for every image, from a coarse match of every pair's strongest keypoints (:func:`aerocal.matching.retrieval.
+    retrieve_pairs` with ``config.retrieval``, frames in :func:`capture_order`; up to
+    ``config.exhaustive_max_images`` images). SIFT and the pairs run on the Dask cluster of ``execution`` (in this
+    process for a flight of at most ``config.serial_max_megapixels``), streamed where the pairs are known before
+    detection (:func:`aerocal.matching.detect_and_match`); ``progress(done, total)`` counts images detected plus
     pairs matched.
+
+    Raises:
+        FlightInputError: no GCPs and no flying height for footprints; more than ``exhaustive_max_images`` images
+            without records.
     """
     config = config or MatchStepConfig()
     loader = frame_loader(images.column("path").to_pylist(), config.enhance)
+    pairs = None  # without records: retrieved from the images' strongest keypoints once they are detected
     if has_priors(images):
         pairs = candidate_pairs_from_footprints(images, camera, terrain_height(images, gcps, flight),
                                                 min_overlap=config.min_overlap)
-    elif images.num_rows <= config.exhaustive_max_images:
-        pairs = exhaustive_pairs(images.column("image_id").to_numpy())
-    else:
+    elif images.num_rows > config.exhaustive_max_images:
         raise FlightInputError(
             f"{flight.get('folder') or flight.get('name')}: {images.num_rows} images without a recorded position "
-            f"and attitude for every one; all-pairs matching is limited to exhaustive_max_images = "
-            f"{config.exhaustive_max_images}: give an EO file (--eo FILE) or raise the limit"
+            f"and attitude for every one; candidate pairs from all pairs' coarse matches are limited to "
+            f"exhaustive_max_images = {config.exhaustive_max_images}: give an EO file (--eo FILE) or raise the limit"
         )
     mcfg = config.match or MatchConfig()
+    fcfg = config.features or FeatureConfig()
     megapixels = float(np.sum(images.column("width").to_numpy().astype(float)
                               * images.column("height").to_numpy().astype(float))) / 1e6
     with (execution or ExecutionConfig()).client(megapixels <= config.serial_max_megapixels) as client:
-        kp, result = detect_and_match(images, loader, pairs, config.features or FeatureConfig(), mcfg, client,
-                                      progress)
+        if pairs is not None:
+            kp, result = detect_and_match(images, loader, pairs, fcfg, mcfg, client, progress)
+        else:
+            # two phases: every image detected, its candidates chosen, then the chosen pairs matched in full
+            n = images.num_rows
+            kp = extract_features(images, loader, fcfg, client, None if progress is None else
+                                  (lambda d, t: progress(d * n // max(t, 1), 2 * n)))
+            pairs = retrieve_pairs(kp, capture_order(images), config.retrieval, mcfg).pairs
+            result = match_pairs_detailed(pairs, kp, mcfg, client, None if progress is None else
+                                          (lambda d, t: progress(n + d * n // max(t, 1), 2 * n)))
     matches = result.matches
     return kp, matches, build_tracks(matches, kp, mcfg), int(len(pairs))
+
+
+def pairs_from(images: pa.Table) -> str:
+    """In words, where :func:`match_images` takes the candidate pairs of ``images`` from."""
+    if has_priors(images):
+        return "footprints of the recorded positions and attitudes"
+    n = images.num_rows
+    return f"a coarse match of all {n * (n - 1) // 2} pairs' strongest keypoints (no recorded positions)"
 
 
 def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | None = None,
@@ -116,7 +150,8 @@ def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | Non
             "keypoints": TableOutput(kp, "keypoints"),
             "matches": TableOutput(matches, "matches"),
             "observations": TableOutput(obs, "observations"),
-            "_extra": JsonOutput({"pairs": n_pairs, "observations": obs.num_rows}, "extra"),
+            "_extra": JsonOutput({"pairs": n_pairs, "observations": obs.num_rows,
+                                  "pairs_from": pairs_from(inp.table("images"))}, "extra"),
         }
 
     return runner.run("match", inputs, config, compute)
