@@ -309,7 +309,7 @@ def match(
         from aerocal.pipeline.config import MatchStepConfig
         from aerocal.pipeline.dataset import FlightInputError, FolderDataset, IngestSettings
         from aerocal.pipeline.ingest_step import flight_summary
-        from aerocal.pipeline.match_step import match_images
+        from aerocal.pipeline.match_step import match_images, pairs_from
 
         # the flight as `aerocal process` reads it: the same images, camera (camera.json, else the nominal camera
         # from the files) and flying height
@@ -340,7 +340,8 @@ def match(
             write_json_atomic(camera_json, read.camera)
             console.print(f"camera.json written ({read.camera.get('source')}): check it before processing")
     console.print(
-        f"{images.num_rows} images, {n_pairs} candidate pairs, {matches.num_rows} verified matches, "
+        f"{images.num_rows} images, {n_pairs} candidate pairs (from {pairs_from(images)}), {matches.num_rows} "
+        "verified matches, "
         f"{obs.num_rows} observations of {len(set(obs.column('track_id').to_pylist()))} tracks"
     )
     console.print(f"tables written to {target}")
