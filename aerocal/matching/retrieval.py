@@ -109,8 +109,8 @@ def retrieve_pairs(keypoints: pa.Table, order: np.ndarray | None = None, config:
         order: image ids in capture order (for ``config.sequence_window``); ``None``: the table's image ids
             in increasing order.
         config: :class:`RetrievalConfig` (default).
-        match: the full match's :class:`MatchConfig`; its ``ratio`` and ``mutual`` tests are used, always with
-            the exact matcher (default :class:`MatchConfig`).
+        match: the full match's :class:`MatchConfig`; its ``mutual`` test is used, with ``config.ratio`` and
+            always the exact matcher (default :class:`MatchConfig`).
 
     Returns:
         :class:`RetrievedPairs`. An image without keypoints scores 0 with every other one; it is paired only by
