@@ -48,6 +48,7 @@ from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.diagnose.model import (
     Baseline,
     Conditional,
+    Linear,
     check_rmse,
     fit_baseline,
     linearise,
@@ -151,6 +152,9 @@ class DiagnoseConfig:
     # blocks with more images are diagnosed on the max_images nearest the block centre (None = all); see
     # :func:`central_images`
     max_images: int | None = 200
+    # blocks with more tie observations are diagnosed on their tracks of three rays or more (None = every track);
+    # see :func:`multi_ray_rows`
+    two_ray_tracks_up_to: int | None = 200_000
     twins: int = 3  # twins of the adjusted block whose statistics are set beside the real ones (0 = none)
     # the k-fold over strips (time blocks) that measures each candidate's gain on held-out images
     prediction: PredictionConfig = field(default_factory=PredictionConfig)
@@ -168,6 +172,9 @@ class DiagnoseConfig:
                 raise ValueError(f"DiagnoseConfig.{name} must be 0 or more, got {getattr(self, name)}")
         if self.max_images is not None and self.max_images < 3:
             raise ValueError(f"DiagnoseConfig.max_images must be 3 or more, or None, got {self.max_images}")
+        if self.two_ray_tracks_up_to is not None and self.two_ray_tracks_up_to < 0:
+            raise ValueError("DiagnoseConfig.two_ray_tracks_up_to must be 0 or more, or None, got "
+                             f"{self.two_ray_tracks_up_to}")
 
 
 @dataclass
@@ -300,13 +307,15 @@ def _io_columns(base: Baseline, lin, io: IOUncertainty) -> np.ndarray:
 
 
 def score(base: Baseline, ctx: hyp.Context, names: list[str], accepted: list[str], round_no: int,
-          family_alpha: float, overdispersion: float = 1.0, io: IOUncertainty | None = None) -> list[Evidence]:
+          family_alpha: float, overdispersion: float = 1.0, io: IOUncertainty | None = None,
+          lin: Linear | None = None) -> list[Evidence]:
     """Evidence for each of ``names`` given the block and the ``accepted`` effects' parameters.
 
     With ``io`` (the covariance of the IO held fixed, :mod:`aerocal.diagnose.io_uncertainty`) each
     estimate's covariance also holds that IO's uncertainty propagated to it, and the statistic is taken
-    against the sum."""
-    lin = linearise(base)
+    against the sum. ``lin``: the block's linearisation at its solution where the caller has it
+    (:func:`~aerocal.diagnose.model.linearise`)."""
+    lin = lin if lin is not None else linearise(base)
     all_names = list(accepted) + [n for n in names if n not in accepted]
     cols = [hyp.columns(n, lin, base, ctx) for n in all_names]
     offsets = np.cumsum([0] + [c.shape[1] for c in cols])
@@ -486,8 +495,13 @@ def measured_overdispersion(base: Baseline, names: list[str], draws: int, seed: 
 
 
 def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], iterations: int,
-            round_no: int, alpha: float, phi: float = 1.0) -> tuple[Baseline, np.ndarray, Evidence]:
-    """Remove effect ``name`` from the data by correct-and-refit iterations; the total estimate.
+            round_no: int, alpha: float, phi: float = 1.0) -> tuple[Baseline, np.ndarray, Evidence, int]:
+    """Remove effect ``name`` from the data by correct-and-refit iterations, at most ``iterations``; the extended
+    block, the total estimate, the first iteration's evidence and the number of re-adjustments made.
+
+    The iterations stop before re-adjusting for an increment within :data:`CONVERGED_SIGMAS` of its sigma (or a
+    thousandth of the total): such a re-adjustment changes nothing the diagnosis reports, and each costs a block
+    adjustment and a Schur reduction of the block's points.
 
     Of an effect with several components only those beyond :data:`COMPONENT_SIGMAS` of their sigma are removed (the
     others are set to zero and the block corrected again from the start): a component the block does not determine
@@ -497,24 +511,29 @@ def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], it
     start = base
     total = None
     first = None
+    refits = 0
     for _ in range(iterations):
-        ev = score(base, ctx, [name], accepted, round_no, alpha, phi)[0]  # the estimate: IO's sigma irrelevant
+        lin = linearise(base)
+        ev = score(base, ctx, [name], accepted, round_no, alpha, phi, lin=lin)[0]  # IO's sigma irrelevant here
         first = first or ev
         theta = np.asarray(ev.estimate)
-        total = theta if total is None else total + theta
-        lin = linearise(base)
-        base = refit(base, hyp.correct(name, theta, base, lin, ctx))
-        if np.all(np.abs(theta) <= 1e-3 * np.maximum(np.abs(total), 1e-15)):
+        if total is not None and np.all((np.abs(theta) <= CONVERGED_SIGMAS * np.asarray(first.sigma))
+                                        | (np.abs(theta) <= 1e-3 * np.abs(total))):
             break
+        total = theta if total is None else total + theta
+        base = refit(base, hyp.correct(name, theta, base, lin, ctx))
+        refits += 1
     if total is not None and len(total) > 1:
         sigma = np.asarray(first.sigma, dtype=float)
         keep = np.abs(total) >= COMPONENT_SIGMAS * sigma
         if keep.any() and not keep.all():
             total = np.where(keep, total, 0.0)
             base = refit(start, hyp.correct(name, total, start, linearise(start), ctx))
-    return base, total, first
+    return base, total, first, refits
 
 
+#: an increment of the correct-and-refit iterations within this many of its sigmas is not applied (:func:`_extend`)
+CONVERGED_SIGMAS = 0.01
 #: components of a several-valued effect within this many sigmas of zero are not applied (:func:`_extend`)
 COMPONENT_SIGMAS = 2.0
 
@@ -604,7 +623,7 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
                              "absorb it (a GNSS bias is the datum itself without GCPs)")
             if untestable:
                 notes.append("not determined on this block, so not testable here: " + "; ".join(untestable))
-        tried: dict[str, HeldOutGain] = {}
+        trials = RoundTrials()
         grouped: list[Evidence] = []  # inseparable in this round: a later candidate is tested against them too
         while candidates:
             best = max(candidates, key=lambda e: e.bic_gain)
@@ -623,7 +642,7 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
                 excluded.update(pair["effects"])
                 candidates = [e for e in candidates if e.name not in pair["effects"]]
                 continue
-            outcome = _try_extension(current, ctx, best, accepted, config, tried, round_no)
+            outcome = _try_extension(current, ctx, best, accepted, config, trials, round_no, len(names))
             if isinstance(outcome, str):
                 notes.append(outcome)
                 excluded.add(best.name)
@@ -657,8 +676,7 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
             if not max(factor) > 1.0:
                 confirmed.append(e)
                 continue
-            stat = e.statistic / max(factor)
-            p_adj = min(1.0, float(stats.chi2.sf(stat, len(e.magnitude))) * m)
+            stat, p_adj = _calibrated_p(e.statistic, len(e.magnitude), max(factor), m)
             if p_adj < config.family_alpha:
                 confirmed.append(dataclasses.replace(e, statistic=stat, p_value=p_adj / m,
                                                      sigma=[s_ * float(np.sqrt(f_))
@@ -748,15 +766,16 @@ def separated_by(a: str, b: str) -> str:
 
 
 def _hypothesis_extension(name: str, accepted: list[str], ctx: hyp.Context, config: DiagnoseConfig,
-                          round_no: int) -> Extension:
+                          round_no: int, refits: int) -> Extension:
     """The :data:`aerocal.diagnose.prediction.Extension` of hypothesis ``name``: estimated on a training block
-    given the ``accepted`` effects, removed from it by correct-and-refit, and the same estimate removed from a
-    held-out block."""
+    given the ``accepted`` effects, removed from it by at most ``refits`` correct-and-refit iterations (as many
+    as the whole block needed: a training block is most of it, with the same signature), and the same estimate
+    removed from a held-out block."""
 
     def extend(fit: Baseline, keep: np.ndarray):
         ctx_fit = hyp.sub_context(ctx, keep)
-        extended, total, first = _extend(fit, ctx_fit, name, accepted, config.refine_iterations, round_no,
-                                         config.family_alpha)
+        extended, total, first, _ = _extend(fit, ctx_fit, name, accepted, max(1, refits), round_no,
+                                            config.family_alpha)
         why = physical_verdict(dataclasses.replace(first, estimate=[float(v) for v in total]), fit.camera, ctx_fit)
         if why is not None:
             raise UndeterminedFold(f"{name} on the {int(np.sum(keep))} fitting images: {why}")
@@ -795,13 +814,23 @@ def check_point_gain(before: Baseline, after: Baseline) -> HeldOutGain | None:
                        "check points", ids, d, a)
 
 
+@dataclass
+class RoundTrials:
+    """What one round's candidates share: their held-out gains by name (``gains``) and the folds' training blocks
+    by fold (``training``: they depend on the round's block, not on the hypothesis tried)."""
+
+    gains: dict[str, HeldOutGain] = field(default_factory=dict)
+    training: dict[int, Baseline] = field(default_factory=dict)
+
+
 def _held_out(current: Baseline, ctx: hyp.Context, e: Evidence, accepted: list[str], config: DiagnoseConfig,
-              tried: dict[str, HeldOutGain], round_no: int) -> HeldOutGain:
-    """The held-out gain of hypothesis ``e`` on ``current`` (cached in ``tried`` for the round)."""
-    if e.name not in tried:
-        tried[e.name] = held_out_gain(current, _hypothesis_extension(e.name, accepted, ctx, config, round_no),
-                                      config.prediction)
-    return tried[e.name]
+              trials: RoundTrials, round_no: int, refits: int) -> HeldOutGain:
+    """The held-out gain of hypothesis ``e`` on ``current`` (cached in ``trials`` for the round); each fold
+    refits the hypothesis at most ``refits`` times."""
+    if e.name not in trials.gains:
+        extension = _hypothesis_extension(e.name, accepted, ctx, config, round_no, refits)
+        trials.gains[e.name] = held_out_gain(current, extension, config.prediction, trials.training)
+    return trials.gains[e.name]
 
 
 def _contest(current: Baseline, ctx: hyp.Context, best: Evidence, candidates: list[Evidence], accepted: list[str],
@@ -876,17 +905,49 @@ def _gain_text(g: HeldOutGain) -> str:
     return f"{100 * g.gain:+.2f} +- {100 * g.sigma:.2f} %"
 
 
+def _calibrated_p(statistic: float, dof: int, factor: float, n_tests: int) -> tuple[float, float]:
+    """A statistic divided by its block's measured overdispersion ``factor``, and its p-value adjusted for
+    ``n_tests`` hypotheses (Bonferroni)."""
+    stat = statistic / factor
+    return stat, min(1.0, float(stats.chi2.sf(stat, dof)) * n_tests)
+
+
+def _calibrated(best: Evidence, extended: Baseline, config: DiagnoseConfig, n_tests: int) -> str | None:
+    """Whether ``best`` stays significant once its statistic is calibrated by the overdispersion of the block it
+    extends (``extended``, the block with ``best`` removed: measured as the final confirmation measures it,
+    :func:`measured_overdispersion`, so that the effect does not leak into its own calibration). A note saying why
+    it is not named, or None.
+
+    The confirmation of the named effects asks the same at the end; asked before the held-out folds it spares a
+    candidate that cannot survive it their cost, five re-adjustments of most of the block with the hypothesis
+    refitted in each (the real seneca flight, whose formal statistics are 73x too large: three such candidates
+    took two thirds of its diagnosis, ``benchmarks/RESULTS.md``)."""
+    if config.null_draws <= 0:
+        return None
+    factor = measured_overdispersion(extended, [best.name], config.null_draws, config.seed).of(best.name)
+    if not factor > 1.0:
+        return None
+    stat, p_adj = _calibrated_p(best.statistic, best.k, factor, n_tests)
+    if p_adj < config.family_alpha:
+        return None
+    return (f"{best.name} ({_estimate_text(best)}, statistic {best.statistic:.1f} formally) is not significant once "
+            f"the statistics are calibrated on this block ({factor:.1f}x too large with it removed: {stat:.1f}, p "
+            f"{p_adj:.2g} after {n_tests} tests): not named")
+
+
 def _try_extension(current: Baseline, ctx: hyp.Context, best: Evidence, accepted: list[str], config: DiagnoseConfig,
-                   tried: dict[str, HeldOutGain], round_no: int):
+                   trials: RoundTrials, round_no: int, n_tests: int):
     """Extend ``current`` by ``best`` and put it to the decision rule: the extended block must fit, the settled
-    estimate be physical, and the extension predict data the fit did not use better: held-out images, or the
+    estimate be physical, the statistic remain significant once calibrated on the extended block
+    (:func:`_calibrated`; ``n_tests``: the hypotheses of the diagnosis), and the extension predict data the fit
+    did not use better: held-out images, or the
     check points (a GNSS offset shows against ground control only, which held-out images resected into a block
     that floats on the same offset do not see), one of them beyond :data:`HELD_OUT_SIGMAS` standard errors and
     neither worse beyond as many. Returns (extended baseline, settled estimate, held-out gain, check-point gain,
     the folds' :class:`~aerocal.diagnose.prediction.FoldDispersion` or None), or a note saying why the effect is not
     named."""
-    extended_base, total, first = _extend(current, ctx, best.name, accepted, config.refine_iterations, round_no,
-                                          config.family_alpha)
+    extended_base, total, first, refits = _extend(current, ctx, best.name, accepted, config.refine_iterations,
+                                                  round_no, config.family_alpha)
     settled = dataclasses.replace(best, estimate=[float(v) for v in total])
     if extended_base.solution.sigma0 > EXTENSION_WORSE * current.solution.sigma0:
         # the data corrected for the effect fit worse than before (real seneca, radial_k3: sigma0 2.6 -> 33):
@@ -899,7 +960,10 @@ def _try_extension(current: Baseline, ctx: hyp.Context, best: Evidence, accepted
         # at first, 0.59 after refitting, beyond any lens): the effect is not named and the model not extended
         return (f"{best.name}: {best.estimate[0]:.3g} at first, {total[0]:.3g} once the data were corrected "
                 f"and refitted: {why}; not named")
-    held = _held_out(current, ctx, best, accepted, config, tried, round_no)
+    calibrated = _calibrated(best, extended_base, config, n_tests)
+    if calibrated is not None:
+        return calibrated
+    held = _held_out(current, ctx, best, accepted, config, trials, round_no, refits)
     check = check_point_gain(current, extended_base)
     size = _estimate_text(settled)
     checks = "no check points" if check is None else f"check points {_gain_text(check)} of their squared error"
@@ -1116,11 +1180,32 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
     # term the certificate lacked came out at 0.60 +- 0.15 from every track and 0.87 +- 0.22 from the
     # thinned ones (sigma x 1.5, so less power against smaller effects)
     adjust_config = dataclasses.replace(adjust_config, tie_thinning=None)
+    limit = config.two_ray_tracks_up_to
+    if limit is not None and observations.num_rows > limit:
+        rows = multi_ray_rows(observations)
+        if len(rows) < observations.num_rows:
+            sub_note = "; ".join(filter(None, [sub_note, (
+                f"diagnosed on the {len(rows)} measurements of tie points seen in three images or more of "
+                f"{observations.num_rows} (DiagnoseConfig.two_ray_tracks_up_to = {limit})")]))
+            observations = observations.take(pa.array(rows, pa.int64()))
     base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations, start)
     result = diagnose_baseline(base, config, io)
     if sub_note:
         result.notes.insert(0, sub_note)
     return result
+
+
+def multi_ray_rows(observations: pa.Table) -> np.ndarray:
+    """Sorted rows of ``observations`` whose tie points are measured in three images or more.
+
+    A two-ray track adds one redundant measurement to its four (the point takes three), along the epipolar line
+    only, where a mismatch cannot be told from a parallax: it costs the diagnosis's Schur reductions as much per
+    measurement as any track and tells it least. Where they are many, they are most of the cost and much of the
+    overdispersion (the whole seneca flight: ``benchmarks/RESULTS.md``, "Diagnosis of the whole seneca
+    flight")."""
+    track = observations.column("track_id").to_numpy()
+    _, inverse, counts = np.unique(track, return_inverse=True, return_counts=True)
+    return np.flatnonzero(counts[inverse] >= 3)
 
 
 def permutation_null(baseline: Baseline, name: str, n: int = 20, seed: int = 0) -> np.ndarray:

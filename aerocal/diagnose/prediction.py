@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -352,48 +353,68 @@ Extension = Callable[[Baseline, np.ndarray],
                      tuple[Baseline, Callable[[Block, State], Block], np.ndarray, np.ndarray]]
 
 
-def held_out_gain(base: Baseline, extend: Extension, config: PredictionConfig | None = None) -> HeldOutGain:
-    """k-fold comparison of ``base``'s model with its extension by ``extend`` (module docstring)."""
+#: folds adjusted at a time (:func:`held_out_gain`)
+FOLD_THREADS = 2
+
+
+def held_out_gain(base: Baseline, extend: Extension, config: PredictionConfig | None = None,
+                  training: dict[int, Baseline] | None = None) -> HeldOutGain:
+    """k-fold comparison of ``base``'s model with its extension by ``extend`` (module docstring).
+
+    ``training``: the folds' training blocks by fold number, filled as they are adjusted and read where present.
+    They depend on ``base`` and the folds only, not on the hypothesis: a caller that tests several hypotheses on
+    one ``base`` passes one dict to every call and adjusts each training block once."""
     config = config or PredictionConfig()
+    training = {} if training is None else training
     fold, units = fold_of_images(base.covariates, config)
-    ids, red, chi_base, folds, notes = [], [], [], [], []
-    for k in range(int(fold.max()) + 1 if len(fold) else 0):
+
+    def one_fold(k: int) -> str | tuple:
+        """Fold ``k``: a note saying why it was left out, or (image ids, d, chi2 baseline, fold record)."""
         keep = fold != k
         n_held, n_fit = int(np.sum(fold == k)), int(np.sum(keep))
         if n_held < config.min_images or n_fit < config.min_images:
-            notes.append(f"fold {k}: {n_held} held-out and {n_fit} fitting images, too few")
-            continue
+            return f"fold {k}: {n_held} held-out and {n_fit} fitting images, too few"
         try:
-            fit = sub_baseline(base, keep)
+            if k not in training:
+                training[k] = sub_baseline(base, keep)
+            fit = training[k]
             extended, correct, estimate, estimate_sigma = extend(fit, keep)
         except UndeterminedFold as exc:
-            notes.append(f"fold {k}: {exc}")
-            continue
+            return f"fold {k}: {exc}"
         except (AdjustmentError, np.linalg.LinAlgError, ValueError, RuntimeError) as exc:
-            notes.append(f"fold {k}: an adjustment failed ({exc})")
-            continue
+            return f"fold {k}: an adjustment failed ({exc})"
         try:
             test, start = held_out_images(base, fit, keep)
             count = np.bincount(test.obs_image, minlength=test.n_images)
             if not np.any(count >= config.min_measurements):
-                notes.append(f"fold {k}: no held-out image measures {config.min_measurements} points of the fit")
-                continue
+                return f"fold {k}: no held-out image measures {config.min_measurements} points of the fit"
             st_a, chi_a, n_a = resect(test, start, base, config.iterations)
             test_b, start_b = held_out_images(base, extended, keep)
             corrected = correct(test_b, dataclasses.replace(start_b, R=st_a.R, C=st_a.C))
             st_b, chi_b, _ = resect(corrected, dataclasses.replace(start_b, R=st_a.R, C=st_a.C), base,
                                     config.iterations)
         except (AdjustmentError, np.linalg.LinAlgError, ValueError, RuntimeError) as exc:
-            notes.append(f"fold {k}: an adjustment failed ({exc})")
-            continue
+            return f"fold {k}: an adjustment failed ({exc})"
         ok = (n_a >= config.min_measurements) & np.isfinite(chi_a) & np.isfinite(chi_b)
-        ids.append(test.image_ids[ok])
-        red.append(chi_a[ok] - chi_b[ok])
-        chi_base.append(chi_a[ok])
-        folds.append({"fold": k, "held_out_images": int(ok.sum()), "chi2_baseline": float(np.sum(chi_a[ok])),
-                      "chi2_extended": float(np.sum(chi_b[ok])),
-                      "estimate": [float(v) for v in np.atleast_1d(estimate)],
-                      "sigma": [float(v) for v in np.atleast_1d(estimate_sigma)]})
+        record = {"fold": k, "held_out_images": int(ok.sum()), "chi2_baseline": float(np.sum(chi_a[ok])),
+                  "chi2_extended": float(np.sum(chi_b[ok])),
+                  "estimate": [float(v) for v in np.atleast_1d(estimate)],
+                  "sigma": [float(v) for v in np.atleast_1d(estimate_sigma)]}
+        return test.image_ids[ok], chi_a[ok] - chi_b[ok], chi_a[ok], record
+
+    n_folds = int(fold.max()) + 1 if len(fold) else 0
+    # the folds are independent: two at a time, as the Schur reduction's kernels release the interpreter
+    with ThreadPoolExecutor(max(1, min(FOLD_THREADS, n_folds))) as pool:
+        outcomes = list(pool.map(one_fold, range(n_folds)))
+    ids, red, chi_base, folds, notes = [], [], [], [], []
+    for outcome in outcomes:
+        if isinstance(outcome, str):
+            notes.append(outcome)
+            continue
+        ids.append(outcome[0])
+        red.append(outcome[1])
+        chi_base.append(outcome[2])
+        folds.append(outcome[3])
     if not ids:
         return HeldOutGain(float("nan"), float("nan"), units, notes=notes)
     image_ids, d, a = np.concatenate(ids), np.concatenate(red), np.concatenate(chi_base)

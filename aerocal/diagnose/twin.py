@@ -62,6 +62,7 @@ The twin never imports the simulator: like the diagnosis, it works from the meas
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -401,6 +402,23 @@ def _field_at(field_px: np.ndarray, uv: np.ndarray, width: int, height: int) -> 
             + ay * ((1 - ax) * field_px[y1, x0] + ax * field_px[y1, x1]))
 
 
+def _twins_statistics(base: Baseline, seeds: list[int], extensions: dict[str, float] | None = None,
+                      measured: Measured | None = None) -> list[dict[str, float]]:
+    """:func:`block_statistics` of the twins of ``base`` made with ``seeds`` (in that order), :data:`TWIN_THREADS`
+    adjusted at a time: they are independent, and the adjustment's Schur kernels release the interpreter."""
+    def one(seed: int) -> dict[str, float]:
+        return block_statistics(make_twin(base, seed, extensions, measured))
+
+    if len(seeds) < 2:
+        return [one(s) for s in seeds]
+    with ThreadPoolExecutor(min(TWIN_THREADS, len(seeds))) as pool:
+        return list(pool.map(one, seeds))
+
+
+#: twins adjusted at a time (:func:`_twins_statistics`)
+TWIN_THREADS = 2
+
+
 def make_twin(base: Baseline, seed: int, extensions: dict[str, float] | None = None,
               measured: Measured | None = None) -> Baseline:
     """One twin of ``base`` (see the module docstring), adjusted; ``extensions``: name of :data:`EXTENSIONS` ->
@@ -484,7 +502,7 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
     per-frame candidates are then tried, as alternatives, on top of every block-wide cause named, for the
     per-image statistics still differing from the twins of the block-wide causes (:func:`_per_frame_cause`)."""
     real = block_statistics(base)
-    twins = [block_statistics(make_twin(base, seed + k)) for k in range(n_twins)]
+    twins = _twins_statistics(base, [seed + k for k in range(n_twins)])
     mean, sd = _spread(twins)
     z, differs = _differs(base, real, mean, sd, z_limit)
     out = TwinComparison(real, mean, sd, z, differs, n_twins)
@@ -506,8 +524,8 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
             if background:
                 # at least BACKGROUND_TWINS: with mismatches in the background the per-image statistics scatter
                 # from twin to twin, and 3 twins' spread decided by chance whether a per-frame cause was tried
-                bg = [block_statistics(make_twin(base, seed + 9000 + k, background, measured))
-                      for k in range(max(n_twins, BACKGROUND_TWINS))]
+                bg = _twins_statistics(base, [seed + 9000 + k for k in range(max(n_twins, BACKGROUND_TWINS))],
+                                       background, measured)
                 frame_mean, frame_sd = _spread(bg)
                 _, still = _differs(base, real, frame_mean, frame_sd, z_limit)
                 reproduced.update(k for k in PER_IMAGE if k in differs and k not in still)
@@ -545,8 +563,8 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
         if named == list(background) and bg:  # no per-frame cause: the per-frame stage's background twins are it
             both = bg
         else:
-            both = [block_statistics(make_twin(base, seed + 9000 + k, {n: sizes[n] for n in named}, measured))
-                    for k in range(n_twins)]
+            both = _twins_statistics(base, [seed + 9000 + k for k in range(n_twins)], {n: sizes[n] for n in named},
+                                     measured)
         both_mean, both_sd = _spread(both)
         z_both, still = _differs(base, real, both_mean, both_sd, z_limit)
         gap_closed = _closed(both_mean, real, mean, differs)
@@ -659,8 +677,8 @@ def _size_extension(base: Baseline, ext: Extension, real: dict, mean: dict, n_tw
     seen_size = size
     for round_no in range(EXTENSION_ROUNDS):
         try:
-            made = [block_statistics(make_twin(base, seed + 100 * round_no + t, {**background, ext.name: size},
-                                               measured)) for t in range(n_twins)]
+            made = _twins_statistics(base, [seed + 100 * round_no + t for t in range(n_twins)],
+                                     {**background, ext.name: size}, measured)
         except (ValueError, np.linalg.LinAlgError):  # an AdjustmentError is a ValueError
             if not stats:
                 raise
