@@ -103,7 +103,8 @@ class Solution:
 
     state: State
     layout: Layout
-    cov_camera: SparseInverse  # inverse of the reduced normal matrix (unscaled), blocks on demand
+    cov_camera: SparseInverse | None  # inverse of the reduced normal matrix (unscaled), blocks on demand;
+    # None where it was not asked for (:func:`solve`)
     sigma0: float
     dof: int
     cost: float
@@ -1022,8 +1023,12 @@ def redundancy(problem: BundleProblem) -> int:
     return n_res - n_unk
 
 
-def solve(problem: BundleProblem, start: State) -> Solution:
-    """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance."""
+def solve(problem: BundleProblem, start: State, covariance: bool = True) -> Solution:
+    """Levenberg-Marquardt from ``start``; returns the solution and the camera-side covariance.
+
+    ``covariance=False``: the solution's ``cov_camera`` is None, for callers that read only its state and
+    residuals (a simulated twin, a held-out fold's fit): the covariance costs a Schur reduction and a
+    factorisation at the solution, about one iteration more."""
     # the linearisation at the current state: (cost, res_px, w, r, Jc, Jp, Hpp); problem.blocks holds its blocks
     st, cand = start, None
     lin = problem.residuals(st, jac=True, sparse=False)
@@ -1079,10 +1084,13 @@ def solve(problem: BundleProblem, start: State) -> Solution:
 
     _, it, converged, history = levenberg_marquardt(problem.cfg, lin[0], step, accept, reject)
     cost, res_px, w, r, Jc, Jp, Hpp = lin
-    S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0, problem.blocks)
+    cov = None
+    if covariance:
+        S, _, _, _, _ = schur_complement(Jc, Jp, Hpp, r, 0.0, problem.blocks)
     problem.release()
     res_px, w = problem.in_block_order(res_px), problem.in_block_order(w)
-    cov = SparseInverse(S, problem.layout.n_global, earlier=reduced.spend())
+    if covariance:
+        cov = SparseInverse(S, problem.layout.n_global, earlier=reduced.spend())
     dof = redundancy(problem)
     sigma0 = float(np.sqrt(2.0 * cost / dof))
     return Solution(

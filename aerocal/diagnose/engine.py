@@ -31,6 +31,7 @@ Method
 from __future__ import annotations
 
 import dataclasses
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -495,13 +496,15 @@ def measured_overdispersion(base: Baseline, names: list[str], draws: int, seed: 
 
 
 def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], iterations: int,
-            round_no: int, alpha: float, phi: float = 1.0) -> tuple[Baseline, np.ndarray, Evidence, int]:
+            round_no: int, alpha: float, phi: float = 1.0,
+            covariance: bool = True) -> tuple[Baseline, np.ndarray, Evidence, int]:
     """Remove effect ``name`` from the data by correct-and-refit iterations, at most ``iterations``; the extended
     block, the total estimate, the first iteration's evidence and the number of re-adjustments made.
 
     The iterations stop before re-adjusting for an increment within :data:`CONVERGED_SIGMAS` of its sigma (or a
     thousandth of the total): such a re-adjustment changes nothing the diagnosis reports, and each costs a block
-    adjustment and a Schur reduction of the block's points.
+    adjustment and a Schur reduction of the block's points. ``covariance``: whether the re-adjustments compute
+    the camera covariance (a held-out fold's do not read it).
 
     Of an effect with several components only those beyond :data:`COMPONENT_SIGMAS` of their sigma are removed (the
     others are set to zero and the block corrected again from the start): a component the block does not determine
@@ -521,14 +524,14 @@ def _extend(base: Baseline, ctx: hyp.Context, name: str, accepted: list[str], it
                                         | (np.abs(theta) <= 1e-3 * np.abs(total))):
             break
         total = theta if total is None else total + theta
-        base = refit(base, hyp.correct(name, theta, base, lin, ctx))
+        base = refit(base, hyp.correct(name, theta, base, lin, ctx), covariance)
         refits += 1
     if total is not None and len(total) > 1:
         sigma = np.asarray(first.sigma, dtype=float)
         keep = np.abs(total) >= COMPONENT_SIGMAS * sigma
         if keep.any() and not keep.all():
             total = np.where(keep, total, 0.0)
-            base = refit(start, hyp.correct(name, total, start, linearise(start), ctx))
+            base = refit(start, hyp.correct(name, total, start, linearise(start), ctx), covariance)
     return base, total, first, refits
 
 
@@ -547,6 +550,13 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
     if unknown:
         raise ValueError(f"unknown hypothesis {unknown[0]!r}; valid: {', '.join(hyp.HYPOTHESES)}")
     ctx = hyp.make_context(baseline, config.reference_temperature)
+    twin_made = None
+    if config.twins > 1:
+        # the twin compares the baseline and decides nothing the rounds below do: made beside them, in a thread of
+        # its own (the rounds' scoring is mostly one thread; the twin's adjustments release the interpreter)
+        pool = ThreadPoolExecutor(1)
+        twin_made = pool.submit(_twin, baseline, config)
+        pool.shutdown(wait=False)
     names = list(config.hypotheses)
     notes: list[str] = []
     free = set(baseline.config.free)
@@ -712,18 +722,21 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
         offset = check_point_offset(baseline)
         if offset is not None:
             eo["gnss_bias_check_points"] = offset
-    twin = {}
-    if config.twins > 1:
-        # what the simulation gets wrong: the block as adjusted, made again with the simulation's noise model
-        try:
-            comparison = compare_twins(baseline, config.twins, config.seed)
-            twin = {**comparison.to_dict(), "summary": comparison.summary()}
-        except (ValueError, np.linalg.LinAlgError) as exc:  # an AdjustmentError is a ValueError
-            # the twin compares; it decides nothing the diagnosis names: a twin that cannot be made is said, and
-            # the run goes on
-            twin = {"summary": f"the twin could not be made on this block ({type(exc).__name__}: {exc})"}
+    twin = twin_made.result() if twin_made is not None else {}
     return Diagnosis(effects, evidence, gain, baseline.solution.sigma0, current.solution.sigma0, ctx.t_ref,
                      extended, notes, phi, eo, twin, pairs)
+
+
+def _twin(baseline: Baseline, config: DiagnoseConfig) -> dict:
+    """What the simulation gets wrong: the block as adjusted, made again with the simulation's noise model
+    (:func:`aerocal.diagnose.twin.compare`), as the diagnosis reports it."""
+    try:
+        comparison = compare_twins(baseline, config.twins, config.seed)
+        return {**comparison.to_dict(), "summary": comparison.summary()}
+    except (ValueError, np.linalg.LinAlgError) as exc:  # an AdjustmentError is a ValueError
+        # the twin compares; it decides nothing the diagnosis names: a twin that cannot be made is said, and the
+        # run goes on
+        return {"summary": f"the twin could not be made on this block ({type(exc).__name__}: {exc})"}
 
 
 #: a named effect's gain on data the fit did not use must be positive beyond this many standard errors (the
@@ -775,7 +788,7 @@ def _hypothesis_extension(name: str, accepted: list[str], ctx: hyp.Context, conf
     def extend(fit: Baseline, keep: np.ndarray):
         ctx_fit = hyp.sub_context(ctx, keep)
         extended, total, first, _ = _extend(fit, ctx_fit, name, accepted, max(1, refits), round_no,
-                                            config.family_alpha)
+                                            config.family_alpha, covariance=False)
         why = physical_verdict(dataclasses.replace(first, estimate=[float(v) for v in total]), fit.camera, ctx_fit)
         if why is not None:
             raise UndeterminedFold(f"{name} on the {int(np.sum(keep))} fitting images: {why}")
@@ -924,7 +937,8 @@ def _calibrated(best: Evidence, extended: Baseline, config: DiagnoseConfig, n_te
     took two thirds of its diagnosis, ``benchmarks/RESULTS.md``)."""
     if config.null_draws <= 0:
         return None
-    factor = measured_overdispersion(extended, [best.name], config.null_draws, config.seed).of(best.name)
+    group = RECORDS_GROUP.get(best.name, "image")
+    factor = overdispersions(extended, config.null_draws, config.seed, (group,))[group][0]
     if not factor > 1.0:
         return None
     stat, p_adj = _calibrated_p(best.statistic, best.k, factor, n_tests)

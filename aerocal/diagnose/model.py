@@ -116,9 +116,10 @@ TAIL_CHI2 = 13.8
 CHI2_2_MEDIAN = 1.386
 
 
-def refit(base: Baseline, block: Block) -> Baseline:
-    """Re-adjust corrected measurements of the same block, starting from the previous solution."""
-    sol = solve(BundleProblem(block, base.config, 0.0), base.state.copy())
+def refit(base: Baseline, block: Block, covariance: bool = True) -> Baseline:
+    """Re-adjust corrected measurements of the same block, starting from the previous solution (without the
+    camera covariance where ``covariance`` is False: :func:`~aerocal.adjust.solver.solve`)."""
+    sol = solve(BundleProblem(block, base.config, 0.0), base.state.copy(), covariance)
     return dataclasses.replace(base, block=block, solution=sol)
 
 

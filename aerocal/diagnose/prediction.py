@@ -262,10 +262,11 @@ def sub_block(block: Block, state: State, keep: np.ndarray, min_rays: int = 2) -
 
 def sub_baseline(base: Baseline, keep: np.ndarray) -> Baseline:
     """The baseline's block restricted to the images where ``keep`` is True (:func:`sub_block`), adjusted again
-    with the baseline's configuration, from the baseline's solution."""
+    with the baseline's configuration, from the baseline's solution; without its camera covariance (a fold's fit
+    is read for its state and residuals only)."""
     block, start, _ = sub_block(base.block, base.state, keep)
     problem = BundleProblem(block, base.config, base.solution.t0, check_datum=False)
-    sol = solve(problem, start)
+    sol = solve(problem, start, covariance=False)
     cov = Covariates(time_s=base.covariates.time_s[keep], strip=base.covariates.strip[keep])
     return Baseline(block, cov, base.config, sol, base.template)
 

@@ -488,7 +488,7 @@ def make_twin(base: Baseline, seed: int, extensions: dict[str, float] | None = N
     # it starts at its own truth: a few iterations reach its optimum (the real block's budget would multiply the
     # time of every twin)
     quick = dataclasses.replace(cfg, max_iterations=min(cfg.max_iterations, TWIN_ITERATIONS))
-    sol = solve(BundleProblem(block, quick, base.solution.t0), st.copy())
+    sol = solve(BundleProblem(block, quick, base.solution.t0), st.copy(), covariance=False)
     return dataclasses.replace(base, block=block, solution=sol)
 
 
