@@ -31,7 +31,8 @@ Method
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import ThreadPoolExecutor
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -550,13 +551,9 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
     if unknown:
         raise ValueError(f"unknown hypothesis {unknown[0]!r}; valid: {', '.join(hyp.HYPOTHESES)}")
     ctx = hyp.make_context(baseline, config.reference_temperature)
-    twin_made = None
-    if config.twins > 1:
-        # the twin compares the baseline and decides nothing the rounds below do: made beside them, in a thread of
-        # its own (the rounds' scoring is mostly one thread; the twin's adjustments release the interpreter)
-        pool = ThreadPoolExecutor(1)
-        twin_made = pool.submit(_twin, baseline, config)
-        pool.shutdown(wait=False)
+    # the twin compares the baseline and decides nothing the rounds below do: made beside them, in a thread of its
+    # own (the rounds' scoring is mostly one thread; the twin's adjustments release the interpreter)
+    twin_made = BackgroundCall(_twin, baseline, config) if config.twins > 1 else None
     names = list(config.hypotheses)
     notes: list[str] = []
     free = set(baseline.config.free)
@@ -725,6 +722,29 @@ def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
     twin = twin_made.result() if twin_made is not None else {}
     return Diagnosis(effects, evidence, gain, baseline.solution.sigma0, current.solution.sigma0, ctx.t_ref,
                      extended, notes, phi, eo, twin, pairs)
+
+
+class BackgroundCall:
+    """``fn(*args)`` run in a daemon thread from construction; :meth:`result` waits for it and returns its value
+    or raises its exception. A daemon, so that an interrupted diagnosis does not wait for it to end."""
+
+    def __init__(self, fn: Callable, *args) -> None:
+        self._value, self._error = None, None
+
+        def run() -> None:
+            try:
+                self._value = fn(*args)
+            except BaseException as exc:  # handed to the caller of result()
+                self._error = exc
+
+        self._thread = threading.Thread(target=run, daemon=True, name=f"aerocal-{fn.__name__}")
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._value
 
 
 def _twin(baseline: Baseline, config: DiagnoseConfig) -> dict:
@@ -933,8 +953,8 @@ def _calibrated(best: Evidence, extended: Baseline, config: DiagnoseConfig, n_te
 
     The confirmation of the named effects asks the same at the end; asked before the held-out folds it spares a
     candidate that cannot survive it their cost, five re-adjustments of most of the block with the hypothesis
-    refitted in each (the real seneca flight, whose formal statistics are 73x too large: three such candidates
-    took two thirds of its diagnosis, ``benchmarks/RESULTS.md``)."""
+    refitted in each (on a real block with many such candidates, most of its diagnosis: ``benchmarks/RESULTS.md``,
+    "Diagnosis of the whole seneca flight")."""
     if config.null_draws <= 0:
         return None
     group = RECORDS_GROUP.get(best.name, "image")
