@@ -20,11 +20,12 @@ import time
 
 import numpy as np
 
+from aerocal.pipeline import RunSummary
 from benchmarks.common import record
 
 
-def _named(summary: dict) -> dict[str, list[float]]:
-    return {f["name"]: [float(v) for v in f["values"]] for f in summary.get("findings") or []}
+def _named(summary: RunSummary) -> dict[str, list[float]]:
+    return {f.name: [float(v) for v in f.values] for f in summary.findings}
 
 
 def with_strips(spec, n_strips: int):
