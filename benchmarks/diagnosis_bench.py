@@ -75,7 +75,7 @@ def _diagnose(path: str, every_track: bool, queue) -> None:
     t0 = time.perf_counter()
     result = diagnose(*args, **kwargs)
     seconds = time.perf_counter() - t0
-    decisions = [n for n in result.notes if n.split(" ")[0].rstrip(":") in {h for h in config.hypotheses}
+    decisions = [n for n in result.notes if n.split(" ")[0].rstrip(":") in set(config.hypotheses)
                  and ("held-out" in n or "calibrated" in n)]
     queue.put({"seconds": seconds, "peak_mb": peak_rss_mb(), "observations": args[1].num_rows,
                "summary": result.summary(), "overdispersion": result.overdispersion,

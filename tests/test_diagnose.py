@@ -267,21 +267,21 @@ def test_a_block_with_many_measurements_is_diagnosed_on_its_tracks_of_three_rays
     """Past ``DiagnoseConfig.two_ray_tracks_up_to`` tie measurements the two-ray tracks are left out of the
     diagnosis (one redundant measurement for four, the most cost for the least evidence): said, and a hidden
     readout is still named for what it is, within 25 % and 3 of its sigmas."""
-    from aerocal.diagnose.engine import multi_ray_rows
+    from aerocal.adjust import long_tracks
 
     seed = 74
     sim = simulate_flight(SPEC, seed=seed, effects={"rolling_shutter": 0.010})
     track = sim.observations.column("track_id").to_numpy()
     rays = np.bincount(track)[track]
-    kept = multi_ray_rows(sim.observations)
-    assert np.array_equal(kept, np.flatnonzero(rays >= 3))
-    assert 0 < len(kept) < sim.observations.num_rows, "the simulated block has no two-ray track to leave out"
+    kept = long_tracks(sim.observations, 3)
+    assert np.array_equal(kept.column("track_id").to_numpy(), track[rays >= 3])
+    assert 0 < kept.num_rows < sim.observations.num_rows, "the simulated block has no two-ray track to leave out"
     cfg = DiagnoseConfig(reference_temperature=SPEC.sensors.reference_temperature_c, twins=0,
-                         two_ray_tracks_up_to=len(kept))
+                         two_ray_tracks_up_to=kept.num_rows)
     d = diagnose(sim.images, sim.observations, SPEC.camera_true, adjust_config(SPEC), sim.gcps,
                  sim.gcp_observations, cfg)
     said = [n for n in d.notes if "three images or more" in n]
-    assert said and f"on the {len(kept)} measurements" in said[0], f"seed {seed}: {d.notes}"
+    assert said and f"on the {kept.num_rows} measurements" in said[0], f"seed {seed}: {d.notes}"
     assert [e.name for e in d.effects][:1] == ["rolling_shutter"], f"seed {seed}: {d.summary()}"
     rs = d.effects[0]
     assert abs(rs.magnitude[0] - 0.010) <= 0.25 * 0.010, f"seed {seed}: readout {rs.magnitude[0]} s for 0.010"

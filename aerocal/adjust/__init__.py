@@ -7,7 +7,14 @@ Entry points: :func:`adjust` (tables in, :class:`AdjustmentResult` out) and :fun
 
 from aerocal.adjust.bundle import AdjustmentResult, adjust, corrected_to_t0, scale_tie_sigma, screened_rows
 from aerocal.adjust.problem import AdjustConfig, AdjustmentError
-from aerocal.adjust.strategy import STRATEGIES, StrategyResult, adjust_fixed_io, run_strategy, select_images
+from aerocal.adjust.strategy import (
+    STRATEGIES,
+    StrategyResult,
+    adjust_fixed_io,
+    long_tracks,
+    run_strategy,
+    select_images,
+)
 from aerocal.adjust.thermal import ThermalFit, fit_thermal_model, thermal_certificate
 from aerocal.adjust.thinning import ThinningConfig, thin_tracks
 
@@ -27,6 +34,7 @@ __all__ = [
     "scale_tie_sigma",
     "screened_rows",
     "select_images",
+    "long_tracks",
     "thermal_certificate",
     "thin_tracks",
 ]

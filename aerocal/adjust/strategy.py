@@ -41,6 +41,16 @@ def select_images(table: pa.Table, image_ids) -> pa.Table:
     return table.filter(pc.is_in(table.column("image_id"), value_set=ids))
 
 
+def long_tracks(table: pa.Table, min_rays: int) -> pa.Table:
+    """Rows of ``table`` (an observations table) whose track is measured in ``min_rays`` images or more (rows
+    counted in ``table`` itself)."""
+    track = table.column("track_id").to_numpy()
+    if not len(track):
+        return table
+    _, inverse, counts = np.unique(track, return_inverse=True, return_counts=True)
+    return table.filter(pa.array(counts[inverse] >= min_rays))
+
+
 def central_images(images: pa.Table, n: int) -> np.ndarray:
     """Image ids of the ``n`` images whose recorded positions lie nearest the block's median position
     (the first ``n`` ids when positions are missing).

@@ -31,7 +31,15 @@ from dataclasses import dataclass, field
 import numpy as np
 import pyarrow as pa
 
-from aerocal.adjust import AdjustConfig, AdjustmentError, adjust, adjust_fixed_io, scale_tie_sigma, select_images
+from aerocal.adjust import (
+    AdjustConfig,
+    AdjustmentError,
+    adjust,
+    adjust_fixed_io,
+    long_tracks,
+    scale_tie_sigma,
+    select_images,
+)
 from aerocal.camera import Camera
 
 
@@ -120,14 +128,6 @@ def _times(images: pa.Table) -> np.ndarray:
     return images.column("image_id").to_numpy().astype(float)
 
 
-def _long_tracks(obs: pa.Table, min_length: int) -> pa.Table:
-    t = obs.column("track_id").to_numpy()
-    if not len(t):
-        return obs
-    _, inv, count = np.unique(t, return_inverse=True, return_counts=True)
-    return obs.filter(pa.array(count[inv] >= min_length))
-
-
 def _per_image_chi2(result, obs: pa.Table, images: pa.Table, gnss_sigma) -> dict[int, np.ndarray]:
     """Per held-out image: the chi-square of its tie observations (squared residuals over their sigma) per
     observation row (NaN where rejected or not triangulated), and of its recorded GNSS position against the
@@ -189,7 +189,7 @@ def compare_models(
         if len(test) < config.min_images or len(train) < config.min_images:
             notes.append(f"fold {k}: {len(test)} held-out and {len(train)} fitting images, too few")
             continue
-        test_obs = _long_tracks(select_images(observations, test), config.min_track_length)
+        test_obs = long_tracks(select_images(observations, test), config.min_track_length)
         if test_obs.num_rows == 0:
             notes.append(f"fold {k}: no tie track is seen in {config.min_track_length} held-out images")
             continue

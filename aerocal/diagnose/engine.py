@@ -42,7 +42,7 @@ from scipy import stats
 from aerocal.adjust import adjust, scale_tie_sigma
 from aerocal.adjust.problem import AdjustConfig
 from aerocal.adjust.solver import BundleProblem, inverse_spd, solve
-from aerocal.adjust.strategy import central_images
+from aerocal.adjust.strategy import central_images, long_tracks
 from aerocal.camera import Camera, LinearThermalModel
 from aerocal.diagnose import hypotheses as hyp
 from aerocal.diagnose.attitude import mean_rotation_covariance, offset_statistics
@@ -155,7 +155,7 @@ class DiagnoseConfig:
     # :func:`central_images`
     max_images: int | None = 200
     # blocks with more tie observations are diagnosed on their tracks of three rays or more (None = every track);
-    # see :func:`multi_ray_rows`
+    # see :func:`diagnose`
     two_ray_tracks_up_to: int | None = 200_000
     twins: int = 3  # twins of the adjusted block whose statistics are set beside the real ones (0 = none)
     # the k-fold over strips (time blocks) that measures each candidate's gain on held-out images
@@ -1214,32 +1214,23 @@ def diagnose(images: pa.Table, observations: pa.Table, camera: Camera, adjust_co
     # term the certificate lacked came out at 0.60 +- 0.15 from every track and 0.87 +- 0.22 from the
     # thinned ones (sigma x 1.5, so less power against smaller effects)
     adjust_config = dataclasses.replace(adjust_config, tie_thinning=None)
+    # a two-ray track adds one redundant measurement to its four (the point takes three), along the epipolar line
+    # only, where a mismatch cannot be told from a parallax: it costs the Schur reductions as much per measurement
+    # as any track and tells the diagnosis least; where they are many they are most of its cost and much of the
+    # overdispersion (the whole seneca flight: benchmarks/RESULTS.md, "Diagnosis of the whole seneca flight")
     limit = config.two_ray_tracks_up_to
     if limit is not None and observations.num_rows > limit:
-        rows = multi_ray_rows(observations)
-        if len(rows) < observations.num_rows:
+        multi = long_tracks(observations, 3)
+        if multi.num_rows < observations.num_rows:
             sub_note = "; ".join(filter(None, [sub_note, (
-                f"diagnosed on the {len(rows)} measurements of tie points seen in three images or more of "
+                f"diagnosed on the {multi.num_rows} measurements of tie points seen in three images or more of "
                 f"{observations.num_rows} (DiagnoseConfig.two_ray_tracks_up_to = {limit})")]))
-            observations = observations.take(pa.array(rows, pa.int64()))
+            observations = multi
     base = fit_baseline(images, observations, camera, adjust_config, gcps, gcp_observations, start)
     result = diagnose_baseline(base, config, io)
     if sub_note:
         result.notes.insert(0, sub_note)
     return result
-
-
-def multi_ray_rows(observations: pa.Table) -> np.ndarray:
-    """Sorted rows of ``observations`` whose tie points are measured in three images or more.
-
-    A two-ray track adds one redundant measurement to its four (the point takes three), along the epipolar line
-    only, where a mismatch cannot be told from a parallax: it costs the diagnosis's Schur reductions as much per
-    measurement as any track and tells it least. Where they are many, they are most of the cost and much of the
-    overdispersion (the whole seneca flight: ``benchmarks/RESULTS.md``, "Diagnosis of the whole seneca
-    flight")."""
-    track = observations.column("track_id").to_numpy()
-    _, inverse, counts = np.unique(track, return_inverse=True, return_counts=True)
-    return np.flatnonzero(counts[inverse] >= 3)
 
 
 def permutation_null(baseline: Baseline, name: str, n: int = 20, seed: int = 0) -> np.ndarray:
