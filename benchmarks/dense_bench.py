@@ -1,7 +1,7 @@
 """Dense surface, measured: the rendered ``conte-city`` flight (640x480 thermal frames, GSD 0.5 m), true poses.
 
 1. Time and peak memory of :func:`aerocal.products.dense.dense_cloud` on the N frames nearest the block centre
-   (default all 818) on a local Dask cluster of 2 single-threaded workers; baseline in the same run: gridding
+   (default all 818) on the pipeline's local Dask cluster of 2 single-threaded workers; baseline in the same run: gridding
    the tie points (the surface the products stood on before).
 2. The dense DSM (1 GSD cells) and the tie-point DSM against the simulator's true surface: median, NMAD,
    completeness (measured cells over the cells that two and three frames see).
@@ -19,11 +19,11 @@ import resource
 import time
 
 import numpy as np
-from distributed import Client, LocalCluster
 
 from aerocal.assess import compare_dems, view_counts
 from aerocal.enhance import EnhanceConfig, grey, stretch_params
 from aerocal.ingest import read_raw
+from aerocal.matching.cluster import local_client
 from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.mosaic_step import dense_frame
 from aerocal.products.dense import DenseConfig, dense_cloud
@@ -60,8 +60,7 @@ def main() -> None:
     ecfg = EnhanceConfig()
     params = stretch_params(list(paths.values()), percent=ecfg.percent, loader=lambda p: grey(read_raw(p)))
     load = functools.partial(dense_frame, paths=paths, params=params, config=ecfg)
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
-            Client(cluster) as client:
+    with local_client(n_workers=2) as client:  # the pipeline's cluster: one OpenCV thread per worker
         t0 = time.perf_counter()
         cloud = dense_cloud(frames, load, tie, ground, DenseConfig(), client)
         t_dense = time.perf_counter() - t0

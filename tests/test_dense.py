@@ -6,11 +6,18 @@ import laspy
 import numpy as np
 import pytest
 import rasterio
+from scipy.spatial import cKDTree
 
 from aerocal.assess import compare_dems, view_counts
 from aerocal.enhance import enhance, stretch_params
 from aerocal.pipeline.config import MosaicStepConfig
-from aerocal.products.dense import DenseConfig, dense_cloud, rectify
+from aerocal.products.dense import (
+    DenseConfig,
+    _nearness_rank,
+    confirmed,
+    dense_cloud,
+    rectify,
+)
 from aerocal.products.dsm import dsm_from_points, write_dsm
 from aerocal.products.mosaic import frames_from_poses, read_frame
 from aerocal.products.pointcloud import write_laz
@@ -78,11 +85,13 @@ def test_the_dense_dsm_is_close_to_the_true_surface_and_covers_what_the_frames_s
           f"{diff.nmad:.3f} m ({diff.nmad / gsd:.2f} GSD), completeness {completeness:.1%} of the cells two frames "
           f"see, {completeness3:.1%} of those three see; tie-point DSM: median {sparse.median:.3f} m, NMAD "
           f"{sparse.nmad:.3f} m ({sparse.nmad / gsd:.2f} GSD)")
-    # the figures of this seed and two others: benchmarks/RESULTS.md, "Dense surface"
-    assert diff.nmad < 1.4 * gsd, f"seed {SEED}: NMAD {diff.nmad:.3f} m"
+    # the figures of this seed and two others: benchmarks/RESULTS.md, "Dense surface" (seed 3: NMAD 1.09 GSD,
+    # 89 % of the cells two frames see and 94 % of those three see). A cell two frames see has one pair: the
+    # three-view rule leaves it out, so the 90 % the dense surface must cover is of the cells three frames see.
+    assert diff.nmad < 1.2 * gsd, f"seed {SEED}: NMAD {diff.nmad:.3f} m"
     assert abs(diff.median) < 0.5 * gsd, f"seed {SEED}: median {diff.median:.3f} m"
     assert diff.nmad < 0.25 * sparse.nmad, f"seed {SEED}: dense {diff.nmad:.3f} m, sparse {sparse.nmad:.3f} m"
-    assert completeness > 0.75 and completeness3 > 0.8, f"seed {SEED}: completeness {completeness:.1%}"
+    assert completeness3 > 0.9 and completeness > 0.85, f"seed {SEED}: completeness {completeness3:.1%}"
     assert cloud.views.min() >= 3, "every point agreed on by the reference and two other views"
 
 
@@ -111,7 +120,9 @@ def test_a_uniform_area_stays_a_flagged_hole_not_an_invented_height(block):
     share = float(np.mean(measured[cells]))
     print(f"seed {SEED}: {inside.sum()} points and {share:.1%} measured cells inside the uniform square")
     assert share < 0.05, f"seed {SEED}: {share:.1%} of the uniform square's cells claim a measured height"
-    assert inside.sum() < 0.01 * (100 / cloud.gsd_m) ** 2, f"seed {SEED}: {inside.sum()} points in the square"
+    # a textured square would hold keep_frames points per cell (each ground point from the nearest frames)
+    held = DenseConfig().keep_frames * (100 / cloud.gsd_m) ** 2
+    assert inside.sum() < 0.01 * held, f"seed {SEED}: {inside.sum()} points in the square, of {held:.0f}"
 
 
 def test_moving_vehicles_leave_no_invented_heights(block, dense):
@@ -257,3 +268,28 @@ def test_the_dtm_removes_buildings_and_trees_and_lies_on_the_true_ground(block, 
     roof[1:39, 1:39] = 10.0
     closed = dtm_from_dsm(type(dsm)(heights=roof, west=0.0, north=40.0, cell_m=1.0, crs=dsm.crs))
     assert closed.dtm is None and "no DTM: 10% of the measured cells are ground" in closed.note, closed.note
+
+
+def test_each_point_is_ranked_among_the_nearest_frames_as_a_k_d_tree_ranks_it():
+    rng = np.random.default_rng(11)
+    centres = rng.uniform(0, 2000, (400, 2)) + [686000.0, 4929000.0]
+    for i in rng.choice(len(centres), 5, replace=False):
+        xy = centres[i] + rng.uniform(-180, 180, (20000, 2))
+        own = cKDTree(centres).query(xy, k=3)[1]
+        expected = np.where((own == i).any(axis=1), np.argmax(own == i, axis=1), 3)
+        np.testing.assert_array_equal(_nearness_rank(xy, centres[i], centres, 3), expected, err_msg=f"centre {i}")
+
+
+def test_a_farther_frame_keeps_a_point_only_where_the_nearest_frame_or_a_second_farther_frame_agrees():
+    """Cells of 1 m, a tolerance of 1.5 m: the nearest frame's points always stay; a farther frame's point stays
+    where it agrees with them, or, in a cell the nearest frame left out, where a second farther frame agrees."""
+    xyz = np.array([[0.5, 0.5, 10.0],                     # cell A: the nearest frame (rank 0) ...
+                    [0.4, 0.6, 10.8],                     # ... a farther frame that agrees with it ...
+                    [0.6, 0.4, 25.0],                     # ... and one that does not
+                    [3.5, 0.5, 14.0],                     # cell B: one farther frame only
+                    [6.5, 0.5, 12.0], [6.4, 0.4, 12.3],   # cell C: two farther frames that agree ...
+                    [6.6, 0.6, 30.0]])                    # ... and a third that does not
+    rank = np.array([0, 1, 2, 1, 1, 2, 2], dtype=np.uint8)
+    frame = np.array([1, 2, 3, 4, 5, 6, 7])
+    np.testing.assert_array_equal(confirmed(xyz, rank, frame, cell_m=1.0, tol_m=1.5),
+                                  [True, True, False, False, True, True, False])
