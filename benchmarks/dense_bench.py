@@ -1,8 +1,8 @@
 """Dense surface, measured: the rendered ``conte-city`` flight (640x480 thermal frames, GSD 0.5 m), true poses.
 
 1. Time and peak memory of :func:`aerocal.products.dense.dense_cloud` on the N frames nearest the block centre
-   (default all 818) on the pipeline's local Dask cluster of 2 single-threaded workers; baseline in the same run: gridding
-   the tie points (the surface the products stood on before).
+   (default all 818) on the pipeline's local Dask cluster of 2 single-threaded workers; baseline in the same
+   run: gridding the tie points (the surface the products stood on before).
 2. The dense DSM (1 GSD cells) and the tie-point DSM against the simulator's true surface: median, NMAD,
    completeness (measured cells over the cells that two and three frames see).
 

@@ -16,6 +16,7 @@ from aerocal.products.dense import (
     _nearness_rank,
     confirmed,
     dense_cloud,
+    fuse_depths,
     rectify,
 )
 from aerocal.products.dsm import dsm_from_points, write_dsm
@@ -293,3 +294,25 @@ def test_a_farther_frame_keeps_a_point_only_where_the_nearest_frame_or_a_second_
     frame = np.array([1, 2, 3, 4, 5, 6, 7])
     np.testing.assert_array_equal(confirmed(xyz, rank, frame, cell_m=1.0, tol_m=1.5),
                                   [True, True, False, False, True, True, False])
+
+
+def test_the_fusion_keeps_the_mean_of_the_largest_agreeing_group_as_comparing_every_pair_of_maps_does():
+    """The per-pixel fusion against its definition written with numpy over every pair of depth maps."""
+    rng = np.random.default_rng(5)
+    depths = (850.0 + rng.normal(0.0, 1.0, (6, 40, 50))).astype(np.float32)
+    depths[rng.random(depths.shape) < 0.3] = np.nan
+    tols = np.where(np.isfinite(depths), rng.uniform(0.5, 2.0, depths.shape), np.nan).astype(np.float32)
+    valid = np.isfinite(depths)
+    agree = ((np.abs(depths[:, None] - depths[None, :]) <= np.maximum(tols[:, None], tols[None, :]))
+             & valid[:, None] & valid[None, :])
+    count = agree.sum(axis=1)
+    best = np.argmax(count, axis=0)
+    n = np.take_along_axis(count, best[None], 0)[0]
+    members = np.take_along_axis(agree, best[None, None], 0)[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(members, 1.0 / np.square(tols.astype(float)), 0.0)
+        expected = np.where(n >= 2, (w * np.nan_to_num(depths)).sum(axis=0) / w.sum(axis=0), np.nan)
+    fused, agreeing = fuse_depths(depths, tols, 2)
+    np.testing.assert_array_equal(agreeing, n)
+    np.testing.assert_allclose(fused, expected, rtol=1e-6, equal_nan=True)
+    assert 0.2 < np.mean(np.isfinite(fused)) < 1.0

@@ -147,7 +147,7 @@ class MosaicStepConfig:
     #: stand on; ``None``: the tie points' surface only (the only one for a flight without frames)
     dense: DenseConfig | None = DenseConfig()
     #: how the dense cloud is gridded: about one cell per ground sample, as the cloud holds one point per sample
-    dense_dsm: DsmConfig = DsmConfig(cell_gsd=1.0, reject_outliers=False)
+    dense_dsm: DsmConfig = DsmConfig(cell_gsd=1.0, reject_outliers=False, fill_pinholes=True)
     #: the ground filter that makes the DTM from the dense DSM (:mod:`aerocal.products.terrain`)
     ground_filter: GroundFilterConfig = GroundFilterConfig()
 

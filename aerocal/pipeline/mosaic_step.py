@@ -9,6 +9,7 @@ camera's axis, the surface is checked against it (:mod:`aerocal.products.range_c
 
 from __future__ import annotations
 
+import collections
 import functools
 import tempfile
 import time
@@ -104,12 +105,29 @@ def frames_of(images: pa.Table, poses: pa.Table, cert: Certificate, paths: Mappi
     return frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal, motion, turn)
 
 
+#: bytes of enhanced frames each process keeps (:func:`dense_frame`): a reference and its neighbours are the next
+#: references' neighbours too, and each was read and enhanced again up to six times
+FRAME_CACHE_BYTES = 512 * 2**20
+_frame_cache: collections.OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = collections.OrderedDict()
+
+
 def dense_frame(image_id: int, paths: Mapping[int, str], params: StretchParams,
                 config: EnhanceConfig) -> tuple[np.ndarray, np.ndarray]:
     """(8-bit frame for dense matching, grey frame values) of one image, enhanced as for tie-point matching
-    (module level: it runs on Dask workers)."""
+    (module level: it runs on Dask workers). The last frames read, up to :data:`FRAME_CACHE_BYTES`, are kept in
+    this process and returned read-only."""
+    key = (str(paths[image_id]), params, config)
+    if key in _frame_cache:
+        _frame_cache.move_to_end(key)
+        return _frame_cache[key]
     raw = read_raw(paths[image_id])
-    return enhance(raw, params, config), grey(raw).astype(np.float32)
+    frame = (enhance(raw, params, config), grey(raw).astype(np.float32))
+    for a in frame:
+        a.flags.writeable = False
+    _frame_cache[key] = frame
+    while sum(a.nbytes for f in _frame_cache.values() for a in f) > FRAME_CACHE_BYTES and len(_frame_cache) > 1:
+        _frame_cache.popitem(last=False)
+    return frame
 
 
 def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, Any]:

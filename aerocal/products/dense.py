@@ -187,7 +187,10 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
         d = _world_rays(f, uv)
         s = (ground_height_m - f.C[2]) / np.where(d[:, 2] < -1e-9, d[:, 2], np.nan)
         samples.append(np.column_stack([f.C[:2] + s[:, None] * d[:, :2], np.full(len(s), ground_height_m)]))
-    reach = 2.0 * np.max(heights) * max(1.0, config.max_base_to_height)
+    # a frame that covers min_overlap of the reference's footprint has its centre within the two footprints' reach
+    radius = np.array([float(np.nanmax(np.linalg.norm(s[:, :2] - f.C[:2], axis=1), initial=0.0))
+                       for s, f in zip(samples, frames, strict=True)])
+    reach = min(2.0 * np.max(heights) * max(1.0, config.max_base_to_height), 2.5 * float(np.max(radius)))
     tree = cKDTree(cam_xy)
     out: dict[int, list[int]] = {}
     for i, f in enumerate(frames):
@@ -393,7 +396,7 @@ def _reference_grid(frame: FrameGeometry, scale: float, depth: float) -> np.ndar
         frac = uv[..., 1:2] / frame.camera.height - 0.5
         g = frac * np.asarray(frame.motion, dtype=float) + depth * rays
         rays = g / (g @ np.asarray(frame.R_cw)[2])[..., None]
-    return _upsample(rays, MAP_STEP, h, w)
+    return np.ascontiguousarray(_upsample(rays, MAP_STEP, h, w))  # each pair multiplies it: once in memory order
 
 
 def _resize(image: np.ndarray, scale: float) -> np.ndarray:
@@ -448,20 +451,48 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
 
 def fuse_depths(depths: np.ndarray, tols: np.ndarray, min_agreeing: int) -> tuple[np.ndarray, np.ndarray]:
     """Fuse K depth maps (K, h, w) with their tolerances: per pixel the depth of the largest group of pairs that
-    agree with one of them (|d_k - d_l| <= max(tol_k, tol_l)), its mean; NaN where fewer than ``min_agreeing``
-    pairs agree. Returns (depth (h, w) float32, agreeing pairs (h, w) uint8)."""
-    valid = np.isfinite(depths)
-    diff = np.abs(depths[:, None] - depths[None, :])
-    agree = (diff <= np.maximum(tols[:, None], tols[None, :])) & valid[:, None] & valid[None, :]
-    count = agree.sum(axis=1)  # (K, h, w)
-    best = np.argmax(count, axis=0)
-    n = np.take_along_axis(count, best[None], 0)[0]
-    members = np.take_along_axis(agree, best[None, None], 0)[0]  # (K, h, w)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(members, 1.0 / np.square(tols), 0.0)  # inverse variance: tol is proportional to the sigma
-        total = (w * np.nan_to_num(depths)).sum(axis=0)
-        fused = np.where(n >= min_agreeing, total / w.sum(axis=0), np.nan)
-    return fused.astype(np.float32), n.astype(np.uint8)
+    agree with one of them (|d_k - d_l| <= max(tol_k, tol_l); the first such pair on a tie), its mean weighted
+    by precision (the inverse square of the tolerance, proportional to the sigma); NaN where fewer than
+    ``min_agreeing`` pairs agree. Returns (depth (h, w) float32, agreeing pairs (h, w) uint8).
+
+    One pass per pixel (:func:`_fuse_pixels`): the same values as comparing every pair of maps with numpy
+    (a test), in a tenth of the time and without its (K, K, h, w) arrays."""
+    return _fuse_pixels(np.ascontiguousarray(depths, dtype=np.float32), np.ascontiguousarray(tols, dtype=np.float32),
+                        int(min_agreeing))
+
+
+@numba.njit(cache=True)
+def _fuse_pixels(depths: np.ndarray, tols: np.ndarray, min_agreeing: int) -> tuple[np.ndarray, np.ndarray]:
+    n_maps, h, w = depths.shape
+    fused = np.full((h, w), np.nan, dtype=np.float32)
+    agreeing = np.zeros((h, w), dtype=np.uint8)
+    for y in range(h):
+        for x in range(w):
+            best, best_k = 0, -1
+            for k in range(n_maps):
+                dk = depths[k, y, x]
+                if not np.isfinite(dk):
+                    continue
+                count = 0
+                for m in range(n_maps):
+                    dm = depths[m, y, x]
+                    if np.isfinite(dm) and abs(dk - dm) <= max(tols[k, y, x], tols[m, y, x]):
+                        count += 1
+                if count > best:
+                    best, best_k = count, k
+            agreeing[y, x] = best
+            if best < min_agreeing or best_k < 0:
+                continue
+            dk = depths[best_k, y, x]
+            total, weight = 0.0, 0.0
+            for m in range(n_maps):
+                dm = depths[m, y, x]
+                if np.isfinite(dm) and abs(dk - dm) <= max(tols[best_k, y, x], tols[m, y, x]):
+                    wm = 1.0 / (float(tols[m, y, x]) * float(tols[m, y, x]))
+                    total += wm * dm
+                    weight += wm
+            fused[y, x] = total / weight
+    return fused, agreeing
 
 
 @dataclass(frozen=True)
@@ -586,24 +617,59 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     ix = np.floor(xyz[:, :2] / cell_m).astype(np.int64)
     ix -= ix.min(axis=0)
     key = ix[:, 1] * (int(ix[:, 0].max()) + 1) + ix[:, 0]
-    nearest = rank == 0
-    keep = nearest.copy()
-    order = np.lexsort((xyz[:, 2], ~nearest, key))  # by cell, the nearest frames' points first, then by height
-    k, z, first = key[order], xyz[order, 2], nearest[order]
-    # one run per (cell, nearest or not); the cell's reference height is its first run's median
-    starts = np.flatnonzero(np.r_[True, (k[1:] != k[:-1]) | (first[1:] != first[:-1])])
-    counts = np.diff(np.r_[starts, len(k)])
-    median = 0.5 * (z[starts + (counts - 1) // 2] + z[starts + counts // 2])
-    cell_start = np.r_[True, k[starts][1:] != k[starts][:-1]]
-    reference = median[np.maximum.accumulate(np.where(cell_start, np.arange(len(starts)), 0))]
-    run = np.repeat(np.arange(len(starts)), counts)
-    close = ~first & (np.abs(z - reference[run]) <= tol_m)
-    # farther points in cells without a nearest frame's point need a second frame among the close ones
-    alone = ~first[starts][run]
-    alone &= cell_start[run]
-    pairs = np.unique(np.stack([run[close & alone], image_id[order][close & alone]]), axis=1)[0]
-    frames = np.bincount(pairs, minlength=len(starts))[run]
-    keep[order[close & (~alone | (frames >= 2))]] = True
+    order = np.argsort(key, kind="stable")
+    bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
+    return _confirm_cells(order, bounds, np.ascontiguousarray(xyz[:, 2], dtype=np.float64),
+                          np.asarray(rank, dtype=np.uint8), np.asarray(image_id, dtype=np.int64), float(tol_m))
+
+
+@numba.njit(cache=True)
+def _median_of(values: np.ndarray) -> float:
+    """The median of a few values (sorted in place)."""
+    n = values.shape[0]
+    for j in range(1, n):  # insertion sort: a cell holds a few points
+        v = values[j]
+        k = j - 1
+        while k >= 0 and values[k] > v:
+            values[k + 1] = values[k]
+            k -= 1
+        values[k + 1] = v
+    return 0.5 * (values[(n - 1) // 2] + values[n // 2])
+
+
+@numba.njit(cache=True)
+def _confirm_cells(order: np.ndarray, bounds: np.ndarray, z: np.ndarray, rank: np.ndarray, image_id: np.ndarray,
+                   tol: float) -> np.ndarray:
+    """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``."""
+    keep = np.zeros(z.shape[0], dtype=np.bool_)
+    buf = np.empty(z.shape[0], dtype=np.float64)
+    for c in range(bounds.shape[0] - 1):
+        lo, hi = bounds[c], bounds[c + 1]
+        n_near = 0
+        for p in range(lo, hi):
+            if rank[order[p]] == 0:
+                buf[n_near] = z[order[p]]
+                n_near += 1
+        if n_near > 0:
+            reference = _median_of(buf[:n_near])
+        else:
+            for p in range(lo, hi):
+                buf[p - lo] = z[order[p]]
+            reference = _median_of(buf[:hi - lo])
+        first, second = -1, False  # the frames of the close points: a second one confirms the cell
+        for p in range(lo, hi):
+            i = order[p]
+            if rank[i] == 0:
+                keep[i] = True
+            elif abs(z[i] - reference) <= tol:
+                keep[i] = True
+                if first < 0:
+                    first = image_id[i]
+                elif image_id[i] != first:
+                    second = True
+        if n_near == 0 and not second:
+            for p in range(lo, hi):
+                keep[order[p]] = False
     return keep
 
 

@@ -73,6 +73,10 @@ class DsmConfig:
     #: where its neighbour search over millions of points costs more than the gridding
     reject_outliers: bool = True
     fill: bool = True  #: interpolate holes (linear on the Delaunay triangulation, nearest outside)
+    #: before the triangulation, fill pinholes (a cell whose 8 neighbours hold half a height or more) with the
+    #: mean of those neighbours, :data:`PINHOLE_PASSES` times: a dense cloud leaves millions of them, and their
+    #: rims made the triangulation of a city's DSM take minutes
+    fill_pinholes: bool = False
     max_fill_distance_m: float | None = None  #: leave cells farther than this from data empty (None = fill all)
     margin_cells: int = 2  #: grid margin around the data (or given bounds), cells
     #: cells are never smaller than this fraction of the mean tie-point spacing (sqrt(area / points)): a grid
@@ -230,18 +234,44 @@ def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float,
 
 
 def _cell_medians(rows_idx: np.ndarray, cols_idx: np.ndarray, z: np.ndarray, shape: tuple[int, int]):
-    """Median of ``z`` per cell (vectorised: sort by cell then height, take the middle of each run)."""
-    flat = rows_idx * shape[1] + cols_idx
-    order = np.lexsort((z, flat))
-    flat, z = flat[order], z[order]
-    cells, start, count = np.unique(flat, return_index=True, return_counts=True)
-    lo = z[start + (count - 1) // 2]
-    hi = z[start + count // 2]
-    heights = np.full(shape[0] * shape[1], np.nan, dtype=np.float64)
-    counts = np.zeros(shape[0] * shape[1], dtype=np.int32)
-    heights[cells] = 0.5 * (lo + hi)
-    counts[cells] = count
+    """Median of ``z`` per cell and the points per cell: (heights (rows, cols) float64, NaN where no point;
+    counts (rows, cols) int32). The points are bucketed by cell and each bucket sorted (:func:`_bucket_medians`):
+    linear in the points, where sorting them all by cell and height took 24 s of a 38-million-point cloud."""
+    flat = rows_idx.astype(np.int64) * shape[1] + cols_idx
+    heights, counts = _bucket_medians(flat, np.asarray(z, dtype=np.float64), shape[0] * shape[1])
     return heights.reshape(shape), counts.reshape(shape)
+
+
+@numba.njit(cache=True)
+def _bucket_medians(flat: np.ndarray, z: np.ndarray, n_cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell index in ``flat`` (N,), the median of its ``z`` (NaN for none) and the count (int32)."""
+    counts = np.zeros(n_cells, dtype=np.int32)
+    for i in range(flat.shape[0]):
+        counts[flat[i]] += 1
+    start = np.empty(n_cells + 1, dtype=np.int64)
+    start[0] = 0
+    for c in range(n_cells):
+        start[c + 1] = start[c] + counts[c]
+    fill = start[:-1].copy()
+    bucket = np.empty(flat.shape[0], dtype=np.float64)
+    for i in range(flat.shape[0]):
+        bucket[fill[flat[i]]] = z[i]
+        fill[flat[i]] += 1
+    heights = np.full(n_cells, np.nan)
+    for c in range(n_cells):
+        n = counts[c]
+        if n == 0:
+            continue
+        lo = start[c]
+        for j in range(lo + 1, lo + n):  # insertion sort: a cell holds a few points
+            v = bucket[j]
+            k = j - 1
+            while k >= lo and bucket[k] > v:
+                bucket[k + 1] = bucket[k]
+                k -= 1
+            bucket[k + 1] = v
+        heights[c] = 0.5 * (bucket[lo + (n - 1) // 2] + bucket[lo + n // 2])
+    return heights, counts
 
 
 def dsm_from_points(
@@ -297,7 +327,7 @@ def dsm_from_points(
 
     distance = ndimage.distance_transform_edt(~has).astype(np.float32) * np.float32(cell)
     if config.fill and has.sum() >= 3:
-        heights = fill_holes(heights, has)
+        heights = fill_holes(heights, has, pinholes=config.fill_pinholes)
         if config.max_fill_distance_m is not None:
             heights[distance > config.max_fill_distance_m] = np.nan
     stats = {
@@ -322,8 +352,32 @@ def bulk_extent(xy: np.ndarray, tail: float = 0.01) -> tuple[np.ndarray, np.ndar
     return mid - half, mid + half
 
 
-def fill_holes(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
-    """Linear interpolation on the Delaunay triangulation of the data cells, nearest outside the hull.
+#: passes of the pinhole filling (:attr:`DsmConfig.fill_pinholes`): each fills the cells half surrounded by
+#: heights, so holes up to about twice this many cells across close before the triangulation
+PINHOLE_PASSES = 3
+
+
+def _fill_pinholes(heights: np.ndarray, has: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(heights, has) with the cells whose 8 neighbours hold at least 4 heights set to their mean, in
+    :data:`PINHOLE_PASSES` passes."""
+    heights, has = heights.copy(), has.copy()
+    ring = np.ones((3, 3), dtype=np.float32)
+    ring[1, 1] = 0.0
+    for _ in range(PINHOLE_PASSES):
+        known = has.astype(np.float32)
+        count = ndimage.convolve(known, ring, mode="constant")
+        pin = ~has & (count >= 4)
+        if not pin.any():
+            break
+        total = ndimage.convolve(np.where(has, heights, 0.0).astype(np.float32), ring, mode="constant")
+        heights[pin] = total[pin] / count[pin]
+        has |= pin
+    return heights, has
+
+
+def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> np.ndarray:
+    """Linear interpolation on the Delaunay triangulation of the data cells, nearest outside the hull; with
+    ``pinholes``, the pinholes filled first (:func:`_fill_pinholes`).
 
     The values of ``scipy.interpolate.griddata`` (linear, then nearest), computed differently: the data cells
     lie on the grid, so each Delaunay triangle is rasterised over the hole cells it covers
@@ -333,6 +387,10 @@ def fill_holes(heights: np.ndarray, has: np.ndarray) -> np.ndarray:
     (``benchmarks/history/engine_measurements.md``)."""
     if not (~has).any():
         return heights
+    if pinholes:
+        heights, has = _fill_pinholes(heights, has)
+        if has.all():
+            return heights
     # the vertices are the data cells on a hole's rim: linear interpolation inside a hole needs no others, and a
     # dense DSM (millions of data cells) would otherwise be triangulated whole
     rim = has & ndimage.binary_dilation(~has, structure=np.ones((3, 3), dtype=bool))
