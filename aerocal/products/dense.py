@@ -48,6 +48,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from aerocal.camera import correct_measurements
+from aerocal.products.dsm import median_in_place
 from aerocal.products.mosaic import FrameGeometry
 
 #: A frame's pixels for matching: image id -> (8-bit grey frame for SGBM, frame values for the cloud's
@@ -95,8 +96,8 @@ class DenseConfig:
     #: frames that keep a ground point, the nearest in plan first (module docstring, step 5): with one, a point
     #: the nearest frame's pairs could not fuse is a hole however many other frames measured it
     keep_frames: int = 3
-    #: where no nearest frame measured a cell, farther frames' points within this many ground samples of the
-    #: cell's median height, from two frames or more, fill it (:func:`confirmed`)
+    #: a farther frame's point is kept within this many ground samples of the nearest frames' median height in
+    #: its cell or, where they measured none, of the farther frames' when two of them agree (:func:`confirmed`)
     fill_agreement_gsd: float = 3.0
 
     def __post_init__(self) -> None:
@@ -576,9 +577,9 @@ def _count_nearer(rel: np.ndarray, order: np.ndarray, bounds: np.ndarray, others
 def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans: Sequence[PairPlan],
                      load: FrameLoader, scale: float, centres_xy: np.ndarray, config: DenseConfig,
                      ground_height_m: float) -> ReferencePoints:
-    """The fused points one reference frame keeps (module docstring, steps 2-5), and where its pairs disagree.
-    ``centres_xy`` (M, 2): every frame's projection centre in plan, ``ref``'s among them; a point is kept when
-    ``ref``'s is among the ``config.keep_frames`` nearest."""
+    """The fused points one reference frame keeps (module docstring, steps 2-5). ``centres_xy`` (M, 2): every
+    frame's projection centre in plan, ``ref``'s among them; a point is kept when ``ref``'s is among the
+    ``config.keep_frames`` nearest."""
     if not plans:
         return ReferencePoints.empty()
     ref8, ref_value = load(ref.image_id)
@@ -624,20 +625,6 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
 
 
 @numba.njit(cache=True)
-def _median_of(values: np.ndarray) -> float:
-    """The median of a few values (sorted in place)."""
-    n = values.shape[0]
-    for j in range(1, n):  # insertion sort: a cell holds a few points
-        v = values[j]
-        k = j - 1
-        while k >= 0 and values[k] > v:
-            values[k + 1] = values[k]
-            k -= 1
-        values[k + 1] = v
-    return 0.5 * (values[(n - 1) // 2] + values[n // 2])
-
-
-@numba.njit(cache=True)
 def _confirm_cells(order: np.ndarray, bounds: np.ndarray, z: np.ndarray, rank: np.ndarray, image_id: np.ndarray,
                    tol: float) -> np.ndarray:
     """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``."""
@@ -651,11 +638,11 @@ def _confirm_cells(order: np.ndarray, bounds: np.ndarray, z: np.ndarray, rank: n
                 buf[n_near] = z[order[p]]
                 n_near += 1
         if n_near > 0:
-            reference = _median_of(buf[:n_near])
+            reference = median_in_place(buf[:n_near])
         else:
             for p in range(lo, hi):
                 buf[p - lo] = z[order[p]]
-            reference = _median_of(buf[:hi - lo])
+            reference = median_in_place(buf[:hi - lo])
         first, second = -1, False  # the frames of the close points: a second one confirms the cell
         for p in range(lo, hi):
             i = order[p]

@@ -259,19 +259,24 @@ def _bucket_medians(flat: np.ndarray, z: np.ndarray, n_cells: int) -> tuple[np.n
         fill[flat[i]] += 1
     heights = np.full(n_cells, np.nan)
     for c in range(n_cells):
-        n = counts[c]
-        if n == 0:
-            continue
-        lo = start[c]
-        for j in range(lo + 1, lo + n):  # insertion sort: a cell holds a few points
-            v = bucket[j]
-            k = j - 1
-            while k >= lo and bucket[k] > v:
-                bucket[k + 1] = bucket[k]
-                k -= 1
-            bucket[k + 1] = v
-        heights[c] = 0.5 * (bucket[lo + (n - 1) // 2] + bucket[lo + n // 2])
+        if counts[c]:
+            heights[c] = median_in_place(bucket[start[c]:start[c] + counts[c]])
     return heights, counts
+
+
+@numba.njit(cache=True)
+def median_in_place(values: np.ndarray) -> float:
+    """The median of a few values (``values`` is sorted in place: insertion sort, for the handful of points a
+    cell holds)."""
+    n = values.shape[0]
+    for j in range(1, n):
+        v = values[j]
+        k = j - 1
+        while k >= 0 and values[k] > v:
+            values[k + 1] = values[k]
+            k -= 1
+        values[k + 1] = v
+    return 0.5 * (values[(n - 1) // 2] + values[n // 2])
 
 
 def dsm_from_points(
