@@ -106,7 +106,7 @@ def frames_of(images: pa.Table, poses: pa.Table, cert: Certificate, paths: Mappi
 
 
 #: bytes of enhanced frames each process keeps (:func:`dense_frame`): a reference and its neighbours are the next
-#: references' neighbours too, and each was read and enhanced again up to six times
+#: references' neighbours too (150 rendered city frames were loaded 624 times)
 FRAME_CACHE_BYTES = 512 * 2**20
 _frame_cache: collections.OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = collections.OrderedDict()
 

@@ -124,6 +124,8 @@ class DenseConfig:
             raise ValueError(f"DenseConfig.min_agreeing_pairs must be at least 1, got {self.min_agreeing_pairs}")
         if self.keep_frames < 1:
             raise ValueError(f"DenseConfig.keep_frames must be at least 1, got {self.keep_frames}")
+        if not self.fill_agreement_gsd > 0:
+            raise ValueError(f"DenseConfig.fill_agreement_gsd must be positive, got {self.fill_agreement_gsd}")
 
 
 @dataclass(frozen=True)
@@ -287,8 +289,8 @@ def _upsample(coarse: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
     the pixels of an (h, w) grid: (h, w, C) float32, each channel contiguous.
 
     Separable, as two products with the interpolation weights (float32: OpenCV's resize and remap quantise the
-    weights to 1/32, and float32 keeps a 4000-pixel coordinate to 0.0005 px); twice as fast as indexing the
-    nodes and blending them."""
+    weights to 1/32, and float32 keeps a 4000-pixel coordinate to 0.0005 px); 1.7 times as fast as indexing the
+    nodes and blending them (a 640 x 480 frame, 3 channels)."""
     def weights(n: int, nodes: int) -> np.ndarray:
         x = np.arange(n) / step
         i = np.minimum(np.floor(x).astype(np.int64), nodes - 2)
@@ -384,7 +386,7 @@ def _reference_grid(frame: FrameGeometry, scale: float, depth: float) -> np.ndar
     centre moved to ``C`` at ``depth`` metres)."""
     w, h = int(round(frame.camera.width * scale)), int(round(frame.camera.height * scale))
     # the model on a grid every MAP_STEP pixels, bilinear between (as the rectification maps: the rays are as
-    # smooth as the distortion and the readout; the full model at every pixel took a third of a reference's time)
+    # smooth as the distortion and the readout; the full model at every pixel took a tenth of a reference's time)
     hs, ws = -(-(h - 1) // MAP_STEP) + 1, -(-(w - 1) // MAP_STEP) + 1
     uu, vv = np.meshgrid((np.arange(ws) * MAP_STEP + 0.5) / scale, (np.arange(hs) * MAP_STEP + 0.5) / scale)
     uv = np.stack([uu, vv], -1)
