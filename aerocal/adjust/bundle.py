@@ -112,6 +112,9 @@ class AdjustmentResult:
     conditional_sigmas: dict[str, float] = field(default_factory=dict)
     #: one sentence: what :attr:`sigmas` are marginal over (and what they are still given), with both sigmas
     marginal_note: str = ""
+    #: the rows of the observations table the least-squares adjustment used after the blunder screening; None
+    #: where none was run (``robust_loss`` "none" or ``reject_chi2`` None)
+    kept_rows: np.ndarray | None = None
 
     def summary(self) -> dict:
         """Figures a user checks, JSON-serialisable."""
@@ -328,6 +331,7 @@ def adjust(
     thermal_correction: LinearThermalModel | None = None,
     initial_poses: pa.Table | None = None,
     solver: Callable[[BundleProblem, State], Solution] | None = None,
+    initial: AdjustmentResult | None = None,
 ) -> AdjustmentResult:
     """Bundle adjustment with self-calibration (IO free or fixed per parameter) and an optional thermal model.
 
@@ -347,6 +351,10 @@ def adjust(
             GNSS/IMU; the priors must then be off and at least 3 control GCPs give the datum.
         solver: what solves each least-squares problem (default :func:`aerocal.adjust.solver.solve`; a
             partitioned one, :class:`aerocal.adjust.partition.PartitionedSolver`, for city-scale blocks).
+        initial: an earlier adjustment of the same images to start from: its poses and tie points, and its
+            estimate of the IO parameters and thermal slopes ``config`` frees (the ones it holds start at
+            ``camera``'s values). A nested model (a parameter freed or dropped) then starts next to its optimum;
+            the result is the same optimum, reached in fewer iterations.
 
     Returns:
         :class:`AdjustmentResult`: poses, points, IO with covariance, residuals aligned with ``observations``,
@@ -361,7 +369,7 @@ def adjust(
         used = thin_tracks(observations, camera.width, camera.height, config.tie_thinning)
         inner = adjust(images, observations.take(pa.array(used, pa.int64())), camera,
                        dataclasses.replace(config, tie_thinning=None), gcps, gcp_observations,
-                       thermal_correction, initial_poses, solver)
+                       thermal_correction, initial_poses, solver, initial)
         return _intersect_left_out(inner, images, observations, used, camera, thermal_correction,
                                    config.tie_thinning)
     n_rows = observations.num_rows
@@ -369,12 +377,29 @@ def adjust(
     tie_scale = 1.0
     rejection: list[str] = []
     first = None
-    if config.robust_loss != "none" and config.reject_chi2 is not None:
+    screened = config.robust_loss != "none" and config.reject_chi2 is not None
+    reuse = (screened and initial is not None and initial.kept_rows is not None
+             and len(initial.residuals) == n_rows)
+    if reuse:
+        # the blunders the adjustment this one starts from found are left out again: nested models are compared
+        # on the same observations, and a robust pass from the start is not run again (real h20t_forest: with the
+        # principal point freed, the robust pass slid 15 iterations away from the held model's optimum, to a
+        # least-squares cost 120x that optimum's, and the least-squares adjustment crept back for 50-150)
+        kept = initial.kept_rows
+        rejection.append(f"{n_rows - len(kept)} of {n_rows} observations left out as the adjustment this one "
+                         "starts from screened them")
+        observations = observations.take(pa.array(kept, pa.int64()))
+        a_priori = float(np.median(observations.column("sigma").to_numpy(zero_copy_only=False)))
+        if config.estimate_tie_sigma:
+            tie_scale = initial.tie_sigma_scale
+            observations = scale_tie_sigma(observations, tie_scale)
+        config = dataclasses.replace(config, robust_loss="none")
+    elif screened:
         # a robust pass finds the blunders, they are removed, and the block is adjusted by least squares
         # (data snooping): sigma0, covariances and the check-point prediction then describe clean data
         robust_cfg = dataclasses.replace(config, adaptive=False, max_iterations=config.robust_iterations)
         first = adjust(images, observations, camera, dataclasses.replace(robust_cfg, reject_chi2=None), gcps,
-                       gcp_observations, thermal_correction, initial_poses, solver)
+                       gcp_observations, thermal_correction, initial_poses, solver, initial)
         kept, why, variance_factor = _snoop(observations, first, config.reject_chi2)
         rejection.append(why)
         observations = observations.take(pa.array(kept, pa.int64()))
@@ -390,7 +415,8 @@ def adjust(
         blk, st = initial_state(blk0, camera)
         return blk, (_warm_start(blk, st, previous) if previous is not None else st)
 
-    block, start = setup(observations, first)
+    warm = [first if first is not None else initial]  # the adjustment the free IO starts from (None: ``camera``)
+    block, start = setup(observations, warm[0])
     if config.thermal_t0 is not None:
         t0 = float(config.thermal_t0)
     elif np.isfinite(block.temperature).any():
@@ -401,12 +427,17 @@ def adjust(
     last: list[Solution] = []  # the last run's solution (the selection's result is the last run's)
 
     def run(cfg: AdjustConfig) -> AdjustmentResult:
-        sol = (solver or solve)(BundleProblem(block, cfg, t0), start)
+        # the adaptive selection's next model starts where the last one ended on this block: a dropped
+        # parameter back at its starting value, the others as they were (real h20t_forest: started again
+        # from the records, a selected model took 50-150 iterations and did not always converge)
+        st = (_held_at_start(last[0].state, start, cfg) if last and last[0].state.X.shape == start.X.shape
+              else _free_io_from(start, warm[0], cfg, t0) if warm[0] is not None else start)
+        sol = (solver or solve)(BundleProblem(block, cfg, t0), st)
         last[:] = [sol]
         return _result(block, sol, camera, cfg, observations.num_rows)
 
     final = None  # the least-squares result with the final tie sigma, when it is already at hand
-    if first is not None and config.estimate_tie_sigma:
+    if screened and config.estimate_tie_sigma:
         # the robust pass's residuals estimate the tie sigma only as well as that pass converged (a nominal
         # camera far off in f leaves it far off): re-estimate from the least-squares residuals until the factor
         # is within TIE_SIGMA_TOLERANCE
@@ -419,6 +450,8 @@ def adjust(
             tie_scale *= factor
             observations = scale_tie_sigma(observations, factor)
             block, start = setup(observations, trial)
+            warm[0] = trial
+            last.clear()
         rejection.append(
             f"tie-point sigma estimated from the block: {a_priori:.3g} px a priori x {tie_scale:.3f} = "
             f"{a_priori * tie_scale:.3g} px (GNSS, attitude and GCP sigmas keep their a-priori values)"
@@ -448,6 +481,7 @@ def adjust(
         weight[kept] = result.obs_weight
         result.residuals, result.obs_weight = res, weight
     result.tie_sigma_scale = tie_scale
+    result.kept_rows = kept if screened else None
     return result
 
 
@@ -675,11 +709,45 @@ def _warm_start(block: Block, start: State, first: AdjustmentResult) -> State:
     """``start`` with the poses and tie points of the robust pass ``first`` where it has them.
 
     The least-squares adjustment after the blunders are removed then starts next to its solution and needs
-    fewer iterations. The IO keeps its starting value: a
-    parameter the adaptive selection drops must stay at the nominal or certificate value, not at the
-    robust pass's estimate.
+    fewer iterations. Each adjustment then starts its free IO at ``first``'s estimate too
+    (:func:`_free_io_from`); the IO it holds keeps its starting value.
     """
     return warm_start(block, start, first.poses, first.points)
+
+
+def _free_io_from(start: State, previous: AdjustmentResult, config: AdjustConfig, t0: float) -> State:
+    """``start`` with the IO parameters and thermal slopes that ``config`` frees at ``previous``'s estimate (at the
+    reference temperature ``t0``, degC); the ones it holds keep their starting values (the nominal camera's or a
+    certificate's), so a parameter the adaptive selection drops is held where the caller put it.
+
+    Why: the poses and tie points of a warm start are the earlier adjustment's, which its IO bent to fit; with
+    the IO back at the nominal values they disagree with it (real h20t_forest, k1 -0.25 estimated: the
+    least-squares pass started at a cost 4000x its optimum and needed 46-49 of its 50 iterations, and on some
+    runs crept on to 150 without converging)."""
+    st = start.copy()
+    io = previous.camera.params()
+    slopes = np.zeros(3)
+    if previous.thermal is not None:
+        slopes = np.array([previous.thermal.df_dt, previous.thermal.dcx_dt, previous.thermal.dcy_dt])
+        io[[IDX[n] for n in THERMAL_PARAMS]] += slopes * (t0 - previous.t0)
+    for name in config.free:
+        if name in IDX:
+            st.io[IDX[name]] = io[IDX[name]]
+    for name in config.thermal:
+        k = THERMAL_PARAMS.index(name)
+        st.slopes[k] = slopes[k]
+    return st
+
+
+def _held_at_start(state: State, start: State, config: AdjustConfig) -> State:
+    """``state`` (an adjustment's solution) with the IO parameters and thermal slopes ``config`` does not free
+    put back at their values in ``start``."""
+    st = state.copy()
+    held = [IDX[n] for n in PARAM_NAMES if n not in config.free]
+    st.io[held] = start.io[held]
+    fixed = [k for k, n in enumerate(THERMAL_PARAMS) if n not in config.thermal]
+    st.slopes[fixed] = start.slopes[fixed]
+    return st
 
 
 def warm_start(block: Block, start: State, poses: pa.Table, points: pa.Table) -> State:
