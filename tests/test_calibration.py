@@ -112,8 +112,9 @@ def test_a_principal_point_the_prediction_holds_is_freed_when_held_out_images_re
 
 @pytest.mark.parametrize("seed", [61])
 def test_a_principal_point_held_out_images_do_not_support_stays_held(seed):
-    """One strip of 8 frames cannot tell the principal point from the poses: held by the prediction, and freed it
-    predicts the held-out frames no better, so it stays at the centre and the review says why."""
+    """One strip of 8 frames cannot tell the principal point from the poses: held by the prediction; freed, it
+    predicts the held-out frames no better than 2 standard errors, or (the lens is 15 px off) marginally better with
+    a calibrated sigma the decision rule rejects, so it stays at the centre and the review says which."""
     spec, sim, cfg = _off_centre_flight(1, seed)
     cal = self_calibrate(sim.images, sim.observations, spec.camera_nominal, sim.gcps, sim.gcp_observations,
                          height_agl_m=spec.plan.height_agl_m, config=CalibrationConfig(null_draws=0),
@@ -121,4 +122,7 @@ def test_a_principal_point_held_out_images_do_not_support_stays_held(seed):
     text = "\n".join(cal.review.notes)
     print(f"seed {seed}:", text)
     assert {"cx", "cy"} <= set(cal.held_at_nominal), f"seed {seed}: {cal.held_at_nominal}"
-    assert "cx, cy held at the nominal all the same: freed, they do not predict held-out images better" in text, text
+    why = [n for n in cal.review.notes if n.startswith("cx, cy held at the nominal all the same: freed, they")]
+    assert len(why) == 1, text
+    assert ("do not predict held-out images better" in why[0]
+            or "cy not determined by this block: calibrated sigma" in why[0]), why[0]
