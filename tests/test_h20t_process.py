@@ -61,8 +61,9 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
     text = cert.render_text()
     print(text, "\n", summary["certificate_reason"])
 
-    # the self-calibration converged (it crept for 150 iterations before the solver re-intersected the points
-    # of a failed step); the principal point freed on its held-out gain (measured +4.6 +- 1.2 % of the held-out
+    # the self-calibration converged (with the principal point freed it crept for 150 iterations when each model
+    # started from the records: RESULTS.md, "h20t_forest: the self-calibration starts each model from the one it
+    # extends"); the principal point freed on its held-out gain (measured +4.6 +- 1.2 % of the held-out
     # frames' misfit); the block's depth against the laser ranges no fit used (measured +0.00 +- 0.22 m over 20
     # frames; +5.8 m, 8 %, with the principal point held at the centre); the certificate is the one the block used
     assert cert.status == "accepted", text
