@@ -351,10 +351,12 @@ def adjust(
             GNSS/IMU; the priors must then be off and at least 3 control GCPs give the datum.
         solver: what solves each least-squares problem (default :func:`aerocal.adjust.solver.solve`; a
             partitioned one, :class:`aerocal.adjust.partition.PartitionedSolver`, for city-scale blocks).
-        initial: an earlier adjustment of the same images to start from: its poses and tie points, and its
-            estimate of the IO parameters and thermal slopes ``config`` frees (the ones it holds start at
-            ``camera``'s values). A nested model (a parameter freed or dropped) then starts next to its optimum;
-            the result is the same optimum, reached in fewer iterations.
+        initial: an earlier adjustment of the same images and ``observations`` table to start from: its poses
+            and tie points, and its estimate of the IO parameters and thermal slopes ``config`` frees (the ones
+            it holds start at ``camera``'s values); where it screened blunders (``initial.kept_rows``), the same
+            observations are left out and its tie sigma is the start of this one's, with no robust pass. A
+            nested model (a parameter freed or dropped) then starts next to its optimum and is fitted to the
+            same data as the model it extends.
 
     Returns:
         :class:`AdjustmentResult`: poses, points, IO with covariance, residuals aligned with ``observations``,
@@ -382,9 +384,8 @@ def adjust(
              and len(initial.residuals) == n_rows)
     if reuse:
         # the blunders the adjustment this one starts from found are left out again: nested models are compared
-        # on the same observations, and a robust pass from the start is not run again (real h20t_forest: with the
-        # principal point freed, the robust pass slid 15 iterations away from the held model's optimum, to a
-        # least-squares cost 120x that optimum's, and the least-squares adjustment crept back for 50-150)
+        # on the same observations, and no robust pass runs (one can slide away from the optimum it starts at:
+        # benchmarks/RESULTS.md, "h20t_forest: the self-calibration starts each model from the one it extends")
         kept = initial.kept_rows
         rejection.append(f"{n_rows - len(kept)} of {n_rows} observations left out as the adjustment this one "
                          "starts from screened them")
@@ -428,8 +429,7 @@ def adjust(
 
     def run(cfg: AdjustConfig) -> AdjustmentResult:
         # the adaptive selection's next model starts where the last one ended on this block: a dropped
-        # parameter back at its starting value, the others as they were (real h20t_forest: started again
-        # from the records, a selected model took 50-150 iterations and did not always converge)
+        # parameter back at its starting value, the others as they were
         st = (_held_at_start(last[0].state, start, cfg) if last and last[0].state.X.shape == start.X.shape
               else _free_io_from(start, warm[0], cfg, t0) if warm[0] is not None else start)
         sol = (solver or solve)(BundleProblem(block, cfg, t0), st)
@@ -721,9 +721,8 @@ def _free_io_from(start: State, previous: AdjustmentResult, config: AdjustConfig
     certificate's), so a parameter the adaptive selection drops is held where the caller put it.
 
     Why: the poses and tie points of a warm start are the earlier adjustment's, which its IO bent to fit; with
-    the IO back at the nominal values they disagree with it (real h20t_forest, k1 -0.25 estimated: the
-    least-squares pass started at a cost 4000x its optimum and needed 46-49 of its 50 iterations, and on some
-    runs crept on to 150 without converging)."""
+    the IO back at the nominal values they disagree with it, and the adjustment starts far from both (benchmarks/
+    RESULTS.md, "h20t_forest: the self-calibration starts each model from the one it extends")."""
     st = start.copy()
     io = previous.camera.params()
     slopes = np.zeros(3)

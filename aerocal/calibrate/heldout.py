@@ -172,7 +172,8 @@ def compare_models(
 
     ``simple`` and ``extended`` are self-calibrating configurations (their ``free`` and ``thermal`` say what
     each model estimates); ``camera`` is the starting (nominal) camera. Both are run without adaptive
-    selection, for at most ``config.max_iterations`` iterations.
+    selection, for at most ``config.max_iterations`` iterations, the extended one started from the simpler one's
+    fit of the fold (``adjust(..., initial=...)``: its poses, tie points and blunder screening).
     """
     config = config or HeldOutConfig()
     fold_of, units = fold_groups(images, config)
@@ -203,8 +204,9 @@ def compare_models(
             for n, cfg in enumerate(cfgs):
                 # the extended model starts from the simpler one's fit on the same images (its poses, tie points
                 # and blunder screening): both then end next to their optimum within the iteration budget, and
-                # the gain is the model's, not the start's (real h20t_forest, the principal point freed from
-                # the records: 20 of 20 iterations, the cost still falling by 0.5-20 % a step)
+                # the gain is the model's, not the start's (from the records, the extended fits of real
+                # h20t_forest stopped at the cap: benchmarks/RESULTS.md, "h20t_forest: the self-calibration
+                # starts each model from the one it extends")
                 fit = adjust(select_images(images, train), select_images(observations, train), camera, cfg,
                              gcps, sub(gcp_observations, train), initial=fit)
                 if n == 0:  # one tie weight for both evaluations: the simpler model's estimate on the fit

@@ -282,9 +282,10 @@ def self_calibrate(
             notes.extend(held.values())
 
     def fit(cfg: AdjustConfig, start: AdjustmentResult | None = None) -> AdjustmentResult:
-        # ``start``: an earlier fit of a nested model, which this one starts from (the same optimum, reached
-        # from next to it: on real h20t_forest the principal point freed from the records' start took 50 of
-        # its 50 iterations, and on some runs did not converge in 150)
+        # ``start``: the fit of the model this one extends or reduces, which it starts from and whose blunder
+        # screening it keeps (from the records, the real h20t_forest block with the principal point freed did
+        # not always converge: benchmarks/RESULTS.md, "h20t_forest: the self-calibration starts each model
+        # from the one it extends")
         result = adjust(sub_images, sub_obs, camera, cfg, gcps, sub_gobs, initial=start)
         if result.converged:
             return result
