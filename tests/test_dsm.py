@@ -175,3 +175,29 @@ def test_data_cells_on_one_line_fill_the_grid_with_the_nearest_height():
     assert dsm.heights.min() >= 20.0 - 1e-6 and dsm.heights.max() <= 30.0 + 1e-6
     west_col = dsm.heights[:, :3]
     assert np.all(west_col < 21.0)
+
+
+@pytest.mark.parametrize("seed", [5])
+def test_cell_medians_are_the_median_of_the_points_in_each_cell(seed):
+    """The gridding's per-cell median and count (bucketed in numba, the cell of each point computed where it is
+    used) against their numpy definition, with points on cell edges, several per cell and outside the grid."""
+    from aerocal.products.dsm import _cell_medians
+
+    rng = np.random.default_rng(seed)
+    west, north, cell, shape = 100.0, 500.0, 0.5, (40, 60)
+    e = np.r_[rng.uniform(95.0, 135.0, 6000), west + cell * rng.integers(0, 60, 200)]  # some on cell edges
+    n = np.r_[rng.uniform(475.0, 505.0, 6000), north - cell * rng.integers(0, 40, 200)]
+    z = rng.normal(10.0, 3.0, len(e))
+    heights, counts = _cell_medians(np.column_stack([e, n, z]), west, north, cell, shape)
+    c, r = np.floor((e - west) / cell).astype(int), np.floor((north - n) / cell).astype(int)
+    inside = (c >= 0) & (c < shape[1]) & (r >= 0) & (r < shape[0])
+    assert (~inside).sum() > 500, f"seed {seed}: too few points outside the grid to test"
+    want = np.full(shape, np.nan)
+    want_counts = np.zeros(shape, dtype=int)
+    keys = r[inside] * shape[1] + c[inside]
+    for k in np.unique(keys):
+        want.flat[k] = np.median(z[inside][keys == k])
+        want_counts.flat[k] = np.count_nonzero(keys == k)
+    assert np.array_equal(counts, want_counts), f"seed {seed}"
+    assert np.array_equal(np.isnan(heights), np.isnan(want)), f"seed {seed}"
+    assert np.allclose(heights[np.isfinite(want)], want[np.isfinite(want)], rtol=0, atol=1e-12), f"seed {seed}"

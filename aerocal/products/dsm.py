@@ -233,35 +233,52 @@ def reject_outliers(points: np.ndarray, config: DsmConfig, cell_m: float,
     return (keep, enough) if return_supported else keep
 
 
-def _cell_medians(rows_idx: np.ndarray, cols_idx: np.ndarray, z: np.ndarray, shape: tuple[int, int]):
-    """Median of ``z`` per cell and the points per cell: (heights (rows, cols) float64, NaN where no point;
-    counts (rows, cols) int32). The points are bucketed by cell and each bucket sorted (:func:`_bucket_medians`):
-    linear in the points, where sorting them all by cell and height took 24 s of a 38-million-point cloud."""
-    flat = rows_idx.astype(np.int64) * shape[1] + cols_idx
-    heights, counts = _bucket_medians(flat, np.asarray(z, dtype=np.float64), shape[0] * shape[1])
+def _cell_medians(points: np.ndarray, west: float, north: float, cell: float, shape: tuple[int, int]):
+    """Median height per cell of the points (N, 3: E, N, height, metres) on the grid whose top-left corner is
+    (``west``, ``north``) and whose cells are ``cell`` metres, and the points per cell: (heights (rows, cols)
+    float64, NaN where no point; counts (rows, cols) int32); points outside the grid are left out. The points
+    are bucketed by cell and each bucket sorted (:func:`_bucket_medians`): linear in the points, where sorting
+    them all by cell and height took 24 s of a 38-million-point cloud."""
+    heights, counts = _bucket_medians(np.ascontiguousarray(points, dtype=np.float64), float(west), float(north),
+                                      float(cell), shape[0], shape[1])
     return heights.reshape(shape), counts.reshape(shape)
 
 
 @numba.njit(cache=True)
-def _bucket_medians(flat: np.ndarray, z: np.ndarray, n_cells: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per cell index in ``flat`` (N,), the median of its ``z`` (NaN for none) and the count (int32)."""
+def _bucket_medians(points: np.ndarray, west: float, north: float, cell: float, rows: int,
+                    cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_cell_medians` flat: per cell, the median height (NaN for none) and the count (int32); the cell
+    of each point computed where it is used, so no per-point index array is held beside the cloud."""
+    n_cells = rows * cols
     counts = np.zeros(n_cells, dtype=np.int32)
-    for i in range(flat.shape[0]):
-        counts[flat[i]] += 1
-    start = np.empty(n_cells + 1, dtype=np.int64)
-    start[0] = 0
+    for i in range(points.shape[0]):
+        k = _cell_of(points[i, 0], points[i, 1], west, north, cell, rows, cols)
+        if k >= 0:
+            counts[k] += 1
+    end = np.empty(n_cells, dtype=np.int64)  # where each cell's bucket ends once filled
+    total = 0
     for c in range(n_cells):
-        start[c + 1] = start[c] + counts[c]
-    fill = start[:-1].copy()
-    bucket = np.empty(flat.shape[0], dtype=np.float64)
-    for i in range(flat.shape[0]):
-        bucket[fill[flat[i]]] = z[i]
-        fill[flat[i]] += 1
+        end[c] = total  # its start while filling
+        total += counts[c]
+    bucket = np.empty(total, dtype=np.float64)
+    for i in range(points.shape[0]):
+        k = _cell_of(points[i, 0], points[i, 1], west, north, cell, rows, cols)
+        if k >= 0:
+            bucket[end[k]] = points[i, 2]
+            end[k] += 1
     heights = np.full(n_cells, np.nan)
     for c in range(n_cells):
         if counts[c]:
-            heights[c] = median_in_place(bucket[start[c]:start[c] + counts[c]])
+            heights[c] = median_in_place(bucket[end[c] - counts[c]:end[c]])
     return heights, counts
+
+
+@numba.njit(cache=True)
+def _cell_of(e: float, n: float, west: float, north: float, cell: float, rows: int, cols: int) -> int:
+    """The flat index (row-major) of the cell holding (``e``, ``n``), -1 outside the grid."""
+    c = int(np.floor((e - west) / cell))
+    r = int(np.floor((north - n) / cell))
+    return r * cols + c if 0 <= c < cols and 0 <= r < rows else -1
 
 
 @numba.njit(cache=True)
@@ -298,7 +315,9 @@ def dsm_from_points(
         pts = np.asarray(points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"dsm_from_points: points must be (N, 3) E, N, height; got shape {pts.shape}")
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    finite = np.all(np.isfinite(pts), axis=1)
+    if not finite.all():  # a copy only where a point must go: a dense cloud is a gigabyte
+        pts = pts[finite]
     if len(pts) < 3:
         raise ValueError(f"dsm_from_points: need at least 3 finite points, got {len(pts)}")
     cell = config.cell_size(gsd_m)
@@ -313,21 +332,22 @@ def dsm_from_points(
         keep, supported = reject_outliers(pts, config, cell, return_supported=True)
     else:
         keep = supported = np.ones(len(pts), dtype=bool)
-    good = pts[keep]
+    n_points, n_rejected = len(pts), int(np.count_nonzero(~keep))
+    good = pts if not n_rejected else pts[keep]
     # the extent comes from points with neighbours: a lone point (a weakly intersected tie point far off
     # the block) would otherwise stretch the grid over kilometres of nothing
-    core = pts[keep & supported] if np.count_nonzero(keep & supported) >= 3 else good
+    both = keep & supported
+    core = (good if both.all() else pts[both]) if np.count_nonzero(both) >= 3 else good
     w, s, e, n = bounds if bounds is not None else (core[:, 0].min(), core[:, 1].min(),
                                                       core[:, 0].max(), core[:, 1].max())
+    del pts, core, keep, supported, both, finite
     m = config.margin_cells * cell
     west = np.floor((w - m) / cell) * cell
     north = np.ceil((n + m) / cell) * cell
     cols = int(np.ceil((e + m - west) / cell))
     rows = int(np.ceil((north - (s - m)) / cell))
-    c = np.floor((good[:, 0] - west) / cell).astype(np.int64)
-    r = np.floor((north - good[:, 1]) / cell).astype(np.int64)
-    inside = (c >= 0) & (c < cols) & (r >= 0) & (r < rows)
-    heights, counts = _cell_medians(r[inside], c[inside], good[inside, 2], (rows, cols))
+    heights, counts = _cell_medians(good, west, north, cell, (rows, cols))
+    del good  # the cells hold what the filling needs: a city's cloud is not kept through it
     has = np.isfinite(heights)
 
     distance = ndimage.distance_transform_edt(~has).astype(np.float32) * np.float32(cell)
@@ -336,7 +356,7 @@ def dsm_from_points(
         if config.max_fill_distance_m is not None:
             heights[distance > config.max_fill_distance_m] = np.nan
     stats = {
-        "points": int(len(pts)), "rejected_outliers": int((~keep).sum()), "cells_with_data": int(has.sum()),
+        "points": n_points, "rejected_outliers": n_rejected, "cells_with_data": int(has.sum()),
         "cells": int(rows * cols), "cell_m": float(cell),
     }
     return Dsm(heights=heights.astype(np.float32), west=float(west), north=float(north), cell_m=float(cell),
@@ -393,14 +413,16 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
     if not (~has).any():
         return heights
     if pinholes:
-        heights, has = _fill_pinholes(heights, has)
+        heights, has = _fill_pinholes(heights, has)  # copies: filled in place below
         if has.all():
             return heights
     # the vertices are the data cells on a hole's rim: linear interpolation inside a hole needs no others, and a
     # dense DSM (millions of data cells) would otherwise be triangulated whole
     rim = has & ndimage.binary_dilation(~has, structure=np.ones((3, 3), dtype=bool))
     rr, cc = np.nonzero(rim)
-    out = heights.astype(np.float64, copy=True)
+    # the hole cells are written, the data cells only read: the pinholes' copy is filled in place (a city's grid
+    # is 76 million cells)
+    out = heights if pinholes and heights.dtype == np.float64 else heights.astype(np.float64, copy=True)
     filled = has.copy()
     try:
         tri = Delaunay(np.column_stack([rr, cc]).astype(float))
