@@ -12,10 +12,13 @@ import contextlib
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 #: set by :func:`interrupt_handler` when Ctrl-C arrives, checked at every step boundary (:func:`check_interrupted`)
 _INTERRUPTED = threading.Event()
+#: set when Ctrl-C ended the last :func:`interrupts_noted` block: the hook stays quiet while the interrupt unwinds
+_ENDED_BY_INTERRUPT = threading.Event()
 
 
 def interrupt_handler(signum: int, frame: object) -> None:
@@ -28,34 +31,58 @@ def interrupt_handler(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
+class _QuietAfterInterrupt:
+    """The unraisable hook inside :func:`interrupts_noted`, and after a block Ctrl-C ended.
+
+    Inside the block a KeyboardInterrupt lost in a finalizer is quiet (it is raised again at the next step
+    boundary). Once Ctrl-C has arrived, any exception raised in a finalizer is quiet too: an object the interrupt
+    left half built fails in its own ``__del__`` when it is collected, possibly after the block, as the process
+    exits (llvmlite's pass manager, interrupted while numba compiled a kernel on a first run, printed
+    "AttributeError: ... no attribute '_as_parameter_'" after "interrupted"). Anything else goes to ``wrapped``.
+    """
+
+    def __init__(self, wrapped: Callable[[Any], object]) -> None:
+        self.wrapped = wrapped
+
+    def __call__(self, unraisable: Any) -> None:
+        if not _INTERRUPTED.is_set() and not _ENDED_BY_INTERRUPT.is_set():
+            self.wrapped(unraisable)
+
+
 @contextlib.contextmanager
 def interrupts_noted() -> Iterator[None]:
     """:func:`interrupt_handler` as the SIGINT handler for the block (main thread only; elsewhere the block
-    runs as it is), the previous handler restored after it."""
+    runs as it is), the previous handler restored after it. Exceptions in finalizers after Ctrl-C are quiet
+    (:class:`_QuietAfterInterrupt`) until the next block starts."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     _INTERRUPTED.clear()
+    _ENDED_BY_INTERRUPT.clear()
     previous = signal.signal(signal.SIGINT, interrupt_handler)
-    previous_hook = sys.unraisablehook
-
-    def quiet_lost_interrupt(unraisable: object) -> None:
-        # the lost KeyboardInterrupt is raised again at the next step boundary: no "Exception ignored" traceback
-        if not (_INTERRUPTED.is_set() and unraisable.exc_type is KeyboardInterrupt):  # type: ignore[attr-defined]
-            previous_hook(unraisable)  # type: ignore[arg-type]
-
-    sys.unraisablehook = quiet_lost_interrupt
+    hook = sys.unraisablehook
+    previous_hook = hook.wrapped if isinstance(hook, _QuietAfterInterrupt) else hook
+    sys.unraisablehook = _QuietAfterInterrupt(previous_hook)
+    ended_by_interrupt = False
     try:
         yield
+    except KeyboardInterrupt:
+        ended_by_interrupt = True
+        raise
     except Exception as exc:
         # Ctrl-C landing inside a library's own bookkeeping can come out as that library's error (Prefect's
         # "Task run is not set" for a Ctrl-C early in a run): still the user's interrupt
         if _INTERRUPTED.is_set():
+            ended_by_interrupt = True
             raise KeyboardInterrupt from exc
         raise
     finally:
         signal.signal(signal.SIGINT, previous)
-        sys.unraisablehook = previous_hook
+        if ended_by_interrupt or _INTERRUPTED.is_set():
+            # the quiet hook stays: what the interrupt left half built is collected later, as the process exits
+            _ENDED_BY_INTERRUPT.set()
+        else:
+            sys.unraisablehook = previous_hook
         _INTERRUPTED.clear()  # a later run in this process (a served flow) starts without it
 
 
@@ -63,8 +90,6 @@ def check_interrupted() -> None:
     """Raise KeyboardInterrupt if Ctrl-C arrived (:func:`interrupt_handler`) and was swallowed since."""
     if _INTERRUPTED.is_set():
         raise KeyboardInterrupt
-
-
 
 
 def was_interrupted() -> bool:
