@@ -1,11 +1,13 @@
 """Orthomosaic of a rendered simulated flight: a GeoTIFF a GIS opens, targets where they were surveyed."""
 
+import cv2
 import numpy as np
 import pytest
 import rasterio
 
 from aerocal.assess import mosaic_target_residuals
 from aerocal.camera import Camera, LinearThermalModel
+from aerocal.ingest.pixels import read_raw
 from aerocal.products.dsm import Dsm, dsm_from_points
 from aerocal.products.mosaic import MosaicConfig, build_mosaic, frames_from_poses
 
@@ -127,6 +129,51 @@ def test_dask_and_serial_mosaics_are_identical(flight, client):
         assert a.transform == b.transform and a.shape == b.shape
         assert np.array_equal(a.read(), b.read())
     assert sorted(calls) == list(range(1, res.tiles + 1))
+
+
+def test_a_frame_is_decoded_once_and_the_crop_it_is_resampled_from_changes_no_value(flight, monkeypatch):
+    """Tiles touching a frame read it from the process's cache (a visible block's mosaic was decode-bound), and
+    each tile converts only the part of the frame it reads: the same bytes as resampling whole frames held in
+    memory."""
+    import aerocal.products.mosaic as mosaic
+
+    reads = []
+    monkeypatch.setattr(mosaic, "_decoded", type(mosaic._decoded)())
+    monkeypatch.setattr(mosaic, "read_frame", lambda p: reads.append(p) or read_raw(p))
+    res = build_mosaic(flight["frames"], flight["images"], flight["dsm"], flight["work"] / "ortho_once.tif",
+                       MosaicConfig(gsd_m=flight["gsd"], tile_px=64))
+    assert res.tiles > 4 * len(flight["frames"]), res.tiles  # many tiles per frame
+    assert len(reads) == len(set(reads)) <= len(flight["frames"]), sorted(reads)
+    whole = {f.image_id: read_raw(flight["images"][f.image_id]) for f in flight["frames"]}
+    held = build_mosaic(flight["frames"], whole, flight["dsm"], flight["work"] / "ortho_held.tif",
+                        MosaicConfig(gsd_m=flight["gsd"], tile_px=64))
+    with rasterio.open(res.path) as a, rasterio.open(held.path) as b:
+        assert np.array_equal(a.read(), b.read())
+    # the crop: where a tile reads, the values of resampling the whole frame, to the bit
+    rng = np.random.default_rng(SEED)
+    img = whole[flight["frames"][0].image_id]
+    h, w = img.shape[:2]
+    for u0, v0 in [(0.0, 0.0), (w - 40.0, h - 40.0), (300.0, 200.0)]:
+        map_u = (u0 + 40 * rng.random((32, 32)) - 0.5).astype(np.float32)
+        map_v = (v0 + 40 * rng.random((32, 32)) - 0.5).astype(np.float32)
+        used = rng.random((32, 32)) < 0.7
+        map_u[~used] = -10.0  # a pixel the frame does not see
+        full = cv2.remap(img.astype(np.float32), map_u, map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        assert np.array_equal(mosaic._resampled(img, map_u, map_v, used)[used], full[used]), (u0, v0)
+
+
+def test_hilbert_order_visits_every_tile_once_each_next_to_the_last():
+    from aerocal.products.mosaic import _hilbert_order
+
+    for rows, cols in [(16, 16), (5, 13), (1, 7), (1, 1)]:
+        order = _hilbert_order(rows, cols)
+        assert sorted(order.tolist()) == list(range(rows * cols))
+        r, c = np.divmod(order, cols)
+        steps = np.abs(np.diff(r)) + np.abs(np.diff(c))
+        if rows == cols == 16:
+            assert np.all(steps == 1)
+        else:  # the curve leaves the grid and comes back: most steps are still to a neighbour
+            assert np.mean(steps == 1) > 0.8 if len(steps) else True
 
 
 def test_tiles_whose_frames_are_missing_are_nodata_not_zeros(flight, client):

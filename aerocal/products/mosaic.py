@@ -32,11 +32,14 @@ Parallelism: the grid is cut into tiles of ``tile_px``; each tile is one task (o
 ``distributed.Client`` when one is passed, serially otherwise) that receives only the frames whose
 footprint (the image border cast onto planes at the lowest and highest DSM heights under the frame) touches it,
 their pixels and the DSM window under the tile. Serial and Dask runs give identical bytes (the same
-function, frames summed in image-id order).
+function, frames summed in image-id order). Tiles run along a Hilbert curve over the grid, and each process keeps
+the frames it decoded last (:func:`frame_pixels`): a frame is decoded about once per process, not once per tile
+that touches it, and only the part of it a tile reads is converted for resampling.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import shutil
 import tempfile
@@ -207,6 +210,50 @@ def read_frame(path: str | Path) -> np.ndarray:
         raise ValueError(str(exc)) from exc
 
 
+#: bytes of decoded frames each process keeps (:func:`frame_pixels`): tiles are rendered in an order that keeps
+#: neighbours together (:func:`_hilbert_order`), so the frames a tile needs are mostly those the last tiles read;
+#: 768 MiB hold about 26 frames of 3600 x 2700 RGB, or every frame of a 640 x 512 thermal block of 1,000
+FRAME_CACHE_BYTES = 768 * 2**20
+_decoded: collections.OrderedDict[str, np.ndarray] = collections.OrderedDict()
+
+
+def frame_pixels(path: str | Path) -> np.ndarray:
+    """:func:`read_frame`, with the last frames read in this process, up to :data:`FRAME_CACHE_BYTES`, kept and
+    returned read-only: each tile that touches a frame decoded it again, and a visible block's mosaic was
+    decode-bound (a 3600 x 2700 JPEG decodes in about 0.1 s, and each is read by tens of tiles)."""
+    key = str(path)
+    if key in _decoded:
+        _decoded.move_to_end(key)
+        return _decoded[key]
+    img = read_frame(path)
+    img.flags.writeable = False
+    _decoded[key] = img
+    while sum(a.nbytes for a in _decoded.values()) > FRAME_CACHE_BYTES and len(_decoded) > 1:
+        _decoded.popitem(last=False)
+    return img
+
+
+def _hilbert_order(rows: int, cols: int) -> np.ndarray:
+    """Indices of a ``rows`` x ``cols`` grid (row-major) in the order of a Hilbert curve over it: consecutive cells
+    are neighbours, and any run of them stays compact, so tiles rendered in this order share their frames."""
+    n = 1 << max(int(np.ceil(np.log2(max(rows, cols, 1)))), 0)
+    r, c = np.divmod(np.arange(rows * cols), cols)
+    x, y = c.copy(), r.copy()
+    d = np.zeros(rows * cols, dtype=np.int64)
+    s = n // 2
+    while s > 0:
+        rx = (x & s) > 0
+        ry = (y & s) > 0
+        d += s * s * ((3 * rx) ^ ry)
+        # rotate the quadrant so the curve's pieces join
+        flip = ~ry & rx
+        x = np.where(flip, s - 1 - x, x)
+        y = np.where(flip, s - 1 - y, y)
+        x, y = np.where(~ry, y, x), np.where(~ry, x, y)
+        s //= 2
+    return np.argsort(d, kind="stable")
+
+
 @dataclass(frozen=True)
 class TileSpec:
     """One tile of the output grid: pixel offsets and size, and the grid's origin and pixel size."""
@@ -269,13 +316,12 @@ def render_tile(
             continue
         img = pixels[k]
         if not isinstance(img, np.ndarray):
-            img = read_frame(img)
+            img = frame_pixels(img)
         cam = fr.camera
         if img.shape[:2] != (cam.height, cam.width):
             raise ValueError(f"image {fr.image_id}: pixels are {img.shape[1]}x{img.shape[0]}, its camera says "
                              f"{cam.width}x{cam.height}; give the frame's original pixels")
-        vals = cv2.remap(img.astype(np.float32), *maps[k], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        vals = vals.reshape(shape + (-1,))
+        vals = _resampled(img, *maps[k], wk > 0).reshape(shape + (-1,))
         acc += np.moveaxis(vals, -1, 0) * wk
         wsum += wk
     valid = seen & (wsum > 0)
@@ -287,6 +333,26 @@ def render_tile(
         mean = np.where(mean == nodata, nodata - 1 if nodata == info.max else nodata + 1, mean)
     out[:, valid] = mean[:, valid].astype(dtype)
     return tile, out
+
+
+def _resampled(img: np.ndarray, map_u: np.ndarray, map_v: np.ndarray, used: np.ndarray) -> np.ndarray:
+    """``img`` resampled bilinearly at (``map_u``, ``map_v``) (OpenCV's pixel convention), as float32, exact where
+    ``used``; elsewhere any finite value.
+
+    Only the part of the frame the used positions reach is converted to float32 (with the pixel beyond each side
+    bilinear interpolation reads): a 256-px tile reads about 256 x 256 px of a frame, and converting the whole
+    of a 3600 x 2700 RGB frame per tile (117 MB) took most of a visible block's mosaic time (benchmarks/
+    RESULTS.md, "Orthomosaic of large visible frames against the decode-and-resample limit")."""
+    u, v = map_u[used], map_v[used]
+    h, w = img.shape[:2]
+    c0 = int(np.clip(np.floor(u.min()) - 1, 0, w - 1))
+    c1 = int(np.clip(np.floor(u.max()) + 3, c0 + 1, w))
+    r0 = int(np.clip(np.floor(v.min()) - 1, 0, h - 1))
+    r1 = int(np.clip(np.floor(v.max()) + 3, r0 + 1, h))
+    crop = img[r0:r1, c0:c1].astype(np.float32)
+    # BORDER_REPLICATE at the crop's edge is the frame's own edge or a pixel no used position reads
+    return cv2.remap(crop, map_u - np.float32(c0), map_v - np.float32(r0), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
 
 
 def _frame_view_numpy(fr: FrameGeometry, X: np.ndarray, feather_px: float, map_u: np.ndarray, map_v: np.ndarray,
@@ -411,18 +477,20 @@ def build_mosaic(
 
     # data type and bands from the first frame
     first = images[frames[0].image_id]
-    sample = first if isinstance(first, np.ndarray) else read_frame(first)
+    sample = first if isinstance(first, np.ndarray) else frame_pixels(first)
     dtype = str(sample.dtype)
     bands = 1 if sample.ndim == 2 else int(sample.shape[2])
     if dtype not in ("uint8", "uint16"):
         raise ValueError(f"build_mosaic: frames of dtype {dtype} are not supported; give uint8 or uint16 pixels")
     nodata = config.nodata if config.nodata is not None else (65535 if dtype == "uint16" else 0)
 
-    tiles = []
-    for r0 in range(0, height, config.tile_px):
-        for c0 in range(0, width, config.tile_px):
-            tiles.append(TileSpec(r0, c0, min(config.tile_px, height - r0), min(config.tile_px, width - c0),
-                                  float(west), float(north), float(gsd)))
+    grid = [TileSpec(r0, c0, min(config.tile_px, height - r0), min(config.tile_px, width - c0),
+                     float(west), float(north), float(gsd))
+            for r0 in range(0, height, config.tile_px) for c0 in range(0, width, config.tile_px)]
+    # rendered along a Hilbert curve: the tiles a worker renders one after another share their frames, which
+    # it then decodes once (frame_pixels)
+    order = _hilbert_order(-(-height // config.tile_px), -(-width // config.tile_px))
+    tiles = [grid[k] for k in order]
 
     def members(tile: TileSpec) -> list[int]:
         tw, ts, te, tn = tile.bounds()
@@ -466,21 +534,14 @@ def build_mosaic(
 
 
 def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client):
-    """Yield (tile, array) as tiles complete: serially, or on the Dask client."""
+    """Yield (tile, array) as tiles complete: serially, or on the Dask client (in ``tiles``' order, which the
+    scheduler keeps for tasks submitted one after another). A frame given as a path is decoded where the tile
+    is rendered, once per process while it is in use (:func:`frame_pixels`)."""
     args = (config.feather_px, nodata, dtype, bands)
     if client is None:
-        cache: dict[int, np.ndarray] = {}
-
-        def pix(k: int) -> np.ndarray:
-            iid = frames[k].image_id
-            if iid not in cache:
-                v = images[iid]
-                cache[iid] = v if isinstance(v, np.ndarray) else read_frame(v)
-            return cache[iid]
-
         for tile in tiles:
             idx = members(tile)
-            yield render_tile(tile, [frames[k] for k in idx], [pix(k) for k in idx],
+            yield render_tile(tile, [frames[k] for k in idx], [images[frames[k].image_id] for k in idx],
                               dsm.window(tile.bounds()), *args)
         return
 

@@ -1,0 +1,125 @@
+"""Orthomosaic of large visible frames on a Dask cluster, against the decode-and-resample limit of the same frames.
+
+Frames: the shared seneca JPEGs (1620 x 1215) enlarged to ``--scale`` times their size (2.2: 3564 x 2673, about
+the 3600 x 2700 of seneca's full-resolution original) and written as JPEG (quality 92), so that decoding one costs
+what a survey camera's frame costs. Geometry: a nadir block of ``--strips`` x ``--per-strip`` frames over a flat
+surface, 75 % forward and 60 % side overlap, the output at the frames' ground sampling distance (3 cm).
+
+Baseline measured in the same run, the limit of any orthomosaic of these frames on these cores: each frame decoded
+once, and an output the size of its footprint resampled from it once (``cv2.remap``, bilinear), the sum divided by
+the workers. The mosaic's time is printed as a ratio against it.
+
+    python -m benchmarks.mosaic_bench [--scale 2.2] [--strips 5] [--per-strip 8] [--workers 2]
+
+Target: the mosaic within 3x of the decode-and-resample limit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from aerocal.camera import Camera
+from aerocal.matching.cluster import local_client
+from aerocal.products.dsm import Dsm
+from aerocal.products.mosaic import FrameGeometry, MosaicConfig, build_mosaic, read_frame
+from benchmarks.common import peak_rss_mb, record
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+#: world-to-camera rotation of a nadir frame: x east, y south, z down
+NADIR = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])
+GSD_M = 0.03
+HEIGHT_M = 100.0
+
+
+def write_frames(out: Path, scale: float, n: int) -> list[Path]:
+    """``n`` seneca JPEGs resized to ``scale`` times 1620 x 1215 (most of them are that size), written as JPEG
+    to ``out``."""
+    size = (round(1620 * scale), round(1215 * scale))
+    sources = sorted((DATA / "seneca" / "images").glob("*.[jJ][pP][gG]"))
+    paths = []
+    for k in range(n):
+        img = cv2.imread(str(sources[k % len(sources)]))
+        big = cv2.resize(img, size, interpolation=cv2.INTER_CUBIC)
+        path = out / f"frame_{k:03d}.jpg"
+        cv2.imwrite(str(path), big, [cv2.IMWRITE_JPEG_QUALITY, 92])
+        paths.append(path)
+    return paths
+
+
+def nadir_block(camera: Camera, strips: int, per_strip: int) -> list[FrameGeometry]:
+    """A nadir block at ``HEIGHT_M`` above the ground: 75 % forward, 60 % side overlap."""
+    along = 0.25 * camera.height * GSD_M
+    across = 0.40 * camera.width * GSD_M
+    frames = []
+    for s in range(strips):
+        for k in range(per_strip):
+            C = np.array([s * across, k * along, HEIGHT_M])
+            frames.append(FrameGeometry(image_id=len(frames), camera=camera, R_cw=NADIR, C=C))
+    return frames
+
+
+def decode_and_resample_s(paths: list[Path], camera: Camera) -> tuple[float, float]:
+    """Seconds to decode every frame once, and to resample a footprint-sized output from each once (one core)."""
+    t0 = time.perf_counter()
+    frames = [read_frame(p) for p in paths]
+    decode = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    t0 = time.perf_counter()
+    for img in frames:
+        u, v = np.meshgrid(np.arange(camera.width, dtype=np.float32), np.arange(camera.height, dtype=np.float32))
+        u += rng.random(dtype=np.float32)
+        v += rng.random(dtype=np.float32)
+        cv2.remap(img, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return decode, time.perf_counter() - t0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scale", type=float, default=2.2)
+    parser.add_argument("--strips", type=int, default=5)
+    parser.add_argument("--per-strip", type=int, default=8)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="mosaic-bench-") as tmp:
+        work = Path(tmp)
+        paths = write_frames(work, args.scale, args.strips * args.per_strip)
+        h, w = read_frame(paths[0]).shape[:2]
+        camera = Camera(width=w, height=h, f=HEIGHT_M / GSD_M, cx=w / 2, cy=h / 2)
+        frames = nadir_block(camera, args.strips, args.per_strip)
+        E = np.array([f.C[0] for f in frames])
+        N = np.array([f.C[1] for f in frames])
+        cell = 1.0
+        west, north = E.min() - w * GSD_M, N.max() + h * GSD_M
+        rows = int((north - (N.min() - h * GSD_M)) / cell) + 1
+        cols = int((E.max() + w * GSD_M - west) / cell) + 1
+        dsm = Dsm(heights=np.zeros((rows, cols), np.float32), west=west, north=north, cell_m=cell,
+                  crs="EPSG:32618", distance_m=np.zeros((rows, cols), np.float32))
+        decode_s, resample_s = decode_and_resample_s(paths, camera)
+        limit = (decode_s + resample_s) / args.workers
+        with local_client(args.workers) as client:
+            t0 = time.perf_counter()
+            result = build_mosaic(frames, dict(enumerate(paths)), dsm, work / "ortho.tif",
+                                  MosaicConfig(gsd_m=GSD_M), client=client)
+            mosaic_s = time.perf_counter() - t0
+    ratio = mosaic_s / limit
+    lines = [
+        "| frames | output | decode once / resample once (one core) | limit on the workers (baseline) | mosaic | "
+        "ratio | target |",
+        "|---|---|---|---|---|---|---|",
+        f"| {len(frames)} of {w} x {h} (seneca x {args.scale:g}, JPEG) | {result.width} x {result.height} px, "
+        f"{result.tiles} tiles | {decode_s:.1f} s / {resample_s:.1f} s | {limit:.1f} s ({args.workers} workers) | "
+        f"{mosaic_s:.1f} s | {ratio:.2f} | <= 3: {'met' if ratio <= 3 else 'not met'} |",
+        "",
+        f"- peak memory {peak_rss_mb():.0f} MB (this process; the Dask workers apart)",
+    ]
+    record("Orthomosaic of large visible frames against the decode-and-resample limit", lines)
+
+
+if __name__ == "__main__":
+    main()
