@@ -6,8 +6,10 @@ what a survey camera's frame costs. Geometry: a nadir block of ``--strips`` x ``
 surface, 75 % forward and 60 % side overlap, the output at the frames' ground sampling distance (3 cm).
 
 Baseline measured in the same run, the limit of any orthomosaic of these frames on these cores: each frame decoded
-once, and an output the size of its footprint resampled from it once (``cv2.remap``, bilinear), the sum divided by
-the workers. The mosaic's time is printed as a ratio against it.
+once, and an output the size of its footprint resampled from it once (``cv2.remap``, bilinear), one task per frame
+on the same Dask workers the mosaic then uses (two worker processes on two cores need not run twice as fast as
+one: the limit is measured, not divided; the run prints the speed-up). The mosaic's time is printed as a ratio
+against it, and the same mosaic without the cluster beside it.
 
     python -m benchmarks.mosaic_bench [--scale 2.2] [--strips 5] [--per-strip 8] [--workers 2]
 
@@ -64,19 +66,19 @@ def nadir_block(camera: Camera, strips: int, per_strip: int) -> list[FrameGeomet
     return frames
 
 
-def decode_and_resample_s(paths: list[Path], camera: Camera) -> tuple[float, float]:
-    """Seconds to decode every frame once, and to resample a footprint-sized output from each once (one core)."""
+def decode_and_resample(path: Path, width: int, height: int, seed: int) -> tuple[float, float]:
+    """Seconds to decode one frame, and to resample an output the size of its footprint from it (bilinear, at
+    positions a fraction of a pixel off its grid)."""
     t0 = time.perf_counter()
-    frames = [read_frame(p) for p in paths]
-    decode = time.perf_counter() - t0
-    rng = np.random.default_rng(0)
-    t0 = time.perf_counter()
-    for img in frames:
-        u, v = np.meshgrid(np.arange(camera.width, dtype=np.float32), np.arange(camera.height, dtype=np.float32))
-        u += rng.random(dtype=np.float32)
-        v += rng.random(dtype=np.float32)
-        cv2.remap(img, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return decode, time.perf_counter() - t0
+    img = read_frame(path)
+    t1 = time.perf_counter()
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+    u += rng.random(dtype=np.float32)
+    v += rng.random(dtype=np.float32)
+    t2 = time.perf_counter()
+    cv2.remap(img, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return t1 - t0, time.perf_counter() - t2
 
 
 def main() -> None:
@@ -100,22 +102,35 @@ def main() -> None:
         cols = int((E.max() + w * GSD_M - west) / cell) + 1
         dsm = Dsm(heights=np.zeros((rows, cols), np.float32), west=west, north=north, cell_m=cell,
                   crs="EPSG:32618", distance_m=np.zeros((rows, cols), np.float32))
-        decode_s, resample_s = decode_and_resample_s(paths, camera)
-        limit = (decode_s + resample_s) / args.workers
         with local_client(args.workers) as client:
+            # the limit, on the same workers: every frame decoded once and resampled once, one task per frame
+            client.run(cv2.setNumThreads, 1)
+            t0 = time.perf_counter()
+            n = len(paths)
+            parts = client.gather(client.map(decode_and_resample, paths, [w] * n, [h] * n, range(n)))
+            limit = time.perf_counter() - t0
+            decode_s, resample_s = (float(sum(p[k] for p in parts)) for k in (0, 1))
             t0 = time.perf_counter()
             result = build_mosaic(frames, dict(enumerate(paths)), dsm, work / "ortho.tif",
                                   MosaicConfig(gsd_m=GSD_M), client=client)
             mosaic_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        build_mosaic(frames, dict(enumerate(paths)), dsm, work / "ortho_serial.tif", MosaicConfig(gsd_m=GSD_M))
+        serial_s = time.perf_counter() - t0
     ratio = mosaic_s / limit
     lines = [
-        "| frames | output | decode once / resample once (one core) | limit on the workers (baseline) | mosaic | "
+        "| frames | output | decode once / resample once (summed over the tasks) | limit: the same as tasks on the "
+        "workers (baseline) | mosaic | "
         "ratio | target |",
         "|---|---|---|---|---|---|---|",
         f"| {len(frames)} of {w} x {h} (seneca x {args.scale:g}, JPEG) | {result.width} x {result.height} px, "
         f"{result.tiles} tiles | {decode_s:.1f} s / {resample_s:.1f} s | {limit:.1f} s ({args.workers} workers) | "
         f"{mosaic_s:.1f} s | {ratio:.2f} | <= 3: {'met' if ratio <= 3 else 'not met'} |",
         "",
+        f"- the same mosaic in this process, without the cluster: {serial_s:.1f} s (the cluster's scheduler, client "
+        "and the tiles' writer share this machine's cores with its workers)",
+        f"- the limit's tasks summed {decode_s + resample_s:.1f} s in {limit:.1f} s of wall time on {args.workers} "
+        f"workers: {(decode_s + resample_s) / limit:.2f}x one core",
         f"- peak memory {peak_rss_mb():.0f} MB (this process; the Dask workers apart)",
     ]
     record("Orthomosaic of large visible frames against the decode-and-resample limit", lines)

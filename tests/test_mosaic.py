@@ -273,3 +273,58 @@ def test_a_frame_read_out_row_by_row_is_projected_as_the_simulator_exposed_it(fl
     _frame_view_numpy(moving, np.stack([E, N, H], axis=-1), 8.0, *ref)
     np.testing.assert_allclose(got[0], ref[0], atol=1e-3)
     np.testing.assert_allclose(got[1], ref[1], atol=1e-3)
+
+
+def test_score_bounds_hold_every_score_of_a_distorted_tilted_frame(flight):
+    """The bounds that let a tile skip a frame hold every score the frame gives a point of the tile's volume, on
+    a strongly distorted, affine camera turned 30 degrees about its axis, over relief."""
+    import dataclasses
+
+    from aerocal.geometry import rot_z
+    from aerocal.products.kernels import frame_view, score_bounds
+
+    rng = np.random.default_rng(SEED)
+    fr = flight["frames"][4]
+    cam = fr.camera.replace(k1=-0.3, k2=0.2, k3=-0.05, p1=1e-3, p2=-2e-3, b1=3.0, b2=-1.5)
+    fr = dataclasses.replace(fr, camera=cam, R_cw=rot_z(np.radians(30.0)) @ fr.R_cw)
+    checked = 0
+    for _ in range(40):
+        w, s = fr.C[0] + rng.uniform(-300, 250), fr.C[1] + rng.uniform(-300, 250)
+        e, n = w + (np.arange(64) + 0.5) * 0.8, s + 51.2 - (np.arange(64) + 0.5) * 0.8
+        H = rng.uniform(-20.0, 40.0, (64, 64))
+        box = np.array([[w, s, H.min()], [w + 51.2, s + 51.2, H.max()]])
+        low, high, whole = score_bounds(box, fr.R_cw, fr.C, cam.params(), float(cam.width), float(cam.height))
+        out = [np.empty(H.shape, np.float32), np.empty(H.shape, np.float32), np.empty(H.shape), np.empty(H.shape)]
+        frame_view(e, n, H, fr.R_cw, fr.C, cam.params(), float(cam.width), float(cam.height), 8.0, *out,
+                   np.zeros(3))
+        score = out[2][np.isfinite(out[2])]
+        if score.size:
+            checked += 1
+            assert low <= score.min() and score.max() <= high, (low, score.min(), score.max(), high)
+        assert not whole or score.size == H.size, "a frame said to see the whole tile sees every pixel"
+    assert checked >= 10
+
+
+def test_frames_a_tile_skips_would_have_carried_no_weight(flight, monkeypatch):
+    """Skipping the frames the score bounds rule out changes no byte of the mosaic, and skips a fifth of them or
+    more."""
+    import aerocal.products.mosaic as mosaic
+
+    kept, every = [], []
+    skip = mosaic._may_be_seen
+
+    def counted(frames, *args):
+        out = skip(frames, *args)
+        kept.append(len(out))
+        every.append(len(frames))
+        return out
+
+    monkeypatch.setattr(mosaic, "_may_be_seen", counted)
+    config = MosaicConfig(gsd_m=flight["gsd"], tile_px=64)
+    pruned = build_mosaic(flight["frames"], flight["images"], flight["dsm"], flight["work"] / "o_pruned.tif", config)
+    monkeypatch.setattr(mosaic, "_may_be_seen", lambda frames, *a: list(enumerate(frames)))
+    full = build_mosaic(flight["frames"], flight["images"], flight["dsm"], flight["work"] / "o_full.tif", config)
+    with rasterio.open(pruned.path) as a, rasterio.open(full.path) as b:
+        assert np.array_equal(a.read(), b.read())
+    print(f"frames projected: {sum(kept)} of {sum(every)}")
+    assert sum(kept) < 0.8 * sum(every)  # 718 of 1,109 when written

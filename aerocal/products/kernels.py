@@ -89,3 +89,121 @@ def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score
             taper[r, c] = min(max(border / feather, 1e-6), 1.0)
             seen = True
     return seen
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def tile_heights(grid, west, north, cell_m, e, n, out):
+    """Fill ``out`` (rows, cols) with the heights of the DSM ``grid`` (north-up, ``west``/``north`` its outer
+    corner, cells of ``cell_m`` metres) at the tile's pixel centres ``e`` (cols,) x ``n`` (rows,):
+    :meth:`aerocal.products.dsm.Dsm.height_at` with the operations of :func:`aerocal.products.dsm.bilinear` in
+    the same order (the same bits), without its full-tile temporaries."""
+    rows_g, cols_g = grid.shape
+    dc = 1 if cols_g > 1 else 0
+    dr = 1 if rows_g > 1 else 0
+    for r in range(n.shape[0]):
+        row = min(max((north - n[r]) / cell_m - 0.5, 0.0), rows_g - 1.0)
+        r0 = min(int(row), max(rows_g - 2, 0))
+        fr = row - r0
+        for c in range(e.shape[0]):
+            col = min(max((e[c] - west) / cell_m - 0.5, 0.0), cols_g - 1.0)
+            c0 = min(int(col), max(cols_g - 2, 0))
+            fc = col - c0
+            g00 = np.float64(grid[r0, c0])
+            top = g00 + fc * (np.float64(grid[r0, c0 + dc]) - g00)
+            g10 = np.float64(grid[r0 + dr, c0])
+            bottom = g10 + fc * (np.float64(grid[r0 + dr, c0 + dc]) - g10)
+            out[r, c] = top + fr * (bottom - top)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def seam_weight(score, best, taper, width, out):
+    """Fill ``out`` with one frame's blending weight over the tile: ``1 - (score - best) / width`` clipped to
+    [0, 1], times its border ``taper``; 0 where the frame does not see the pixel (``score`` inf). ``best``: the
+    smallest score of any frame at each pixel. Returns whether any weight is positive."""
+    positive = False
+    rows, cols = score.shape
+    for r in range(rows):
+        for c in range(cols):
+            s = score[r, c]
+            w = 0.0
+            if np.isfinite(s):
+                w = min(max(1.0 - (s - best[r, c]) / width, 0.0), 1.0) * taper[r, c]
+            out[r, c] = w
+            positive = positive or w > 0.0
+    return positive
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def blend(values, weight, acc, wsum):
+    """Add one frame's resampled ``values`` (rows, cols, bands) times its ``weight`` (rows, cols) to ``acc``
+    (bands, rows, cols) and the weight to ``wsum`` (rows, cols), where the weight is positive."""
+    rows, cols, bands = values.shape
+    for r in range(rows):
+        for c in range(cols):
+            w = weight[r, c]
+            if w > 0.0:
+                for b in range(bands):
+                    acc[b, r, c] += np.float64(values[r, c, b]) * w
+                wsum[r, c] += w
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def score_bounds(box, R, C, io, width, height):
+    """Bounds on a frame's nadir score (:func:`frame_view`'s ``score``, px) over a tile: (low, high, sees_all).
+
+    ``box`` (2, 3): the tile's ground volume, (west, south, lowest height) and (east, north, highest height),
+    world metres. Every ground point in it that the frame sees scores in [low, high]; ``sees_all``: the frame
+    sees every point of the volume (it lies in the circle about the principal point inscribed in the frame).
+    Perspective maps the box into the hull of its 8 corners' images, which lies in their bounding box in the
+    normalised image plane; the Brown radial term is taken at its extremes over the radii there (33 samples,
+    and 1 px of slack), the decentring and affinity terms at their largest. ``(0, inf, False)`` when a corner is
+    not in front of the camera: no bound."""
+    f, cx, cy, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
+    xlo, xhi, ylo, yhi = np.inf, -np.inf, np.inf, -np.inf
+    rho_hi = 0.0
+    for i in range(2):
+        for j in range(2):
+            for k in range(2):
+                de = box[i, 0] - C[0]
+                dn = box[j, 1] - C[1]
+                dh = box[k, 2] - C[2]
+                px = de * R[0, 0] + dn * R[0, 1] + dh * R[0, 2]
+                py = de * R[1, 0] + dn * R[1, 1] + dh * R[1, 2]
+                pz = de * R[2, 0] + dn * R[2, 1] + dh * R[2, 2]
+                if not pz > 0:
+                    return 0.0, np.inf, False
+                x = px / pz
+                y = py / pz
+                xlo, xhi, ylo, yhi = min(xlo, x), max(xhi, x), min(ylo, y), max(yhi, y)
+                rho_hi = max(rho_hi, np.hypot(x, y))
+    # the nearest point of the corners' bounding box to the principal point: a lower bound on the hull's radii
+    rho_lo = np.hypot(max(xlo, 0.0, -xhi), max(ylo, 0.0, -yhi))
+    g_lo, g_hi = np.inf, 0.0
+    for s in range(33):
+        rho = rho_lo + (rho_hi - rho_lo) * s / 32.0
+        r2 = rho * rho
+        g = rho * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
+        g_lo, g_hi = min(g_lo, g), max(g_hi, g)
+    tangential = 3.0 * (abs(p1) + abs(p2)) * rho_hi * rho_hi
+    skew = abs(b1) + abs(b2)
+    low = max((f - skew) * (g_lo - tangential) - 1.0, 0.0)
+    high = (f + skew) * (g_hi + tangential) + 1.0
+    return low, high, high < min(cx, width - cx, cy, height - cy) - 1.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def weighted_mean(acc, wsum, lo, hi, nodata, out):
+    """Write into ``out`` (bands, rows, cols; an integer dtype) the weighted mean ``acc / wsum`` where ``wsum`` is
+    positive, rounded half to even and clipped to [``lo``, ``hi``]; a mean equal to ``nodata`` is moved one
+    count inward, so that a valid pixel never reads as nodata. Pixels without weight keep their value."""
+    bands, rows, cols = acc.shape
+    for r in range(rows):
+        for c in range(cols):
+            w = wsum[r, c]
+            if not w > 0.0:
+                continue
+            for b in range(bands):
+                m = min(max(np.rint(acc[b, r, c] / w), lo), hi)
+                if m == nodata:
+                    m = nodata - 1 if nodata == hi else nodata + 1
+                out[b, r, c] = m

@@ -60,7 +60,15 @@ from aerocal.geometry import matrix_from_quat_wxyz
 from aerocal.ingest.pixels import ImageReadError, read_raw
 from aerocal.io import atomic_path
 from aerocal.products.dsm import Dsm
-from aerocal.products.kernels import NO_PIXEL, frame_view
+from aerocal.products.kernels import (
+    NO_PIXEL,
+    blend,
+    frame_view,
+    score_bounds,
+    seam_weight,
+    tile_heights,
+    weighted_mean,
+)
 
 Progress = Callable[[int, int], None]
 
@@ -220,7 +228,8 @@ _decoded: collections.OrderedDict[str, np.ndarray] = collections.OrderedDict()
 def frame_pixels(path: str | Path) -> np.ndarray:
     """:func:`read_frame`, with the last frames read in this process, up to :data:`FRAME_CACHE_BYTES`, kept and
     returned read-only: each tile that touches a frame decoded it again, and a visible block's mosaic was
-    decode-bound (a 3600 x 2700 JPEG decodes in about 0.1 s, and each is read by tens of tiles)."""
+    decode-bound (benchmarks/RESULTS.md, "Orthomosaic of large visible frames against the decode-and-resample
+    limit")."""
     key = str(path)
     if key in _decoded:
         _decoded.move_to_end(key)
@@ -285,10 +294,12 @@ def render_tile(
     w, _, _, n = tile.bounds()
     e = w + (np.arange(tile.cols) + 0.5) * tile.gsd_m
     nn = n - (np.arange(tile.rows) + 0.5) * tile.gsd_m
-    E, N = np.meshgrid(e, nn)
-    H = dsm.height_at(E, N)
+    H = np.empty(shape)
+    tile_heights(dsm.heights, float(dsm.west), float(dsm.north), float(dsm.cell_m), e, nn, H)
+    width = max(2.0 * feather_px, 1e-9)
+    kept = _may_be_seen(frames, tile, H, width)
     maps, scores, tapers = [], [], []
-    for fr in frames:
+    for _, fr in kept:
         map_u, map_v = np.empty(shape, np.float32), np.empty(shape, np.float32)
         score, taper = np.empty(shape), np.empty(shape)
         if fr.thermal_model is None:
@@ -297,42 +308,62 @@ def render_tile(
                        map_u, map_v, score, taper,
                        np.zeros(3) if fr.motion is None else np.asarray(fr.motion, dtype=float))
         else:
+            E, N = np.meshgrid(e, nn)
             _frame_view_numpy(fr, np.stack([E, N, H], axis=-1), feather_px, map_u, map_v, score, taper)
         maps.append((map_u, map_v))
         scores.append(score)
         tapers.append(taper)
-    S = np.stack(scores)
-    best = S.min(axis=0)
+    if not kept:
+        return tile, out
+    best = np.minimum.reduce(scores)
     seen = np.isfinite(best)
     if not seen.any():
         return tile, out
-    width = max(2.0 * feather_px, 1e-9)
     acc = np.zeros((bands,) + shape)
     wsum = np.zeros(shape)
-    for k, fr in enumerate(frames):
-        with np.errstate(invalid="ignore"):
-            wk = np.where(np.isfinite(S[k]), np.clip(1.0 - (S[k] - best) / width, 0.0, 1.0), 0.0) * tapers[k]
-        if not np.any(wk > 0):
+    wk = np.empty(shape)
+    for k, (index, fr) in enumerate(kept):
+        if not seam_weight(scores[k], best, tapers[k], width, wk):
             continue
-        img = pixels[k]
+        img = pixels[index]
         if not isinstance(img, np.ndarray):
             img = frame_pixels(img)
         cam = fr.camera
         if img.shape[:2] != (cam.height, cam.width):
             raise ValueError(f"image {fr.image_id}: pixels are {img.shape[1]}x{img.shape[0]}, its camera says "
                              f"{cam.width}x{cam.height}; give the frame's original pixels")
-        vals = _resampled(img, *maps[k], wk > 0).reshape(shape + (-1,))
-        acc += np.moveaxis(vals, -1, 0) * wk
-        wsum += wk
-    valid = seen & (wsum > 0)
-    info = np.iinfo(dtype) if np.issubdtype(np.dtype(dtype), np.integer) else None
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = acc / np.where(valid, wsum, 1.0)
-    if info is not None:
-        mean = np.clip(np.rint(mean), info.min, info.max)
-        mean = np.where(mean == nodata, nodata - 1 if nodata == info.max else nodata + 1, mean)
-    out[:, valid] = mean[:, valid].astype(dtype)
+        blend(_resampled(img, *maps[k], wk > 0).reshape(shape + (-1,)), wk, acc, wsum)
+    info = np.iinfo(dtype)  # uint8 or uint16 (build_mosaic)
+    weighted_mean(acc, wsum, float(info.min), float(info.max), float(nodata), out)
     return tile, out
+
+
+def _may_be_seen(frames: Sequence[FrameGeometry], tile: TileSpec, heights: np.ndarray, width: float
+                 ) -> list[tuple[int, FrameGeometry]]:
+    """(index, frame) of the ``frames`` that may carry weight somewhere in ``tile`` (``heights``: its pixels'
+    DSM heights; ``width``: the seam's feathering width, px). A frame is left out when the bounds on the scores
+    (:func:`aerocal.products.kernels.score_bounds`) show it scores at least ``width`` worse than a frame that
+    sees the whole tile, at every pixel: its weight would be 0 everywhere, so the tile's values are unchanged.
+    Frames with a readout's motion or a thermal model of measurements are always kept.
+
+    Why: each candidate's projection is a full tile's pass through the camera model, and most candidates of a
+    block with much overlap carry no weight (benchmarks/RESULTS.md, "Orthomosaic of large visible frames against
+    the decode-and-resample limit")."""
+    finite = heights[np.isfinite(heights)]
+    indexed = list(enumerate(frames))
+    if finite.size == 0:
+        return indexed
+    w, s, e, n = tile.bounds()
+    box = np.array([[w, s, float(finite.min())], [e, n, float(finite.max())]])
+    bounds = []
+    for _, fr in indexed:
+        if fr.thermal_model is not None or (fr.motion is not None and np.any(fr.motion)):
+            bounds.append((0.0, np.inf, False))
+        else:
+            bounds.append(score_bounds(box, np.asarray(fr.R_cw, dtype=float), np.asarray(fr.C, dtype=float),
+                                       fr.camera.params(), float(fr.camera.width), float(fr.camera.height)))
+    ceiling = min((high for _, high, whole in bounds if whole), default=np.inf)
+    return [(k, fr) for (k, fr), (low, _, _) in zip(indexed, bounds, strict=True) if not low >= ceiling + width]
 
 
 def _resampled(img: np.ndarray, map_u: np.ndarray, map_v: np.ndarray, used: np.ndarray) -> np.ndarray:
@@ -340,9 +371,9 @@ def _resampled(img: np.ndarray, map_u: np.ndarray, map_v: np.ndarray, used: np.n
     ``used``; elsewhere any finite value.
 
     Only the part of the frame the used positions reach is converted to float32 (with the pixel beyond each side
-    bilinear interpolation reads): a 256-px tile reads about 256 x 256 px of a frame, and converting the whole
-    of a 3600 x 2700 RGB frame per tile (117 MB) took most of a visible block's mosaic time (benchmarks/
-    RESULTS.md, "Orthomosaic of large visible frames against the decode-and-resample limit")."""
+    bilinear interpolation reads): a tile reads a tile-sized part of a frame, and converting the whole frame per
+    tile took most of a visible block's mosaic time (benchmarks/RESULTS.md, "Orthomosaic of large visible frames
+    against the decode-and-resample limit")."""
     u, v = map_u[used], map_v[used]
     h, w = img.shape[:2]
     c0 = int(np.clip(np.floor(u.min()) - 1, 0, w - 1))
@@ -550,13 +581,19 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
 
     arrays = {f.image_id: images[f.image_id] for f in frames if isinstance(images[f.image_id], np.ndarray)}
     scattered = client.scatter(arrays) if arrays else {}
+    # each worker renders one run of the curve, so that it decodes the frames of its part of the block and not
+    # every frame the other workers read too; an idle worker still takes tiles from a busy one (loose restriction)
+    workers = sorted(client.scheduler_info()["workers"])
+    runs = np.array_split(np.arange(len(tiles)), max(len(workers), 1))
+    home = {int(i): [w] for w, run in zip(workers, runs, strict=False) for i in run}
     futures = []
-    for tile in tiles:
+    for i, tile in enumerate(tiles):
         idx = members(tile)
         pix = [scattered[frames[k].image_id] if frames[k].image_id in scattered else str(images[frames[k].image_id])
                for k in idx]
         futures.append(client.submit(render_tile, tile, [frames[k] for k in idx], pix,
-                                     dsm.window(tile.bounds()), *args, pure=False))
+                                     dsm.window(tile.bounds()), *args, pure=False, workers=home.get(i),
+                                     allow_other_workers=True))
     try:
         for fut in as_completed(futures):
             yield fut.result()
@@ -565,14 +602,20 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
             fut.release()
 
 
+#: the orthomosaic's deflate level (GDAL's default is 6; see :func:`_finalise`)
+DEFLATE_LEVEL = 3
+
+
 def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict) -> None:
     """Copy the working GeoTIFF to ``out_path`` as a COG (or tiled GeoTIFF with overviews), atomically.
 
-    GDAL compresses with every core (``NUM_THREADS``): the workers are done by now."""
+    GDAL compresses with every core (``NUM_THREADS``): the workers are done by now. Deflate at level 3, not
+    GDAL's 6: the copy takes about 40 % less time for a file a few per cent larger (benchmarks/RESULTS.md,
+    "Orthomosaic of large visible frames against the decode-and-resample limit")."""
     resampling = Resampling[config.overview_resampling]
     with atomic_path(out_path) as tmp:
         if config.cog:
-            rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", PREDICTOR="YES",
+            rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", LEVEL=DEFLATE_LEVEL, PREDICTOR="YES",
                                  BLOCKSIZE=config.tile_px, OVERVIEW_RESAMPLING=config.overview_resampling.upper(),
                                  BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
         else:
@@ -580,9 +623,9 @@ def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict) -
                 factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 64]
                 if factors:
                     src.build_overviews(factors, resampling)
-            rasterio.shutil.copy(work, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", PREDICTOR=2,
-                                 BLOCKXSIZE=config.tile_px, BLOCKYSIZE=config.tile_px, COPY_SRC_OVERVIEWS="YES",
-                                 NUM_THREADS="ALL_CPUS")
+            rasterio.shutil.copy(work, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", ZLEVEL=DEFLATE_LEVEL,
+                                 PREDICTOR=2, BLOCKXSIZE=config.tile_px, BLOCKYSIZE=config.tile_px,
+                                 COPY_SRC_OVERVIEWS="YES", NUM_THREADS="ALL_CPUS")
 
 
 def write_temperature_raster(
