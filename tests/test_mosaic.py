@@ -328,3 +328,32 @@ def test_frames_a_tile_skips_would_have_carried_no_weight(flight, monkeypatch):
         assert np.array_equal(a.read(), b.read())
     print(f"frames projected: {sum(kept)} of {sum(every)}")
     assert sum(kept) < 0.8 * sum(every)  # 718 of 1,109 when written
+
+
+def test_a_mosaic_keeps_no_frame_after_it_and_reads_a_rewritten_frame_again(flight, tmp_path, client):
+    """The frames a mosaic decoded are released when it ends, here and on the workers: a long-lived process holds
+    none, and a frame written again at the same path is read as it is now."""
+    import shutil
+
+    import tifffile
+
+    import aerocal.products.mosaic as mosaic
+
+    def held() -> int:
+        return len(mosaic._decoded)
+
+    images = {}
+    for k, path in flight["images"].items():
+        images[k] = tmp_path / path.name
+        shutil.copy(path, images[k])
+    config = MosaicConfig(gsd_m=flight["gsd"], tile_px=128)
+    build_mosaic(flight["frames"], images, flight["dsm"], tmp_path / "a.tif", config)
+    assert held() == 0
+    build_mosaic(flight["frames"], images, flight["dsm"], tmp_path / "b.tif", config, client=client)
+    assert held() == 0 and set(client.run(held).values()) == {0}
+    first = flight["frames"][0].image_id
+    raw = read_raw(images[first])
+    tifffile.imwrite(images[first], np.full_like(raw, 30000))  # the first frame rewritten, uniform
+    again = build_mosaic(flight["frames"], images, flight["dsm"], tmp_path / "c.tif", config)
+    with rasterio.open(tmp_path / "a.tif") as a, rasterio.open(again.path) as c:
+        assert not np.array_equal(a.read(), c.read())

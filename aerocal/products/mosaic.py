@@ -242,6 +242,13 @@ def frame_pixels(path: str | Path) -> np.ndarray:
     return img
 
 
+def forget_frames() -> None:
+    """Release the frames :func:`frame_pixels` keeps in this process (module level: run on every Dask worker at
+    the end of a mosaic). A mosaic's frames are not kept beyond it: a long-lived process (a served flow, a
+    cluster's workers) would hold them, and a frame rewritten at the same path would read as it was."""
+    _decoded.clear()
+
+
 def _hilbert_order(rows: int, cols: int) -> np.ndarray:
     """Indices of a ``rows`` x ``cols`` grid (row-major) in the order of a Hilbert curve over it: consecutive cells
     are neighbours, and any run of them stays compact, so tiles rendered in this order share their frames."""
@@ -506,7 +513,9 @@ def build_mosaic(
     if width <= 0 or height <= 0:
         raise ValueError(f"build_mosaic: empty output grid for bounds {(w, s, e, n)}")
 
-    # data type and bands from the first frame
+    # data type and bands from the first frame (read through the cache, emptied first: a frame rewritten at the
+    # same path since an earlier mosaic in this process is read again)
+    forget_frames()
     first = images[frames[0].image_id]
     sample = first if isinstance(first, np.ndarray) else frame_pixels(first)
     dtype = str(sample.dtype)
@@ -557,6 +566,7 @@ def build_mosaic(
         _finalise(work, out_path, config, profile)
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
+        forget_frames()  # this process's frames (the serial tiles, the first frame's sample)
     return MosaicResult(
         path=out_path, crs=dsm.crs, transform=tuple(transform)[:6], width=width, height=height, gsd_m=float(gsd),
         nodata=int(nodata), dtype=dtype, bands=bands, tiles=total, tiles_with_data=with_data,
@@ -600,6 +610,7 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
     finally:
         for fut in futures:
             fut.release()
+        client.run(forget_frames, on_error="ignore")  # a worker lost on the way has nothing to release
 
 
 #: the orthomosaic's deflate level (GDAL's default is 6; see :func:`_finalise`)
