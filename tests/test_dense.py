@@ -316,3 +316,22 @@ def test_the_fusion_keeps_the_mean_of_the_largest_agreeing_group_as_comparing_ev
     np.testing.assert_array_equal(agreeing, n)
     np.testing.assert_allclose(fused, expected, rtol=1e-6, equal_nan=True)
     assert 0.2 < np.mean(np.isfinite(fused)) < 1.0
+
+
+def test_the_dense_frames_kept_are_released_when_the_surface_is_done(tmp_path):
+    """The enhanced frames kept for the dense matching are released by forget_dense_frames (called in this process
+    and on the workers when the dense surface is done): a rewritten frame is read as it is now."""
+    import tifffile
+
+    from aerocal.enhance import EnhanceConfig
+    from aerocal.pipeline import mosaic_step
+
+    path = tmp_path / "f.tif"
+    tifffile.imwrite(path, np.random.default_rng(SEED).integers(29000, 31000, (48, 64), dtype=np.uint16))
+    params = stretch_params([str(path)], loader=lambda p: tifffile.imread(p).astype(np.float32))
+    first = mosaic_step.dense_frame(1, {1: str(path)}, params, EnhanceConfig())
+    assert mosaic_step.dense_frame(1, {1: str(path)}, params, EnhanceConfig()) is first  # kept
+    mosaic_step.forget_dense_frames()
+    tifffile.imwrite(path, np.full((48, 64), 30000, dtype=np.uint16))
+    again = mosaic_step.dense_frame(1, {1: str(path)}, params, EnhanceConfig())
+    assert again is not first and float(np.ptp(again[1])) == 0.0

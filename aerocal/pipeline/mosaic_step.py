@@ -130,6 +130,13 @@ def dense_frame(image_id: int, paths: Mapping[int, str], params: StretchParams,
     return frame
 
 
+def forget_dense_frames() -> None:
+    """Release the frames :func:`dense_frame` keeps in this process (module level: run on every Dask worker when
+    the dense surface is done): a long-lived process would hold them, and a frame rewritten at the same path
+    would read as it was."""
+    _frame_cache.clear()
+
+
 def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, Any]:
     """The DSM minus a reference surface on its measured cells: n, mean, median, NMAD and RMSE (metres),
     completeness (measured cells over the cells inside the reference); a reference that cannot be read gives
@@ -168,7 +175,12 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
     serial = len(frames) * cert.camera.width * cert.camera.height / 1e6 <= config.serial_max_megapixels
     start = time.perf_counter()
     with (execution or ExecutionConfig()).client(serial) as client:
-        cloud = dense_cloud(frames, load, tie, ground, dcfg, client, step_progress("dense surface"))
+        try:
+            cloud = dense_cloud(frames, load, tie, ground, dcfg, client, step_progress("dense surface"))
+        finally:
+            forget_dense_frames()
+            if client is not None:
+                client.run(forget_dense_frames, on_error="ignore")
     seconds = time.perf_counter() - start
     if len(cloud.xyz) < 3:
         info["surface"] = (f"tie points: dense matching found no surface in {len(frames)} frames (no pair with "
