@@ -617,40 +617,62 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     pairs saw the vehicle move. A second frame, with other pairs, rarely agrees on the same wrong height."""
     if not len(xyz):
         return np.zeros(0, dtype=bool)
-    ix = np.floor(xyz[:, :2] / cell_m).astype(np.int64)
-    ix -= ix.min(axis=0)
-    key = ix[:, 1] * (int(ix[:, 0].max()) + 1) + ix[:, 0]
+    xyz = np.asarray(xyz, dtype=np.float64)
+    key = _cell_keys(xyz, float(cell_m))
     order = np.argsort(key, kind="stable")
     bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
-    return _confirm_cells(order, bounds, np.ascontiguousarray(xyz[:, 2], dtype=np.float64),
-                          np.asarray(rank, dtype=np.uint8), np.asarray(image_id, dtype=np.int64), float(tol_m))
+    del key
+    return _confirm_cells(order, bounds, xyz, np.asarray(rank, dtype=np.uint8), np.asarray(image_id),
+                          float(tol_m))
 
 
 @numba.njit(cache=True)
-def _confirm_cells(order: np.ndarray, bounds: np.ndarray, z: np.ndarray, rank: np.ndarray, image_id: np.ndarray,
+def _cell_keys(xyz: np.ndarray, cell_m: float) -> np.ndarray:
+    """Each point's cell (``cell_m`` metres, counted from the cloud's south-west cell) as one int64, row-major:
+    numpy's ``floor(xy / cell_m)`` per point without its (N, 2) temporaries (a city's cloud holds tens of millions
+    of points)."""
+    n = xyz.shape[0]
+    c_min, r_min, c_max = np.inf, np.inf, -np.inf
+    for i in range(n):
+        c = np.floor(xyz[i, 0] / cell_m)
+        r = np.floor(xyz[i, 1] / cell_m)
+        c_min, r_min, c_max = min(c_min, c), min(r_min, r), max(c_max, c)
+    cols = np.int64(c_max - c_min) + 1
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        key[i] = (np.int64(np.floor(xyz[i, 1] / cell_m)) - np.int64(r_min)) * cols + (
+            np.int64(np.floor(xyz[i, 0] / cell_m)) - np.int64(c_min))
+    return key
+
+
+@numba.njit(cache=True)
+def _confirm_cells(order: np.ndarray, bounds: np.ndarray, xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray,
                    tol: float) -> np.ndarray:
     """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``."""
-    keep = np.zeros(z.shape[0], dtype=np.bool_)
-    buf = np.empty(z.shape[0], dtype=np.float64)
+    keep = np.zeros(xyz.shape[0], dtype=np.bool_)
+    largest = 0
+    for c in range(bounds.shape[0] - 1):
+        largest = max(largest, bounds[c + 1] - bounds[c])
+    buf = np.empty(largest, dtype=np.float64)
     for c in range(bounds.shape[0] - 1):
         lo, hi = bounds[c], bounds[c + 1]
         n_near = 0
         for p in range(lo, hi):
             if rank[order[p]] == 0:
-                buf[n_near] = z[order[p]]
+                buf[n_near] = xyz[order[p], 2]
                 n_near += 1
         if n_near > 0:
             reference = median_in_place(buf[:n_near])
         else:
             for p in range(lo, hi):
-                buf[p - lo] = z[order[p]]
+                buf[p - lo] = xyz[order[p], 2]
             reference = median_in_place(buf[:hi - lo])
         first, second = -1, False  # the frames of the close points: a second one confirms the cell
         for p in range(lo, hi):
             i = order[p]
             if rank[i] == 0:
                 keep[i] = True
-            elif abs(z[i] - reference) <= tol:
+            elif abs(xyz[i, 2] - reference) <= tol:
                 keep[i] = True
                 if first < 0:
                     first = image_id[i]
@@ -688,7 +710,7 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     by_id = {f.image_id: f for f in frames}
     centres = np.array([f.C[:2] for f in frames], dtype=float)
     jobs = [(by_id[r], [by_id[p.other] for p in ps], ps) for r, ps in plans.items()]
-    results: list[tuple[int, tuple]] = []
+    results: list[tuple[int, ReferencePoints]] = []
     if client is None:
         for k, (ref, others, ps) in enumerate(jobs):
             results.append((ref.image_id, reference_points(ref, others, ps, load, scale, centres, config,
@@ -708,19 +730,22 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
             if progress:
                 progress(k + 1, len(jobs))
     results.sort(key=lambda t: t[0])
-    parts = [r for _, r in results]
-    ids = [np.full(len(r.xyz), i, np.int32) for i, r in results]
-    if not parts:
-        parts, ids = [ReferencePoints.empty()], [np.zeros(0, np.int32)]
-    xyz = np.concatenate([r.xyz for r in parts])
-    rank = np.concatenate([r.rank for r in parts])
+    if not results:
+        results = [(0, ReferencePoints.empty())]
+    image_id = np.concatenate([np.full(len(r.xyz), i, np.int32) for i, r in results])
+    # one field at a time, each reference's copy released once gathered: the parts and the whole cloud are never
+    # all held at once (benchmarks/RESULTS.md, "Dense surface: the cloud's memory")
+    fields = {name: [getattr(r, name) for _, r in results] for name in ("xyz", "value", "views", "rank")}
+    del results
+    xyz = np.concatenate(fields.pop("xyz"))
+    rank = np.concatenate(fields.pop("rank"))
     gsd = float(np.median([(f.C[2] - ground_height_m) / (f.camera.f * scale) for f in frames]))
-    image_id = np.concatenate(ids)
     keep = confirmed(xyz, rank, image_id, gsd, config.fill_agreement_gsd * gsd)
     n_pairs = sum(len(p) for p in plans.values())
     stats = {"frames": len(frames), "references": len(jobs), "pairs": n_pairs,
              "pairs_left_out": sum(len(v) for v in neighbours.values()) - n_pairs,
              "points": int(keep.sum()), "unconfirmed": int(len(keep) - keep.sum()), "scale": scale}
-    return DenseCloud(xyz=xyz[keep], value=np.concatenate([r.value for r in parts])[keep],
-                      views=np.concatenate([r.views for r in parts])[keep], image_id=image_id[keep],
-                      gsd_m=gsd, stats=stats, rank=rank[keep])
+    xyz, rank, image_id = xyz[keep], rank[keep], image_id[keep]
+    value = np.concatenate(fields.pop("value"))[keep]
+    views = np.concatenate(fields.pop("views"))[keep]
+    return DenseCloud(xyz=xyz, value=value, views=views, image_id=image_id, gsd_m=gsd, stats=stats, rank=rank)
