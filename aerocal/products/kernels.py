@@ -184,7 +184,8 @@ def score_bounds(box, R, C, io, width, height):
         r2 = rho * rho
         g = rho * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3)))
         g_lo, g_hi = min(g_lo, g), max(g_hi, g)
-    tangential = 3.0 * (abs(p1) + abs(p2)) * rho_hi * rho_hi
+    # the decentring term's length: each component at most (3 |p1| + |p2|) r^2 or (|p1| + 3 |p2|) r^2
+    tangential = 4.0 * (abs(p1) + abs(p2)) * rho_hi * rho_hi
     skew = abs(b1) + abs(b2)
     low = max((f - skew) * (g_lo - tangential) - 1.0, 0.0)
     high = (f + skew) * (g_hi + tangential) + 1.0
