@@ -530,3 +530,27 @@ def test_the_laser_figure_of_fitted_frames_no_surface_met_says_not_measured():
            "fitted": {"median_m": None, "n": 0, "unmatched": 21, "images": {}}}
     fig = laser_range_figure(doc)
     assert fig.numbers == {"held_out_median_m": -0.3, "fitted_median_m": None}
+
+
+def test_a_large_grid_is_drawn_from_block_means_and_a_city_dsm_figure_stays_small():
+    """A map is drawn from means of blocks of cells (NaN cells left out), never from every cell of a city's DSM:
+    its figure comes out as the same small image whatever the grid's size."""
+    from aerocal.products.dsm import Dsm
+    from aerocal.report.figures import MAX_DRAWN_CELLS, drawing_step, drawn, surface_figure
+
+    grid = np.arange(35, dtype=np.float32).reshape(5, 7)
+    grid[0, 0] = np.nan
+    means = drawn(grid, 3)
+    assert means.shape == (2, 3)
+    assert means[0, 0] == pytest.approx(np.nanmean(grid[:3, :3]))
+    assert means[1, 2] == pytest.approx(np.mean(grid[3:, 6:]))  # the last, partial block
+    assert np.isnan(drawn(np.full((4, 4), np.nan, np.float32), 2)).all()
+    assert drawing_step((7909, 9610)) == -(-9610 // MAX_DRAWN_CELLS) and drawing_step((300, 200)) == 1
+
+    rows, cols = 4 * MAX_DRAWN_CELLS, 3 * MAX_DRAWN_CELLS
+    heights = np.add.outer(np.linspace(0, 50, rows), np.linspace(0, 30, cols)).astype(np.float32)
+    dsm = Dsm(heights=heights, west=0.0, north=float(rows), cell_m=1.0, crs="EPSG:32633")
+    measured = np.ones(heights.shape, dtype=bool)
+    measured[:, : cols // 2] = False
+    fig = surface_figure(dsm, measured)
+    assert "drawn as blocks of 4 x 4 cells" in fig.caption and fig.numbers["measured_fraction"] == 0.5

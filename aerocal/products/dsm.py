@@ -37,6 +37,7 @@ a true surface: ``benchmarks/RESULTS.md``, "Dense surface").
 from __future__ import annotations
 
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -145,6 +146,19 @@ class Dsm:
         e = self.west + (np.arange(cols) + 0.5) * self.cell_m
         n = self.north - (np.arange(rows) + 0.5) * self.cell_m
         return np.meshgrid(e, n)
+
+    def centre_blocks(self, rows_per_block: int = 512) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
+        """(rows, E, N) for blocks of ``rows_per_block`` grid rows: the rows' slice and the E, N (block rows,
+        cols) of their cell centres, metres (:meth:`cell_centres` a block at a time). What is computed over a
+        whole grid from its centres (a reference's heights, a difference) then takes a block's memory: a city's
+        dense DSM holds 76 M cells, and its centres alone are 1.2 GB."""
+        rows, cols = self.shape
+        e = self.west + (np.arange(cols) + 0.5) * self.cell_m
+        for r0 in range(0, rows, rows_per_block):
+            r1 = min(r0 + rows_per_block, rows)
+            n = self.north - (np.arange(r0, r1) + 0.5) * self.cell_m
+            E, N = np.meshgrid(e, n)
+            yield slice(r0, r1), E, N
 
     def height_at(self, e: np.ndarray, n: np.ndarray) -> np.ndarray:
         """Heights at world E, N (any matching shapes), bilinear between cell centres, metres.

@@ -266,6 +266,39 @@ def temperature_io_figure(
                   "the sensor temperature of each image.", numbers)
 
 
+#: a map is drawn from at most this many cells along its longer side (means of blocks of cells): a figure shows
+#: about a thousand pixels across, and drawing every cell of a city's dense DSM (7909 x 9610) held the report
+#: step for minutes and gigabytes
+MAX_DRAWN_CELLS = 1200
+
+
+def drawn(grid: np.ndarray, step: int) -> np.ndarray:
+    """``grid`` (rows, cols) as a map draws it: the mean of each block of ``step`` x ``step`` cells, NaN cells left
+    out, NaN where a block has none (float32); ``grid`` itself when ``step`` is 1."""
+    if step <= 1:
+        return grid
+    rows, cols = grid.shape
+    R, C = -(-rows // step), -(-cols // step)
+    total = np.zeros((R, C))
+    count = np.zeros((R, C))
+    for r0 in range(0, rows, step * 64):  # bands of block rows: a city's grid is not copied whole
+        band = np.asarray(grid[r0:r0 + step * 64], dtype=np.float32)
+        br = -(-band.shape[0] // step)
+        padded = np.full((br * step, C * step), np.nan, dtype=np.float32)
+        padded[:band.shape[0], :cols] = band
+        blocks = padded.reshape(br, step, C, step)
+        ok = np.isfinite(blocks)
+        total[r0 // step:r0 // step + br] = np.where(ok, blocks, 0.0).sum(axis=(1, 3), dtype=np.float64)
+        count[r0 // step:r0 // step + br] = ok.sum(axis=(1, 3))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, total / count, np.nan).astype(np.float32)
+
+
+def drawing_step(shape: tuple[int, ...]) -> int:
+    """Cells per side of the blocks a grid of ``shape`` is drawn from (:data:`MAX_DRAWN_CELLS`)."""
+    return max(1, -(-max(shape[:2]) // MAX_DRAWN_CELLS))
+
+
 def dem_difference_figure(diff, title: str = "DSM minus reference") -> Figure:
     """Map and histogram of an :class:`aerocal.assess.DemDifference` (tested minus reference).
 
@@ -280,7 +313,7 @@ def dem_difference_figure(diff, title: str = "DSM minus reference") -> Figure:
     """
     fig = _canvas(10.0, 4.6)
     ax_map, ax_hist = fig.subplots(1, 2, width_ratios=[1.3, 1.0])
-    d = diff.difference
+    d = drawn(diff.difference, drawing_step(diff.difference.shape))
     lim = max(abs(diff.median) + 3 * (diff.nmad if np.isfinite(diff.nmad) else 1.0), 0.1)
     w, s, e, n = diff.extent
     im = ax_map.imshow(d, cmap="RdBu_r", vmin=-lim, vmax=lim, extent=(w, e, s, n), interpolation="nearest")
@@ -336,15 +369,19 @@ def surface_figure(dsm, measured: np.ndarray | None, title: str = "Surface model
     ax_shade, ax_height = fig.subplots(1, 2)
     west, south, east, north = dsm.bounds()
     extent = (west, east, south, north)
-    shade = hillshade(dsm.heights, dsm.cell_m)
+    step = drawing_step(dsm.shape)
+    heights = drawn(dsm.heights, step)
+    shade = hillshade(heights, dsm.cell_m * step)
     ax_shade.imshow(shade, cmap="gray", vmin=0, vmax=1, extent=extent, interpolation="nearest")
     if measured is not None and not measured.all():
-        tint = np.zeros(dsm.heights.shape + (4,))
-        tint[~measured & np.isfinite(dsm.heights)] = (1.0, 0.55, 0.0, 0.45)
+        tint = np.zeros(heights.shape + (4,), dtype=np.float32)
+        tint[(drawn(measured, step) < 0.5) & np.isfinite(heights)] = (1.0, 0.55, 0.0, 0.45)
         ax_shade.imshow(tint, extent=extent, interpolation="nearest")
     ax_shade.set_title("hillshade" + (", filled cells in orange" if measured is not None else ""))
-    lo, hi = (np.nanpercentile(dsm.heights, [1, 99]) if np.isfinite(dsm.heights).any() else (0.0, 1.0))
-    im = ax_height.imshow(dsm.heights, cmap="terrain", vmin=lo, vmax=max(hi, lo + 0.1), extent=extent,
+    finite = dsm.heights[np.isfinite(dsm.heights)]
+    lo, hi = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0)
+    del finite
+    im = ax_height.imshow(heights, cmap="terrain", vmin=lo, vmax=max(hi, lo + 0.1), extent=extent,
                           interpolation="nearest")
     fig.colorbar(im, ax=ax_height, label="height (m)", shrink=0.8)
     ax_height.set_title("heights")
@@ -356,6 +393,7 @@ def surface_figure(dsm, measured: np.ndarray | None, title: str = "Surface model
     fig.suptitle(title)
     frac = None if measured is None else float(np.mean(measured[np.isfinite(dsm.heights)]))
     caption = (f"The DSM, {dsm.shape[1]} x {dsm.shape[0]} cells of {dsm.cell_m:.3g} m"
+               + (f" (drawn as blocks of {step} x {step} cells)" if step > 1 else "")
                + ("." if frac is None else f"; {100 * frac:.0f} % of its cells are measured by the dense cloud, "
                   "the rest filled by interpolation (band 2 of dsm.tif)."))
     return Figure("surface", title, _png(fig), caption,

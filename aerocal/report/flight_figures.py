@@ -138,9 +138,11 @@ def temperature_io_for_flight(
 
 def _inside(dsm, reference) -> np.ndarray:
     """Cells of ``dsm`` whose centres lie inside the grid of ``reference`` (both :class:`aerocal.products.dsm.Dsm`)."""
-    E, N = dsm.cell_centres()
     w, s, e, n = reference.bounds()
-    return (E >= w) & (E <= e) & (N >= s) & (N <= n)
+    rows, cols = dsm.shape
+    east = dsm.west + (np.arange(cols) + 0.5) * dsm.cell_m  # the centres as Dsm.cell_centres gives them
+    north = dsm.north - (np.arange(rows) + 0.5) * dsm.cell_m
+    return ((north >= s) & (north <= n))[:, None] & ((east >= w) & (east <= e))[None, :]
 
 
 def _near_tie_points(dsm, tie_points_en: np.ndarray, within_m: float) -> np.ndarray:
