@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import rasterio
 
-from aerocal.products.dsm import NODATA, DsmConfig, dsm_from_points, read_dsm, write_dsm
+from aerocal.products.dsm import NODATA, Dsm, DsmConfig, dsm_from_points, read_dsm, write_dsm
 
 CRS = "EPSG:32632"
 
@@ -201,3 +201,24 @@ def test_cell_medians_are_the_median_of_the_points_in_each_cell(seed):
     assert np.array_equal(counts, want_counts), f"seed {seed}"
     assert np.array_equal(np.isnan(heights), np.isnan(want)), f"seed {seed}"
     assert np.allclose(heights[np.isfinite(want)], want[np.isfinite(want)], rtol=0, atol=1e-12), f"seed {seed}"
+
+
+def test_a_grids_heights_in_one_pass_are_its_bilinear_heights_to_the_bit():
+    """Dsm.heights_on (one compiled pass over a grid's rows and columns, what DSM comparisons use) gives the bits
+    of Dsm.height_at, NaN cells and extended edges included; compare_dems gives the same figures with it as with
+    the reference's height_at passed as a callable."""
+    from aerocal.assess import compare_dems
+
+    rng = np.random.default_rng(1)
+    heights = rng.normal(100, 5, (130, 90)).astype(np.float32)
+    heights[rng.random(heights.shape) < 0.05] = np.nan
+    dem = Dsm(heights=heights, west=1000.0, north=5000.0, cell_m=0.5, crs="EPSG:32633")
+    grid = rng.normal(100, 5, (30, 20)).astype(np.float32)
+    grid[rng.random(grid.shape) < 0.05] = np.nan
+    ref = Dsm(heights=grid, west=1010.0, north=4990.0, cell_m=2.0, crs="EPSG:32633")  # dem reaches beyond it
+    E, N = dem.cell_centres()
+    assert np.array_equal(ref.heights_on(E[0], N[:, 0]), ref.height_at(E, N), equal_nan=True)
+    mask = rng.random(heights.shape) < 0.8
+    a, b = compare_dems(dem, ref, mask=mask), compare_dems(dem, ref.height_at, mask=mask)
+    assert (a.n, a.mean, a.median, a.nmad) == (b.n, b.mean, b.median, b.nmad) and a.n > 1000
+    assert np.array_equal(a.difference, b.difference, equal_nan=True)

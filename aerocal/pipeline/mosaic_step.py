@@ -146,8 +146,8 @@ def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, 
     except ValueError as exc:
         return {"error": str(exc)}
     inside = np.zeros(dsm.shape, dtype=bool)
-    for rows, E, N in dsm.centre_blocks():  # a block of rows at a time: a city's dense DSM has 76 M cells
-        inside[rows] = np.isfinite(ref.height_at(E, N))
+    for rows, e, n in dsm.centre_blocks():  # a block of rows at a time: a city's dense DSM has 76 M cells
+        inside[rows] = np.isfinite(ref.heights_on(e, n))
     diff = compare_dems(dsm, ref, mask=measured & inside, selection="measured cells")
     return {"n": diff.n, "mean_m": diff.mean, "median_m": diff.median, "nmad_m": diff.nmad, "rmse_m": diff.rmse,
             "completeness": float(np.count_nonzero(measured & inside) / max(np.count_nonzero(inside), 1))}
