@@ -138,7 +138,7 @@ def test_a_frame_is_decoded_once_and_the_crop_it_is_resampled_from_changes_no_va
     import aerocal.products.mosaic as mosaic
 
     reads = []
-    monkeypatch.setattr(mosaic, "_decoded", type(mosaic._decoded)())
+    monkeypatch.setattr(mosaic, "_decoded", mosaic.FrameCache(mosaic._decoded.max_bytes))
     monkeypatch.setattr(mosaic, "read_frame", lambda p: reads.append(p) or read_raw(p))
     res = build_mosaic(flight["frames"], flight["images"], flight["dsm"], flight["work"] / "ortho_once.tif",
                        MosaicConfig(gsd_m=flight["gsd"], tile_px=64))

@@ -9,7 +9,6 @@ camera's axis, the surface is checked against it (:mod:`aerocal.products.range_c
 
 from __future__ import annotations
 
-import collections
 import functools
 import tempfile
 import time
@@ -36,6 +35,7 @@ from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, 
 from aerocal.products.dense import dense_cloud
 from aerocal.products.dsm import Dsm, DsmConfig, dsm_from_points, read_dsm, write_dsm
 from aerocal.products.mosaic import (
+    FrameCache,
     FrameGeometry,
     MosaicConfig,
     build_mosaic,
@@ -105,36 +105,28 @@ def frames_of(images: pa.Table, poses: pa.Table, cert: Certificate, paths: Mappi
     return frames_from_poses(sel, cert.camera, temps if thermal is not None else None, thermal, motion, turn)
 
 
-#: bytes of enhanced frames each process keeps (:func:`dense_frame`): a reference and its neighbours are the next
+#: the enhanced frames each process keeps (:func:`dense_frame`): a reference and its neighbours are the next
 #: references' neighbours too (150 rendered city frames were loaded 624 times)
-FRAME_CACHE_BYTES = 512 * 2**20
-_frame_cache: collections.OrderedDict[tuple, tuple[np.ndarray, np.ndarray]] = collections.OrderedDict()
+_dense_frames = FrameCache(512 * 2**20)
 
 
 def dense_frame(image_id: int, paths: Mapping[int, str], params: StretchParams,
                 config: EnhanceConfig) -> tuple[np.ndarray, np.ndarray]:
     """(8-bit frame for dense matching, grey frame values) of one image, enhanced as for tie-point matching
-    (module level: it runs on Dask workers). The last frames read, up to :data:`FRAME_CACHE_BYTES`, are kept in
-    this process and returned read-only."""
-    key = (str(paths[image_id]), params, config)
-    if key in _frame_cache:
-        _frame_cache.move_to_end(key)
-        return _frame_cache[key]
-    raw = read_raw(paths[image_id])
-    frame = (enhance(raw, params, config), grey(raw).astype(np.float32))
-    for a in frame:
-        a.flags.writeable = False
-    _frame_cache[key] = frame
-    while sum(a.nbytes for f in _frame_cache.values() for a in f) > FRAME_CACHE_BYTES and len(_frame_cache) > 1:
-        _frame_cache.popitem(last=False)
-    return frame
+    (module level: it runs on Dask workers), through this process's :class:`~aerocal.products.mosaic.FrameCache`
+    (read-only)."""
+
+    def read() -> tuple[np.ndarray, np.ndarray]:
+        raw = read_raw(paths[image_id])
+        return enhance(raw, params, config), grey(raw).astype(np.float32)
+
+    return _dense_frames.get((str(paths[image_id]), params, config), read)  # type: ignore[return-value]
 
 
 def forget_dense_frames() -> None:
     """Release the frames :func:`dense_frame` keeps in this process (module level: run on every Dask worker when
-    the dense surface is done): a long-lived process would hold them, and a frame rewritten at the same path
-    would read as it was."""
-    _frame_cache.clear()
+    the dense surface is done)."""
+    _dense_frames.clear()
 
 
 def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, Any]:

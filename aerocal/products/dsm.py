@@ -141,23 +141,25 @@ class Dsm:
         row = (self.north - np.asarray(n, dtype=float)) / self.cell_m - 0.5
         return col, row
 
+    def centre_axes(self) -> tuple[np.ndarray, np.ndarray]:
+        """E (cols,) of the columns' and N (rows,) of the rows' cell centres, metres."""
+        rows, cols = self.shape
+        return (self.west + (np.arange(cols) + 0.5) * self.cell_m,
+                self.north - (np.arange(rows) + 0.5) * self.cell_m)
+
     def cell_centres(self) -> tuple[np.ndarray, np.ndarray]:
         """E, N (rows, cols) arrays of every cell centre, metres."""
-        rows, cols = self.shape
-        e = self.west + (np.arange(cols) + 0.5) * self.cell_m
-        n = self.north - (np.arange(rows) + 0.5) * self.cell_m
-        return np.meshgrid(e, n)
+        return np.meshgrid(*self.centre_axes())
 
     def centre_blocks(self, rows_per_block: int = 512) -> Iterator[tuple[slice, np.ndarray, np.ndarray]]:
         """(rows, e, n) for blocks of ``rows_per_block`` grid rows: the rows' slice, the E (cols,) of every column's
         cell centres and the N (block rows,) of the block's rows, metres (:meth:`cell_centres` a block at a time,
         unmeshed). What is computed over a whole grid from its centres (a reference's heights, a difference) then
         takes a block's memory: a city's dense DSM holds 76 M cells, and its centres alone are 1.2 GB."""
-        rows, cols = self.shape
-        e = self.west + (np.arange(cols) + 0.5) * self.cell_m
-        for r0 in range(0, rows, rows_per_block):
-            r1 = min(r0 + rows_per_block, rows)
-            yield slice(r0, r1), e, self.north - (np.arange(r0, r1) + 0.5) * self.cell_m
+        e, n = self.centre_axes()
+        for r0 in range(0, len(n), rows_per_block):
+            rows = slice(r0, min(r0 + rows_per_block, len(n)))
+            yield rows, e, n[rows]
 
     def heights_on(self, e: np.ndarray, n: np.ndarray) -> np.ndarray:
         """:meth:`height_at` on the grid of E ``e`` (cols,) x N ``n`` (rows,): (rows, cols) float64, the same bits,

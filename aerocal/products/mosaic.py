@@ -218,34 +218,52 @@ def read_frame(path: str | Path) -> np.ndarray:
         raise ValueError(str(exc)) from exc
 
 
-#: bytes of decoded frames each process keeps (:func:`frame_pixels`): tiles are rendered in an order that keeps
+class FrameCache:
+    """The frames a process read last, up to ``max_bytes`` (their arrays' sizes summed), kept read-only and the
+    least recently used dropped first; one per process, module level, so that tasks a Dask worker runs one after
+    another share it. ``clear`` releases them: a step's frames are not kept beyond it (a long-lived process would
+    hold them, and a frame rewritten at the same path would read as it was)."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self._kept: collections.OrderedDict[object, tuple[np.ndarray, ...]] = collections.OrderedDict()
+
+    def get(self, key: object, read: Callable[[], tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
+        """The arrays kept under ``key``, else ``read()``'s, kept (read-only) before they are returned."""
+        if key in self._kept:
+            self._kept.move_to_end(key)
+            return self._kept[key]
+        arrays = read()
+        for a in arrays:
+            a.flags.writeable = False
+        self._kept[key] = arrays
+        while sum(a.nbytes for v in self._kept.values() for a in v) > self.max_bytes and len(self._kept) > 1:
+            self._kept.popitem(last=False)
+        return arrays
+
+    def __len__(self) -> int:
+        return len(self._kept)
+
+    def clear(self) -> None:
+        self._kept.clear()
+
+
+#: the decoded frames each process keeps (:func:`frame_pixels`): tiles are rendered in an order that keeps
 #: neighbours together (:func:`_hilbert_order`), so the frames a tile needs are mostly those the last tiles read;
-#: 768 MiB hold about 26 frames of 3600 x 2700 RGB, or every frame of a 640 x 512 thermal block of 1,000
-FRAME_CACHE_BYTES = 768 * 2**20
-_decoded: collections.OrderedDict[str, np.ndarray] = collections.OrderedDict()
+#: 768 MiB hold about 27 frames of 3600 x 2700 RGB, or every frame of a 640 x 512 thermal block of 1,000
+_decoded = FrameCache(768 * 2**20)
 
 
 def frame_pixels(path: str | Path) -> np.ndarray:
-    """:func:`read_frame`, with the last frames read in this process, up to :data:`FRAME_CACHE_BYTES`, kept and
-    returned read-only: each tile that touches a frame decoded it again, and a visible block's mosaic was
-    decode-bound (benchmarks/RESULTS.md, "Orthomosaic of large visible frames against the decode-and-resample
-    limit")."""
-    key = str(path)
-    if key in _decoded:
-        _decoded.move_to_end(key)
-        return _decoded[key]
-    img = read_frame(path)
-    img.flags.writeable = False
-    _decoded[key] = img
-    while sum(a.nbytes for a in _decoded.values()) > FRAME_CACHE_BYTES and len(_decoded) > 1:
-        _decoded.popitem(last=False)
-    return img
+    """:func:`read_frame` through this process's :class:`FrameCache`: each tile that touches a frame decoded it
+    again, and a visible block's mosaic was decode-bound (benchmarks/RESULTS.md, "Orthomosaic of large visible
+    frames against the decode-and-resample limit")."""
+    return _decoded.get(str(path), lambda: (read_frame(path),))[0]
 
 
 def forget_frames() -> None:
     """Release the frames :func:`frame_pixels` keeps in this process (module level: run on every Dask worker at
-    the end of a mosaic). A mosaic's frames are not kept beyond it: a long-lived process (a served flow, a
-    cluster's workers) would hold them, and a frame rewritten at the same path would read as it was."""
+    the end of a mosaic)."""
     _decoded.clear()
 
 

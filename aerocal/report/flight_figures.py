@@ -139,9 +139,7 @@ def temperature_io_for_flight(
 def _inside(dsm, reference) -> np.ndarray:
     """Cells of ``dsm`` whose centres lie inside the grid of ``reference`` (both :class:`aerocal.products.dsm.Dsm`)."""
     w, s, e, n = reference.bounds()
-    rows, cols = dsm.shape
-    east = dsm.west + (np.arange(cols) + 0.5) * dsm.cell_m  # the centres as Dsm.cell_centres gives them
-    north = dsm.north - (np.arange(rows) + 0.5) * dsm.cell_m
+    east, north = dsm.centre_axes()
     return ((north >= s) & (north <= n))[:, None] & ((east >= w) & (east <= e))[None, :]
 
 
