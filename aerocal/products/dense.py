@@ -419,6 +419,25 @@ def _sgbm(config: DenseConfig, plan: PairPlan) -> cv2.StereoSGBM:
         speckleRange=config.speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
 
 
+def sgbm_disparity(raw: np.ndarray, min_disparity: int) -> np.ndarray:
+    """OpenCV SGBM's disparities (int16, sixteenths of a rectified pixel) as pixels (float32), NaN where SGBM found
+    none (below ``min_disparity``), with SGBM's sub-pixel rounding taken out.
+
+    SGBM places the minimum of the parabola through the costs at d - 1, d, d + 1 with C integer division,
+    ``(16 (S[d-1] - S[d+1]) + den) / (2 den)``, which truncates towards zero: an offset below -1/32 px comes out one
+    sixteenth too high, and a reported whole pixel stands for [-3/32, +1/32) px. Read as is, disparities are 1/32 px
+    too large on average, and every height is biased upwards by that much disparity (a test of sub-pixel shifts
+    measures the 1/32 and its removal). Here the sixteenths 9-15 (the negative offsets) lose one sixteenth and a
+    whole pixel half of one, the centre of what it stands for."""
+    disp = raw.astype(np.float32)
+    sixteenth = raw & 15  # the sub-pixel part: 1-8 for offsets up to +1/2 px, 9-15 for offsets below -1/32 px
+    disp[sixteenth >= 9] -= 1.0
+    disp[sixteenth == 0] -= 0.5
+    disp /= np.float32(16.0)
+    disp[raw < min_disparity * 16] = np.nan
+    return disp
+
+
 def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other8: np.ndarray, plan: PairPlan,
                rays: np.ndarray, scale: float, config: DenseConfig,
                ground_height_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -430,9 +449,7 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
     rect = rectify(ref, other, scale)
     left, inside = _rectified(ref, rect, ref8, True, scale, viewing_depth(ref, ground_height_m))
     right, _ = _rectified(other, rect, other8, False, scale, viewing_depth(other, ground_height_m))
-    raw = _sgbm(config, plan).compute(left, right)
-    disp = raw.astype(np.float32) / np.float32(16.0)
-    disp[raw < (plan.min_disparity * 16)] = np.nan
+    disp = sgbm_disparity(_sgbm(config, plan).compute(left, right), plan.min_disparity)
     disp[~inside] = np.nan
     # semi-global matching carries disparities across a region without texture along its paths, and two pairs
     # interpolate it alike, so the fusion would keep it: a pixel whose block holds no texture gets no depth
