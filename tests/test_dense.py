@@ -14,13 +14,14 @@ from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.products.dense import (
     DenseConfig,
     _nearness_rank,
+    cell_views,
     confirmed,
     dense_cloud,
     fuse_depths,
     rectify,
     sgbm_disparity,
 )
-from aerocal.products.dsm import dsm_from_points, write_dsm
+from aerocal.products.dsm import dsm_from_points, read_views, write_dsm
 from aerocal.products.mosaic import frames_from_poses, read_frame
 from aerocal.products.pointcloud import write_laz
 
@@ -83,19 +84,28 @@ def test_the_dense_dsm_is_close_to_the_true_surface_and_covers_what_the_frames_s
     completeness = float(np.count_nonzero(measured & seen) / np.count_nonzero(seen))
     seen3 = _seen_by(frames, dsm, sim.scene.height_at, 3)
     completeness3 = float(np.count_nonzero(measured & seen3) / np.count_nonzero(seen3))
+    views = cell_views(cloud, dsm, measured)
+    checked = compare_dems(dsm, sim.scene.height_at, mask=measured & seen & (views >= 3), selection="measured")
+    one_pair = compare_dems(dsm, sim.scene.height_at, mask=measured & seen & (views == 2), selection="measured")
     print(f"seed {SEED}: dense DSM - true surface on measured cells: median {diff.median:.3f} m, NMAD "
-          f"{diff.nmad:.3f} m ({diff.nmad / gsd:.2f} GSD), completeness {completeness:.1%} of the cells two frames "
-          f"see, {completeness3:.1%} of those three see; tie-point DSM: median {sparse.median:.3f} m, NMAD "
-          f"{sparse.nmad:.3f} m ({sparse.nmad / gsd:.2f} GSD)")
-    # the figures of this seed and two others: benchmarks/RESULTS.md, "Dense surface" (seed 3: NMAD 1.07 GSD,
-    # median +0.05 GSD, 89 % of the cells two frames see and 94 % of those three see). A cell two frames see has
-    # one pair: the three-view rule leaves it out, so the 90 % the dense surface must cover is of the cells three
-    # frames see. The median was +0.29 GSD while SGBM's sub-pixel rounding stayed in the disparities.
+          f"{diff.nmad:.3f} m ({diff.nmad / gsd:.2f} GSD; {checked.nmad / gsd:.2f} on the {checked.n} cells three "
+          f"views or more checked, {one_pair.nmad / gsd:.2f} on the {one_pair.n} of one pair), completeness "
+          f"{completeness:.1%} of the cells two frames see, {completeness3:.1%} of those three see; tie-point DSM: "
+          f"median {sparse.median:.3f} m, NMAD {sparse.nmad:.3f} m ({sparse.nmad / gsd:.2f} GSD)")
+    # the figures of this seed and two others: benchmarks/RESULTS.md, "Dense surface" (seed 3: NMAD 1.11 GSD,
+    # median +0.05 GSD, 93 % of the cells two frames see and 96 % of those three see). The median was +0.29 GSD
+    # while SGBM's sub-pixel rounding stayed in the disparities; the cells two frames see were 89 % measured
+    # before a pixel that one pair alone covers kept its depth.
     assert diff.nmad < 1.2 * gsd, f"seed {SEED}: NMAD {diff.nmad:.3f} m"
+    assert checked.nmad < 1.2 * gsd and checked.n > 0.8 * diff.n, (checked.nmad, checked.n, diff.n)
     assert abs(diff.median) < 0.15 * gsd, f"seed {SEED}: median {diff.median:.3f} m"
     assert diff.nmad < 0.25 * sparse.nmad, f"seed {SEED}: dense {diff.nmad:.3f} m, sparse {sparse.nmad:.3f} m"
-    assert completeness3 > 0.9 and completeness > 0.85, f"seed {SEED}: completeness {completeness3:.1%}"
-    assert cloud.views.min() >= 3, "every point agreed on by the reference and two other views"
+    assert completeness3 > 0.93 and completeness > 0.9, f"seed {SEED}: completeness {completeness:.1%}"
+    assert cloud.views.min() >= 2 and cloud.stats["two_view_points"] == np.count_nonzero(cloud.views == 2)
+    # a point of one pair only where no point that three views checked lies in its cell
+    cell = np.floor(cloud.xyz[:, :2] / cloud.gsd_m).astype(np.int64)
+    key = cell[:, 0] * 10_000_019 + cell[:, 1]
+    assert not np.isin(key[cloud.views == 2], key[cloud.views >= 3]).any()
 
 
 def test_a_uniform_area_stays_a_flagged_hole_not_an_invented_height(block):
@@ -173,14 +183,19 @@ def test_moving_vehicles_leave_no_invented_heights(block, dense):
     assert clean_dsm.shape == dsm.shape and clean_dsm.west == dsm.west and clean_dsm.north == dsm.north
     clean_wrong = clean_measured & (np.abs(clean_dsm.heights - truth) > 3.0 * cloud.gsd_m)
     changed = wrong & ~clean_wrong  # wrong where the block without vehicles is not
-    share = float(np.mean(changed[swept]))
+    # a cell that one pair alone measured (band 3 of the DSM: 2 views) cannot tell a vehicle moving along that
+    # pair's baseline from a height: the DSM says so cell by cell, and the cells it calls checked must be right
+    one_pair = cell_views(cloud, dsm, measured) == 2
+    share = float(np.mean(changed[swept & ~one_pair]))
     # elsewhere the vehicles change a few heights too (SGBM's paths carry costs across the frame): the floor
-    floor = float(np.mean(changed[~swept & (measured | clean_measured)]))
+    floor = float(np.mean(changed[~swept & ~one_pair & (measured | clean_measured)]))
     print(f"seed {SEED}: {int(swept.sum())} cells swept by vehicles, {float(np.mean(measured[swept])):.1%} of them "
-          f"measured; wrong by more than 3 GSD where the block without vehicles is not: {share:.2%} of the swept "
-          f"cells, {floor:.2%} of the others")
+          f"measured, {float(np.mean(one_pair[swept])):.1%} by one pair; wrong by more than 3 GSD where the block "
+          f"without vehicles is not: {share:.2%} of the swept cells checked by three views or more, {floor:.2%} of "
+          f"the others; {float(np.mean(changed[swept & one_pair])):.1%} of the swept cells of one pair")
     assert swept.sum() > 500, "the vehicles must cross the block"
     assert share < 0.02 + 2.0 * floor, f"seed {SEED}: {share:.2%} of the swept cells got a wrong height ({floor:.2%})"
+    assert np.mean(one_pair[swept]) < 0.2, "most swept cells lie where three views can check them"
 
 
 def test_the_cloud_and_the_dsm_open_in_a_viewer_and_a_gis(block, dense, tmp_path):
@@ -195,12 +210,18 @@ def test_the_cloud_and_the_dsm_open_in_a_viewer_and_a_gis(block, dense, tmp_path
     np.testing.assert_array_equal(np.asarray(las.views), cloud.views)
     np.testing.assert_allclose(np.asarray(las.temperature), cloud.value / 100.0 - 273.15, atol=1e-3)
     assert np.all(np.asarray(las.intensity) == np.rint(cloud.value))
-    path = write_dsm(dsm, tmp_path / "dsm.tif", measured)
+    views = cell_views(cloud, dsm, measured)
+    path = write_dsm(dsm, tmp_path / "dsm.tif", measured, views)
     with rasterio.open(path) as src:
-        assert src.count == 2 and src.descriptions == ("height", "measured") and src.crs.to_string() == sim.crs
+        assert src.count == 3 and src.descriptions == ("height", "measured", "views")
+        assert src.crs.to_string() == sim.crs
         flag = src.read(2, masked=True)
         assert set(np.unique(flag.compressed()).tolist()) <= {0.0, 1.0}
         assert flag.compressed().mean() == pytest.approx(np.mean(measured[np.isfinite(dsm.heights)]))
+    back = read_views(path)
+    np.testing.assert_array_equal(back, np.where(np.isfinite(dsm.heights), views, 0))
+    assert set(np.unique(back[measured]).tolist()) <= set(range(2, 8)) and np.all(back[~measured] == 0)
+    assert 0.0 < np.mean(back[measured] == 2) < 0.2, "one pair only on the block's edges"
     assert not list(tmp_path.glob(".tmp-*")), "nothing half-written left behind"
 
 

@@ -32,7 +32,7 @@ from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, StepResult
-from aerocal.products.dense import dense_cloud
+from aerocal.products.dense import cell_views, dense_cloud
 from aerocal.products.dsm import Dsm, DsmConfig, dsm_from_points, read_dsm, write_dsm
 from aerocal.products.mosaic import (
     FrameCache,
@@ -45,6 +45,7 @@ from aerocal.products.mosaic import (
 from aerocal.products.pointcloud import write_laz
 from aerocal.products.range_check import flying_height_check, laser_range_check
 from aerocal.products.terrain import dtm_from_dsm
+from aerocal.report import wording
 
 
 def frame_paths(flight: dict, images: pa.Table) -> dict[int, Path]:
@@ -148,10 +149,11 @@ def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, 
 def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, cert: Certificate,
                   paths: Mapping[int, Path], ground: float, config: MosaicStepConfig,
                   execution: ExecutionConfig | None, work: Path, info: dict[str, Any]
-                  ) -> tuple[Dsm, np.ndarray, dict[str, FileOutput]] | None:
+                  ) -> tuple[Dsm, np.ndarray, np.ndarray, dict[str, FileOutput]] | None:
     """The dense cloud of the adjusted frames (:func:`aerocal.products.dense.dense_cloud`), its DSM at about one
-    ground sample per cell and where that DSM is measured (cells within 1.5 cells of a point; the rest is
-    filled), and the cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched. ``None`` when no point
+    ground sample per cell, where that DSM is measured (cells within 1.5 cells of a point; the rest is
+    filled), the views that agree on each measured cell (:func:`aerocal.products.dense.cell_views`), and the
+    cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched. ``None`` when no point
     survives the fusion (frames without texture): the products then stand on the tie points, and
     ``info["surface"]`` says why.
 
@@ -181,14 +183,16 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
         return None
     dsm = dsm_from_points(cloud.xyz, flight["crs"], gsd_m=cloud.gsd_m, config=config.dense_dsm)
     measured = dsm.distance_m <= 1.5 * dsm.cell_m
+    views = cell_views(cloud, dsm, measured)
     flir, _ = common_camera_info(list(paths.values()))
     temperature = None if flir is None else functools.partial(raw_to_celsius, info=flir)
     laz = write_laz(cloud, work / "cloud.laz", flight["crs"], temperature)
     info["surface"] = "dense"
     info["dense"] = {**dict(cloud.stats), "seconds": round(seconds, 1), "gsd_m": cloud.gsd_m, "dsm_cell_m": dsm.cell_m,
                      "measured_fraction": float(np.mean(measured)),
+                     "two_view_fraction": float(np.count_nonzero(views == 2) / max(np.count_nonzero(measured), 1)),
                      "median_views": float(np.median(cloud.views)), "temperature": flir is not None}
-    return dsm, measured, {"cloud": FileOutput(laz, "cloud", temporary=True)}
+    return dsm, measured, views, {"cloud": FileOutput(laz, "cloud", temporary=True)}
 
 
 def laser_output(images: pa.Table, frames: list[FrameGeometry], dsm: Dsm, measured: np.ndarray,
@@ -220,7 +224,8 @@ def surface_text(info: Mapping[str, Any]) -> str:
     dense = info.get("dense")
     if info.get("surface") == "dense" and dense:
         text = (f"dense: {dense['points']:,} points matched in {dense['pairs']} pairs of {dense['frames']} frames, "
-                f"{100 * dense['measured_fraction']:.0f} % of the DSM measured")
+                f"{100 * dense['measured_fraction']:.0f} % of the DSM measured"
+                + wording.two_view_text(dense))
     else:
         text = str(info.get("surface") or "tie points")
     height = info.get("flying_height")
@@ -259,7 +264,7 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             info["surface"] = "tie points: the dense surface was not asked for (--surface tie-points)"
         if dense is not None:
             sparse = dsm
-            dsm, measured, cloud_out = dense
+            dsm, measured, views, cloud_out = dense
             out.update(cloud_out)
             terrain = dtm_from_dsm(dsm, measured, config.ground_filter)
             info["dtm"] = terrain.note
@@ -278,12 +283,12 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
                 info["sparse_minus_reference_m"] = difference_to(sparse, reference, sparse.distance_m == 0)
                 info["dense_minus_reference_m"] = difference_to(dsm, reference, measured)
         else:
-            measured = None
+            measured = views = None
         if paths:
             laser = laser_output(images, frames, dsm, dsm.distance_m == 0 if measured is None else measured, gsd)
             if laser is not None:
                 info["laser_range"] = laser
-        out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured), "dsm", temporary=True)
+        out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured, views), "dsm", temporary=True)
         info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
         if paths:
             megapixels = len(frames) * cert.camera.width * cert.camera.height / 1e6

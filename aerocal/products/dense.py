@@ -23,7 +23,11 @@ What :func:`dense_cloud` does, for every frame of the block (the *reference*), a
 5. **Multi-view fusion**: a pixel keeps a depth only where at least ``min_agreeing_pairs`` pairs agree within
    ``agreement_px`` pixels of disparity (the reference and at least two other views: where the pairs disagree,
    a moving object, or find nothing, a uniform area, the surface stays a hole); the depth is the mean of the
-   agreeing pairs weighted by their precision (the inverse square of their tolerance). A point is kept by the
+   agreeing pairs weighted by their precision (the inverse square of their tolerance). A pixel that one pair
+   alone covers (a ground point two frames see, as much of a block flown at 60 % forward overlap) keeps that
+   pair's depth as a two-view point (``two_view``): nothing can check it, so the cloud's ``views`` say 2, it is
+   left out of any cell where a point of three views lies, and the DSM's views band flags its cells. A pixel that
+   other pairs cover but could not match stays a hole. A point is kept by the
    ``keep_frames`` frames whose projection centres are nearest to it in plan (each ground point from the most
    nadir frames that measured it), so the cloud holds a few points per ground sample, not one per view, and the
    DSM takes the median of their heights. Where the nearest frame's pairs left a hole (an occlusion, pairs that
@@ -45,10 +49,11 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
 from aerocal.camera import correct_measurements
-from aerocal.products.dsm import median_in_place
+from aerocal.products.dsm import Dsm, median_in_place
 from aerocal.products.mosaic import FrameGeometry
 
 #: A frame's pixels for matching: image id -> (8-bit grey frame for SGBM, frame values for the cloud's
@@ -93,6 +98,10 @@ class DenseConfig:
     max_disparities: int = 256  #: cap on the disparity search width (pixels; SGBM's cost grows with it)
     agreement_px: float = 0.5  #: two pairs agree when their depths differ by at most this disparity
     min_agreeing_pairs: int = 2  #: pairs that must agree (2: the reference and two other views)
+    #: where one pair alone covers a pixel (a ground point two frames see: most of a block flown at 60 % forward
+    #: overlap), keep its depth as a two-view point; nothing can check it against a third view, so it is kept
+    #: only where no other pair covers the pixel, and only in cells where no point of three views or more lies
+    two_view: bool = True
     #: frames that keep a ground point, the nearest in plan first (module docstring, step 5): with one, a point
     #: the nearest frame's pairs could not fuse is a hole however many other frames measured it
     keep_frames: int = 3
@@ -440,15 +449,17 @@ def sgbm_disparity(raw: np.ndarray, min_disparity: int) -> np.ndarray:
 
 def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other8: np.ndarray, plan: PairPlan,
                rays: np.ndarray, scale: float, config: DenseConfig,
-               ground_height_m: float) -> tuple[np.ndarray, np.ndarray]:
+               ground_height_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One pair's depth at the reference's pixels: (depth along the reference's optical axis, metres, NaN where
-    the pair found none; the depth tolerance of ``config.agreement_px`` disparity pixels at each pixel, metres).
+    the pair found none; the depth tolerance of ``config.agreement_px`` disparity pixels at each pixel, metres;
+    where the pair covers the pixel, bool: the other frame sees it at the middle of the disparity search, whether
+    or not a depth was found).
 
     ``ref8`` / ``other8`` are the 8-bit frames at ``scale``; ``rays`` the reference's world rays
     (:func:`_reference_grid`); ``ground_height_m`` the plane at whose depth the frames are rectified."""
     rect = rectify(ref, other, scale)
     left, inside = _rectified(ref, rect, ref8, True, scale, viewing_depth(ref, ground_height_m))
-    right, _ = _rectified(other, rect, other8, False, scale, viewing_depth(other, ground_height_m))
+    right, inside_right = _rectified(other, rect, other8, False, scale, viewing_depth(other, ground_height_m))
     disp = sgbm_disparity(_sgbm(config, plan).compute(left, right), plan.min_disparity)
     disp[~inside] = np.nan
     # semi-global matching carries disparities across a region without texture along its paths, and two pairs
@@ -458,31 +469,45 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
     var = cv2.boxFilter(ref * ref, -1, win) - np.square(cv2.boxFilter(ref, -1, win))
     disp[var < config.min_texture ** 2] = np.nan
     at = rect.rect_pixels(rays, left=True).astype(np.float32)
-    d = cv2.remap(disp, np.nan_to_num(at[..., 0], nan=-10.0), np.nan_to_num(at[..., 1], nan=-10.0),
-                  cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    col, row = np.nan_to_num(at[..., 0], nan=-10.0), np.nan_to_num(at[..., 1], nan=-10.0)
+    d = cv2.remap(disp, col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
+    # covered: the rectified left(x) inside the reference and right(x - d) inside the other frame, d the middle of
+    # the search (the pair could have measured the pixel, whether it did or not)
+    middle = np.float32(plan.min_disparity + 0.5 * plan.num_disparities)
+    covered = ((cv2.remap(inside.astype(np.uint8), col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
+                          borderValue=0) > 0)
+               & (cv2.remap(inside_right.astype(np.uint8), col - middle, row, cv2.INTER_NEAREST,
+                            borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0))
     d_true = d - (rect.cx_left - rect.cx_right)
     rz = rays @ rect.R[2]
     with np.errstate(divide="ignore", invalid="ignore"):
         z_rect = np.where(d_true > 0, rect.f * rect.baseline_m / d_true, np.nan)
         depth = z_rect / rz
         tol = config.agreement_px * z_rect * z_rect / (rect.f * rect.baseline_m * rz)
-    return depth.astype(np.float32), tol.astype(np.float32)
+    return depth.astype(np.float32), tol.astype(np.float32), covered
 
 
-def fuse_depths(depths: np.ndarray, tols: np.ndarray, min_agreeing: int) -> tuple[np.ndarray, np.ndarray]:
+def fuse_depths(depths: np.ndarray, tols: np.ndarray, min_agreeing: int,
+                covered: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fuse K depth maps (K, h, w) with their tolerances: per pixel the depth of the largest group of pairs that
     agree with one of them (|d_k - d_l| <= max(tol_k, tol_l); the first such pair on a tie), its mean weighted
     by precision (the inverse square of the tolerance, proportional to the sigma); NaN where fewer than
-    ``min_agreeing`` pairs agree. Returns (depth (h, w) float32, agreeing pairs (h, w) uint8).
+    ``min_agreeing`` pairs agree. With ``covered`` (K, h, w) bool, where each pair covers the pixel, a pixel that
+    one pair alone covers keeps that pair's depth (a two-view point: no third view could check it; a pixel other
+    pairs cover but could not match stays a hole). Returns (depth (h, w) float32, agreeing pairs (h, w) uint8).
 
     One pass per pixel (:func:`_fuse_pixels`): the same values as comparing every pair of maps with numpy
     (a test), in a tenth of the time and without its (K, K, h, w) arrays."""
-    return _fuse_pixels(np.ascontiguousarray(depths, dtype=np.float32), np.ascontiguousarray(tols, dtype=np.float32),
-                        int(min_agreeing))
+    depths = np.ascontiguousarray(depths, dtype=np.float32)
+    lone = covered is not None
+    cover = (np.ascontiguousarray(covered, dtype=np.bool_) if lone
+             else np.zeros((1, 1, 1), dtype=np.bool_))
+    return _fuse_pixels(depths, np.ascontiguousarray(tols, dtype=np.float32), int(min_agreeing), cover, lone)
 
 
 @numba.njit(cache=True)
-def _fuse_pixels(depths: np.ndarray, tols: np.ndarray, min_agreeing: int) -> tuple[np.ndarray, np.ndarray]:
+def _fuse_pixels(depths: np.ndarray, tols: np.ndarray, min_agreeing: int, covered: np.ndarray,
+                 lone: bool) -> tuple[np.ndarray, np.ndarray]:
     n_maps, h, w = depths.shape
     fused = np.full((h, w), np.nan, dtype=np.float32)
     agreeing = np.zeros((h, w), dtype=np.uint8)
@@ -501,8 +526,17 @@ def _fuse_pixels(depths: np.ndarray, tols: np.ndarray, min_agreeing: int) -> tup
                 if count > best:
                     best, best_k = count, k
             agreeing[y, x] = best
-            if best < min_agreeing or best_k < 0:
+            if best_k < 0:
                 continue
+            if best < min_agreeing:
+                if not lone or best != 1:
+                    continue
+                n_cover = 0
+                for m in range(n_maps):
+                    if covered[m, y, x]:
+                        n_cover += 1
+                if n_cover != 1 or not covered[best_k, y, x]:
+                    continue
             dk = depths[best_k, y, x]
             total, weight = 0.0, 0.0
             for m in range(n_maps):
@@ -604,13 +638,15 @@ def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans:
     ref8, ref_value = load(ref.image_id)
     ref8 = _resize(ref8, scale)
     rays = _reference_grid(ref, scale, viewing_depth(ref, ground_height_m))
-    depths, tols = [], []
+    depths, tols, covered = [], [], []
     for other, plan in zip(others, plans, strict=True):
         other8, _ = load(other.image_id)
-        d, t = pair_depth(ref, other, ref8, _resize(other8, scale), plan, rays, scale, config, ground_height_m)
+        d, t, c = pair_depth(ref, other, ref8, _resize(other8, scale), plan, rays, scale, config, ground_height_m)
         depths.append(d)
         tols.append(t)
-    fused, n = fuse_depths(np.stack(depths), np.stack(tols), config.min_agreeing_pairs)
+        covered.append(c)
+    fused, n = fuse_depths(np.stack(depths), np.stack(tols), config.min_agreeing_pairs,
+                           np.stack(covered) if config.two_view else None)
     keep = np.isfinite(fused) & (fused > 0)
     C = np.asarray(ref.C)
     X = C + fused[keep][:, None] * rays[keep]
@@ -623,11 +659,14 @@ def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans:
                            views=(1 + n[keep][mine]).astype(np.uint8), rank=rank[mine])
 
 
-def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: float, tol_m: float) -> np.ndarray:
+def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: float, tol_m: float,
+              views: np.ndarray | None = None) -> np.ndarray:
     """The points (bool mask) the cloud keeps (module docstring, step 5), cell by cell (``cell_m`` metres): every
     point of a frame nearest to it (rank 0); the farther frames' points within ``tol_m`` of the median height of
     the nearest frames' points where the cell has some, and where it has none, within ``tol_m`` of the median of
-    the farther frames' points when two frames or more have such points.
+    the farther frames' points when two frames or more have such points. With ``views`` (N,), the frames that
+    agree on each point, a two-view point is left out of a cell that holds a point of three views or more: the
+    cell has a checked height, and the unchecked one would only add its noise.
 
     A farther frame's three agreeing views are not enough on their own: a vehicle moving along a pair's
     baseline looks like a height to every pair along it, and the nearest frame left the cell out because its
@@ -639,7 +678,8 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     order = np.argsort(key, kind="stable")
     bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
     del key
-    return _confirm_cells(order, bounds, xyz, np.asarray(rank, dtype=np.uint8), np.asarray(image_id),
+    views = (np.full(len(xyz), 3, dtype=np.uint8) if views is None else np.asarray(views, dtype=np.uint8))
+    return _confirm_cells(order, bounds, xyz, np.asarray(rank, dtype=np.uint8), np.asarray(image_id), views,
                           float(tol_m))
 
 
@@ -664,7 +704,7 @@ def _cell_keys(xyz: np.ndarray, cell_m: float) -> np.ndarray:
 
 @numba.njit(cache=True)
 def _confirm_cells(order: np.ndarray, bounds: np.ndarray, xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray,
-                   tol: float) -> np.ndarray:
+                   views: np.ndarray, tol: float) -> np.ndarray:
     """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``."""
     keep = np.zeros(xyz.shape[0], dtype=np.bool_)
     largest = 0
@@ -673,20 +713,31 @@ def _confirm_cells(order: np.ndarray, bounds: np.ndarray, xyz: np.ndarray, rank:
     buf = np.empty(largest, dtype=np.float64)
     for c in range(bounds.shape[0] - 1):
         lo, hi = bounds[c], bounds[c + 1]
-        n_near = 0
+        fewest = 2  # the fewest views a point of the cell may have: 3 where some point has three or more
         for p in range(lo, hi):
-            if rank[order[p]] == 0:
+            if views[order[p]] >= 3:
+                fewest = 3
+                break
+        n_near, n_all = 0, 0
+        for p in range(lo, hi):
+            if rank[order[p]] == 0 and views[order[p]] >= fewest:
                 buf[n_near] = xyz[order[p], 2]
                 n_near += 1
         if n_near > 0:
             reference = median_in_place(buf[:n_near])
         else:
             for p in range(lo, hi):
-                buf[p - lo] = xyz[order[p], 2]
-            reference = median_in_place(buf[:hi - lo])
+                if views[order[p]] >= fewest:
+                    buf[n_all] = xyz[order[p], 2]
+                    n_all += 1
+            if n_all == 0:
+                continue
+            reference = median_in_place(buf[:n_all])
         first, second = -1, False  # the frames of the close points: a second one confirms the cell
         for p in range(lo, hi):
             i = order[p]
+            if views[i] < fewest:
+                continue
             if rank[i] == 0:
                 keep[i] = True
             elif abs(xyz[i, 2] - reference) <= tol:
@@ -756,13 +807,39 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     del results
     xyz = np.concatenate(fields.pop("xyz"))
     rank = np.concatenate(fields.pop("rank"))
+    views = np.concatenate(fields.pop("views"))
     gsd = float(np.median([(f.C[2] - ground_height_m) / (f.camera.f * scale) for f in frames]))
-    keep = confirmed(xyz, rank, image_id, gsd, config.fill_agreement_gsd * gsd)
+    keep = confirmed(xyz, rank, image_id, gsd, config.fill_agreement_gsd * gsd, views)
     n_pairs = sum(len(p) for p in plans.values())
     stats = {"frames": len(frames), "references": len(jobs), "pairs": n_pairs,
              "pairs_left_out": sum(len(v) for v in neighbours.values()) - n_pairs,
              "points": int(keep.sum()), "unconfirmed": int(len(keep) - keep.sum()), "scale": scale}
     xyz, rank, image_id = xyz[keep], rank[keep], image_id[keep]
     value = np.concatenate(fields.pop("value"))[keep]
-    views = np.concatenate(fields.pop("views"))[keep]
+    views = views[keep]
+    stats["two_view_points"] = int(np.count_nonzero(views == 2))
     return DenseCloud(xyz=xyz, value=value, views=views, image_id=image_id, gsd_m=gsd, stats=stats, rank=rank)
+
+
+def cell_views(cloud: DenseCloud, dsm: Dsm, measured: np.ndarray) -> np.ndarray:
+    """Per cell of ``dsm`` (the cloud's DSM), the most views that agree on a point of the cloud within one cell of
+    it (uint8, the DSM's shape; 0 where the cell is not ``measured``): 2 where the cell's height stands on one pair
+    that no third view could check, 3 or more where it was checked. A DSM cell is measured within 1.5 cells of a
+    point, so each takes the points of its 3 x 3 neighbourhood."""
+    rows, cols = dsm.shape
+    most = _most_views(np.ascontiguousarray(cloud.xyz, dtype=np.float64), np.asarray(cloud.views, dtype=np.uint8),
+                       float(dsm.west), float(dsm.north), float(dsm.cell_m), rows, cols)
+    return np.where(measured, maximum_filter(most.reshape(rows, cols), size=3), 0).astype(np.uint8)
+
+
+@numba.njit(cache=True)
+def _most_views(xyz: np.ndarray, views: np.ndarray, west: float, north: float, cell: float, rows: int,
+                cols: int) -> np.ndarray:
+    """:func:`cell_views` before the neighbourhood: per cell (flat, row-major) the most views of its own points."""
+    out = np.zeros(rows * cols, dtype=np.uint8)
+    for i in range(xyz.shape[0]):
+        c = int(np.floor((xyz[i, 0] - west) / cell))
+        r = int(np.floor((north - xyz[i, 1]) / cell))
+        if 0 <= c < cols and 0 <= r < rows and views[i] > out[r * cols + c]:
+            out[r * cols + c] = views[i]
+    return out

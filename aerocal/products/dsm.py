@@ -491,19 +491,28 @@ def _raster_triangles(rows: np.ndarray, values: np.ndarray, out: np.ndarray, fil
                     filled[r, c] = True
 
 
-def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None) -> Path:
+def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None,
+              views: np.ndarray | None = None) -> Path:
     """Write ``dsm`` as a Cloud-Optimized GeoTIFF (GDAL's COG driver: 256-pixel tiles, overviews averaged, deflate
     with the floating-point predictor), float32, nodata :data:`NODATA`, atomically: a GIS or a web map reads a
     window of a city's DSM without the whole file.
 
     ``measured`` (bool, the DSM's shape), when given, is written as a second band (1: a measured height, 0: a
     filled hole) named ``measured``: a GIS shows where the surface was interpolated; readers of the heights
-    (:func:`read_dsm`) read band 1 only."""
+    (:func:`read_dsm`) read band 1 only. ``views`` (the DSM's shape, with ``measured``), when given, is a third
+    band named ``views``: the frames that agree on the cell's height (2: one pair, unchecked; 0: filled).
+
+    Raises:
+        ValueError: ``views`` without ``measured``."""
+    if views is not None and measured is None:
+        raise ValueError("write_dsm: a views band needs the measured band beside it")
     path = Path(path)
     data = np.where(np.isfinite(dsm.heights), dsm.heights, NODATA).astype(np.float32)
     rows, cols = dsm.shape
     bands = [data] if measured is None else [data, np.where(np.isfinite(dsm.heights), measured, NODATA)
                                              .astype(np.float32)]
+    if views is not None:
+        bands.append(np.where(np.isfinite(dsm.heights), views, NODATA).astype(np.float32))
     profile = {
         "driver": "GTiff", "width": cols, "height": rows, "count": len(bands), "dtype": "float32", "crs": dsm.crs,
         "transform": dsm.transform(), "nodata": NODATA,
@@ -517,6 +526,8 @@ def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None) ->
                 dst.set_band_description(1, "height")
                 if measured is not None:
                     dst.set_band_description(2, "measured")
+                if views is not None:
+                    dst.set_band_description(3, "views")
                 dst.update_tags(AREA_OR_POINT="Area", units="metre")
             rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", PREDICTOR="YES", BLOCKSIZE=256,
                                  OVERVIEW_RESAMPLING="AVERAGE", BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
@@ -533,6 +544,16 @@ def read_measured(path: str | Path) -> np.ndarray | None:
             return None
         band = src.read(2, masked=True)
         return np.ma.getdata(band) == 1.0
+
+
+def read_views(path: str | Path) -> np.ndarray | None:
+    """The views band of a DSM written by :func:`write_dsm` with ``views`` (uint8, the DSM's shape: 0 filled or no
+    height, 2 one pair, 3 or more checked), or ``None`` when the file has no band named ``views``."""
+    with rasterio.open(path) as src:
+        if src.count < 3 or src.descriptions[2] != "views":
+            return None
+        band = src.read(3, masked=True)
+        return np.where(np.ma.getmaskarray(band), 0, np.ma.getdata(band)).astype(np.uint8)
 
 
 def read_dsm(path: str | Path) -> Dsm:

@@ -523,8 +523,8 @@ def _surface_rows(mosaic: Mapping, dsm) -> list[tuple[str, str]]:
     if dense:
         rows.append(("Surface", f"dense: {wording.number(dense['points'])} points matched in "
                                 f"{wording.number(dense['pairs'])} pairs of {wording.number(dense['frames'])} "
-                                f"frames (cloud.laz), {100 * dense['measured_fraction']:.0f} % of the DSM measured, "
-                                "the rest filled (band 2 of dsm.tif)"))
+                                f"frames (cloud.laz), {100 * dense['measured_fraction']:.0f} % of the DSM measured"
+                                f"{wording.two_view_text(dense)}, the rest filled (band 2 of dsm.tif)"))
         if mosaic.get("dtm"):
             rows.append(("Terrain", str(mosaic["dtm"]) + (" (dtm.tif)" if mosaic["dtm"].startswith("DTM") else "")))
     else:

@@ -526,3 +526,10 @@ def twin_view(twin: Mapping) -> dict:
             out.append(f"The {', '.join(undecided)} {'is' if len(undecided) == 1 else 'are'} within the extended "
                        "twins' spread only because that spread is wide: the twins cannot decide.")
     return {"lead": lead, "rows": rows, "sentences": out}
+
+
+def two_view_text(dense: Mapping[str, object]) -> str:
+    """The share of a dense DSM's measured cells that stand on one pair only (``dense``: the products step's
+    ``dense`` record), as ", N % of it by one pair only (band 3 of dsm.tif)"; "" below half a percent."""
+    share = float(dense.get("two_view_fraction") or 0.0)
+    return f", {100 * share:.0f} % of it by one pair only (band 3 of dsm.tif)" if share >= 0.005 else ""
