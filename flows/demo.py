@@ -16,6 +16,7 @@ the ``aerocal demo`` command before Prefect is imported; see
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 from pathlib import Path
 from typing import Any
@@ -23,9 +24,9 @@ from typing import Any
 import numpy as np
 from prefect import flow
 
-from aerocal.effects import CATALOGUE
+from aerocal.effects import CATALOGUE, EffectError, effect_values
 from aerocal.pipeline import ProcessConfig, RunSummary
-from aerocal.simulate import get_preset, simulate_flight, write_flight
+from aerocal.simulate import PRESETS, get_preset, simulate_flight, write_flight
 from aerocal.simulate.rendered_frames import render_flight_images
 from aerocal.simulate.simulator import spec_summary
 from flows.environment import demo_environment
@@ -40,7 +41,9 @@ class DemoConfig:
     image's along-track axis, which a Brown model self-calibrating f, cx, cy, k1, k2, p1, p2 does not hold),
     ``wind_m_s`` (east, north; (9, 4): the aircraft is faster over the ground one way than the other and crabs on
     the transversal strip, as real flights do, which tells a readout from an affinity of the pixel grid), ``frames``
-    rendered for the orthomosaic (8, the ones nearest the block centre)."""
+    rendered for the orthomosaic (8, the ones nearest the block centre). A flight that could not be simulated (an
+    unknown preset or effect, a magnitude of the wrong size, a wind as fast as the preset's airspeed) is refused
+    here, before anything is written."""
 
     preset: str = "conte-calibration"
     seed: int = 7
@@ -48,6 +51,29 @@ class DemoConfig:
     effects: tuple[tuple[str, tuple[float, ...]], ...] = (("rolling_shutter", (0.010,)),)
     wind_m_s: tuple[float, float] = (9.0, 4.0)
     frames: int = 8
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"DemoConfig.preset {self.preset!r} unknown; valid: {', '.join(PRESETS)}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"DemoConfig.seed must be an integer of 0 or more, got {self.seed!r}")
+        if self.max_images is not None and self.max_images < 2:
+            raise ValueError(f"DemoConfig.max_images must be None (every frame) or 2 or more, got {self.max_images}")
+        names = [name for name, _ in self.effects]
+        if len(set(names)) != len(names):
+            raise ValueError(f"DemoConfig.effects names an effect more than once: {names}")
+        for name, values in self.effects:
+            try:
+                effect_values(name, values)
+            except EffectError as e:
+                raise ValueError(f"DemoConfig.effects: {e}") from None
+        airspeed = PRESETS[self.preset].plan.speed_m_s
+        wind = tuple(self.wind_m_s)
+        if len(wind) != 2 or not all(math.isfinite(w) for w in wind) or not math.hypot(*wind) < airspeed:
+            raise ValueError(f"DemoConfig.wind_m_s must be (east, north) m/s slower than the preset's airspeed of "
+                             f"{airspeed:g} m/s (the aircraft must make headway on every strip), got {self.wind_m_s}")
+        if self.frames < 0:
+            raise ValueError(f"DemoConfig.frames must be 0 (no orthomosaic pixels) or more, got {self.frames}")
 
     @property
     def hidden(self) -> str:

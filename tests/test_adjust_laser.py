@@ -100,6 +100,8 @@ def test_laser_ranges_determine_the_focal_length_a_nadir_block_leaves_open(seed)
           f"with {with_laser.camera.f:.1f} +- {with_laser.sigmas['f']:.1f}")
     assert with_laser.sigmas["f"] < 0.5 * without.sigmas["f"], (with_laser.sigmas, without.sigmas)
     assert abs(with_laser.camera.f - f_true) < 3.0 * with_laser.sigmas["f"] + 0.002 * f_true, f"seed {seed}"
+    # determined means determined, not merely twice as well as without (measured 13.6 px, 1.8 % of f)
+    assert with_laser.sigmas["f"] < 30.0, f"seed {seed}: sigma of f {with_laser.sigmas['f']:.1f} px above 30 px"
 
 
 @pytest.mark.parametrize("seed", [41])

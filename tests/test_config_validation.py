@@ -7,12 +7,22 @@ from aerocal.calibrate.heldout import HeldOutConfig
 from aerocal.calibrate.self_calibration import CalibrationConfig
 from aerocal.calibrate.subset import SubsetConfig
 from aerocal.certificates.review import DecisionConfig
+from aerocal.certificates.selection import SelectionRules
 from aerocal.diagnose.engine import DiagnoseConfig
 from aerocal.matching.cluster import ExecutionConfig
 from aerocal.orient import IncrementalConfig
-from aerocal.pipeline.config import BlockStepConfig, MatchStepConfig, MosaicStepConfig, ReportStepConfig
+from aerocal.pipeline.config import (
+    BlockStepConfig,
+    ControlStepConfig,
+    MatchStepConfig,
+    MosaicStepConfig,
+    OrientStepConfig,
+    ReportStepConfig,
+)
+from aerocal.pipeline.dataset import IngestStepConfig
 from aerocal.simulate.flight_plan import FlightPlanConfig
 from aerocal.simulate.sensors import SensorConfig
+from flows.demo import DemoConfig
 
 BAD = [
     (lambda: HeldOutConfig(folds=1), "HeldOutConfig.folds"),
@@ -31,6 +41,25 @@ BAD = [
     (lambda: FlightPlanConfig(direction="diagonal"), "FlightPlanConfig.direction"),
     (lambda: FlightPlanConfig(side_overlap=1.2), "side_overlap"),
     (lambda: SensorConfig(gnss_sigma_h_m=float("nan")), "SensorConfig"),
+    (lambda: IngestStepConfig(gcp_file=""), "IngestStepConfig.gcp_file"),
+    (lambda: IngestStepConfig(eo_file="  "), "IngestStepConfig.eo_file"),
+    (lambda: IngestStepConfig(crs=""), "IngestStepConfig.crs"),
+    (lambda: IngestStepConfig(flight_name=7), "IngestStepConfig.flight_name"),
+    (lambda: OrientStepConfig(incremental={"min_model_size": 3}), "OrientStepConfig.incremental"),
+    (lambda: ControlStepConfig(screening=None), "ControlStepConfig.screening"),
+    (lambda: ControlStepConfig(enabled="no"), "ControlStepConfig.enabled"),
+    (lambda: SelectionRules(temperature_tolerance_c=-1.0), "SelectionRules.temperature_tolerance_c"),
+    (lambda: SelectionRules(thermal_tolerance_c=float("nan")), "SelectionRules.thermal_tolerance_c"),
+    (lambda: SelectionRules(accept_unrecorded_temperature="no"), "SelectionRules.accept_unrecorded_temperature"),
+    (lambda: DemoConfig(preset="conte-calibratoin"), "DemoConfig.preset"),
+    (lambda: DemoConfig(seed=-1), "DemoConfig.seed"),
+    (lambda: DemoConfig(max_images=1), "DemoConfig.max_images"),
+    (lambda: DemoConfig(effects=(("rolling_shutter", (0.01, 0.02)),)), "DemoConfig.effects"),
+    (lambda: DemoConfig(effects=(("rolling_shuter", (0.01,)),)), "DemoConfig.effects"),
+    (lambda: DemoConfig(effects=(("rolling_shutter", (0.01,)), ("rolling_shutter", (0.02,)))), "DemoConfig.effects"),
+    (lambda: DemoConfig(wind_m_s=(60.0, 0.0)), "DemoConfig.wind_m_s"),
+    (lambda: DemoConfig(wind_m_s=(float("nan"), 0.0)), "DemoConfig.wind_m_s"),
+    (lambda: DemoConfig(frames=-1), "DemoConfig.frames"),
 ]
 
 
@@ -43,5 +72,6 @@ def test_a_value_that_cannot_be_meant_is_refused_by_name(make, names):
 def test_the_defaults_are_valid():
     for cls in (HeldOutConfig, CalibrationConfig, SubsetConfig, DecisionConfig, DiagnoseConfig, ExecutionConfig,
                 IncrementalConfig, MatchStepConfig, BlockStepConfig, MosaicStepConfig, ReportStepConfig,
-                FlightPlanConfig, SensorConfig):
+                FlightPlanConfig, SensorConfig, IngestStepConfig, OrientStepConfig, ControlStepConfig, SelectionRules,
+                DemoConfig):
         cls()

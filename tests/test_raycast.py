@@ -14,7 +14,8 @@ from PIL import Image
 
 from aerocal.camera import Camera
 from aerocal.geometry import dji_gimbal_to_R_cw, nadir_R_cw, small_rotation, world_to_camera
-from aerocal.simulate.image_files import DJI_NAMESPACE, FrameMetadata, write_rgb_jpeg, write_thermal_tiff
+from aerocal.ingest.metadata_writer import DJI_NAMESPACE
+from aerocal.simulate.image_files import FrameMetadata, write_rgb_jpeg, write_thermal_tiff
 from aerocal.simulate.raycast import (
     RenderConfig,
     intersect_dsm,

@@ -3,6 +3,10 @@
 Entry points: :func:`adjust` (tables in, :class:`AdjustmentResult` out) and :func:`run_strategy`
 (Conte 2018's strategies: fixed IO, self-calibration of the whole block, certificate from a subset);
 :func:`fit_thermal_model` fits a linear thermal IO model to calibrations at several temperatures.
+
+Tests: tests/test_adjust_core.py, tests/test_adjust_robust.py, tests/test_adjust_partition.py,
+tests/test_adjust_selection.py, tests/test_adjust_thinning.py, tests/test_adjust_papers.py,
+tests/test_adjust_laser.py, tests/test_conte_strategies.py, tests/test_thermal_model.py.
 """
 
 from aerocal.adjust.bundle import AdjustmentResult, adjust, corrected_to_t0, scale_tie_sigma, screened_rows

@@ -6,4 +6,6 @@ with the IO (and its thermal slopes) free and writes a certificate; :mod:`heldou
 model predicts strips the fit did not use; :mod:`eo_checks` compares the adjusted exterior orientation with
 the recorded GNSS/IMU (lever arm, boresight, time lag). The acceptance rule for the result is
 :mod:`aerocal.certificates.review`.
+
+Tests: tests/test_calibration.py, tests/test_subset.py, tests/test_eo_checks.py, tests/test_config_validation.py.
 """

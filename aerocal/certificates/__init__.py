@@ -7,4 +7,6 @@ hand-written one (:mod:`schema`, errors in :mod:`errors`), the decision rule tha
 self-calibration before it is stored (:mod:`review`), and the choice of the certificate a flight uses among
 those on record (:mod:`selection`). It holds no database code: :mod:`storage.certificates` persists documents,
 :mod:`aerocal.pipeline.certificates` runs the choice as a step of a flight.
+
+Tests: tests/test_certificate.py, tests/test_camera_identity.py, tests/test_certificate_selection.py.
 """

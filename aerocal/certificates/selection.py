@@ -67,11 +67,24 @@ class SelectionRules:
             a fitted dIO/dT is not extrapolated).
         accept_unrecorded_temperature: whether a certificate recording no temperatures covers any
             flight temperature (default True; the reason then says the temperature was not checked).
+
+    Tolerances are finite and 0 or more: a negative one would narrow the range a certificate was determined
+    over, refusing flights it covers.
     """
 
     temperature_tolerance_c: float = 3.0
     thermal_tolerance_c: float = 0.0
     accept_unrecorded_temperature: bool = True
+
+    def __post_init__(self) -> None:
+        for name in ("temperature_tolerance_c", "thermal_tolerance_c"):
+            value = getattr(self, name)
+            if not 0.0 <= value < math.inf:
+                raise ValueError(f"SelectionRules.{name} must be finite degC of 0 or more (a negative tolerance "
+                                 f"would narrow the range a certificate was determined over), got {value!r}")
+        if not isinstance(self.accept_unrecorded_temperature, bool):
+            raise ValueError(f"SelectionRules.accept_unrecorded_temperature must be True or False, got "
+                             f"{self.accept_unrecorded_temperature!r}")
 
 
 class NoCertificateError(LookupError):

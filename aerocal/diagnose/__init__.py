@@ -11,4 +11,6 @@ over strips or time blocks); :mod:`extension` corrects the block's data for a na
 residuals depart from it; :mod:`attitude`
 and :mod:`io_uncertainty` hold the recorded-attitude offset and the propagation of the interior orientation's
 uncertainty. Nothing here reads the simulator or its truth.
+
+Tests: tests/test_diagnose.py, tests/test_twin.py, tests/test_model_loop.py.
 """

@@ -17,11 +17,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from aerocal.adjust.projection import rotation_log
+from aerocal.diagnose.prediction import HELD_OUT_SIGMAS
 
-#: an offset is one beyond this many of its sigmas, about an axis
+#: an offset (of the recorded attitudes about an axis, of the block against its check points in
+#: :func:`aerocal.diagnose.engine.check_point_offset`) is one beyond this many of its sigmas, and with a
+#: leave-one-out gain beyond :data:`~aerocal.diagnose.prediction.HELD_OUT_SIGMAS` of its standard errors
 OFFSET_SIGMAS = 3.0
-#: and with a leave-one-out gain beyond this many of its standard errors
-HELD_OUT_SIGMAS = 2.0
 
 
 @dataclass(frozen=True)

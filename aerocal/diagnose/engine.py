@@ -45,7 +45,7 @@ from aerocal.adjust.solver import BundleProblem, inverse_spd, solve
 from aerocal.adjust.strategy import central_images, long_tracks
 from aerocal.camera import Camera, LinearThermalModel
 from aerocal.diagnose import hypotheses as hyp
-from aerocal.diagnose.attitude import mean_rotation_covariance, offset_statistics
+from aerocal.diagnose.attitude import OFFSET_SIGMAS, mean_rotation_covariance, offset_statistics
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.diagnose.model import (
     Baseline,
@@ -59,6 +59,7 @@ from aerocal.diagnose.model import (
     refit,
 )
 from aerocal.diagnose.prediction import (
+    HELD_OUT_SIGMAS,
     Extension,
     HeldOutGain,
     PredictionConfig,
@@ -759,10 +760,6 @@ def _twin(baseline: Baseline, config: DiagnoseConfig) -> dict:
         return {"summary": f"the twin could not be made on this block ({type(exc).__name__}: {exc})"}
 
 
-#: a named effect's gain on data the fit did not use must be positive beyond this many standard errors (the
-#: decision rule's third question, :mod:`aerocal.certificates.review`), and it must not make the check points
-#: worse beyond as many
-HELD_OUT_SIGMAS = 2.0
 #: check points a block needs for their paired gain to count (as :class:`aerocal.certificates.review.DecisionConfig`)
 MIN_CHECK_POINTS = 3
 #: an effect is not named when it makes the check points' squared error worse by more than this fraction (10 % in
@@ -1070,8 +1067,6 @@ def recorded_eo_checks(round1: list[Evidence], over: Overdispersion | float, cam
     return out
 
 
-#: a recorded-attitude offset or a check-point offset is reported as one beyond this many of its sigmas
-OFFSET_SIGMAS = 3.0
 #: control GCPs a block needs to test a GNSS offset against them (as
 #: :data:`aerocal.calibrate.eo_checks.MIN_CONTROL`); with fewer the check points are asked (:func:`check_point_offset`)
 MIN_CONTROL_FOR_OFFSET = 3

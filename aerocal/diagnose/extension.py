@@ -9,7 +9,7 @@ the named effects as data (:class:`ModelTerm`) and applies them:
   ``thermal_principal_point`` slopes of the certificate's linear thermal model; a ``rolling_shutter`` readout and a
   ``thermal_rotation`` have no Brown parameter and correct the image measurements at the adjusted geometry
   (Daakir 2019's way: the measurements, not the pixels), wherever the certificate is used
-  (:func:`measurement_terms`, :func:`correct_measurements`);
+  (:func:`measurement_terms`, :func:`remove_image_terms`);
 * **block terms** belong to this flight's records (:func:`apply_block_terms`): ``gnss_bias``,
   ``gnss_time_offset`` and ``lever_arm`` correct the recorded positions, ``boresight`` the recorded attitudes,
   ``refraction`` the image measurements.
@@ -41,7 +41,7 @@ from aerocal.poses import poses_arrays
 BLOCK_TERMS = ("gnss_bias", "gnss_time_offset", "lever_arm", "boresight", "refraction")
 #: camera terms with no parameter in the Brown or linear thermal model: applied to the measurements
 MEASUREMENT_TERMS = ("rolling_shutter", "thermal_rotation")
-#: image-side terms whose correction :func:`correct_measurements` makes
+#: image-side terms whose correction :func:`remove_image_terms` makes
 IMAGE_TERMS = ("rolling_shutter", "thermal_rotation", "refraction", "affinity_skew", "radial_k3", "thermal_focal",
                "thermal_principal_point")
 
@@ -201,9 +201,9 @@ def _image_rows(images: pa.Table, ids: np.ndarray) -> dict[str, np.ndarray]:
 
 
 # ----------------------------------------------------------------------------------------- corrections
-def correct_measurements(terms: tuple[ModelTerm, ...], images: pa.Table, observations: pa.Table | None,
-                         gcp_observations: pa.Table | None, gcps: pa.Table | None, camera: Camera, poses: pa.Table,
-                         points: pa.Table, t_ref: float) -> tuple[pa.Table | None, pa.Table | None]:
+def remove_image_terms(terms: tuple[ModelTerm, ...], images: pa.Table, observations: pa.Table | None,
+                       gcp_observations: pa.Table | None, gcps: pa.Table | None, camera: Camera, poses: pa.Table,
+                       points: pa.Table, t_ref: float) -> tuple[pa.Table | None, pa.Table | None]:
     """The tie and GCP measurements with the image-side ``terms`` removed (:data:`IMAGE_TERMS`; others ignored),
     each at the adjusted ``poses`` and ``points`` (GCPs at their surveyed positions), ``camera`` the IO at
     ``t_ref`` (degC). Measurements of images without a pose are returned as they were."""

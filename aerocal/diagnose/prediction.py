@@ -42,6 +42,12 @@ from aerocal.adjust.projection import rotation_log
 from aerocal.adjust.solver import BundleProblem, State, solve
 from aerocal.diagnose.model import Baseline, Covariates
 
+#: a gain on data the fit did not use counts when it is positive beyond this many standard errors (the decision
+#: rule's third question, :mod:`aerocal.certificates.review`): a named effect's held-out gain here, the leave-one-out
+#: gain of an offset of the recorded attitudes (:mod:`aerocal.diagnose.attitude`) or of the block against its check
+#: points; and a named effect must not make the check points worse beyond as many
+HELD_OUT_SIGMAS = 2.0
+
 
 class UndeterminedFold(ValueError):
     """The hypothesis is not determined on a fold's fitting images (raised by an :data:`Extension`): e.g. a GNSS

@@ -14,6 +14,8 @@ Foreign formats hold only part of a certificate (each exporter's docstring says 
 imported certificate holds what the file held, with the camera identity passed in (or ``unknown``).
 Every write is atomic; every read is size-capped and safe (``defusedxml``, YAML safe loader) and fails
 with a one-line :class:`FormatError` naming the file, the field and the fix.
+
+Tests: tests/test_formats.py.
 """
 
 from __future__ import annotations

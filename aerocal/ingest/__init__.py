@@ -7,6 +7,9 @@ Entry points:
 * :func:`read_raw`: pixels with their original radiometry (uint16 raw thermal, 16-bit TIFF, 8-bit JPEG);
 * :func:`write_ingest` / :func:`read_ingest`: persist a result atomically;
 * :func:`summary_rows`: (item, value) rows for a CLI summary.
+
+Tests: tests/test_ingest_real.py, tests/test_ingest_robustness.py, tests/test_ingest_sidecars.py,
+tests/test_thermal_formats.py, tests/test_flight_from_images.py, tests/test_camera_identity.py.
 """
 
 from aerocal.certificates.identity import CameraIdentity

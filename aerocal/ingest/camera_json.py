@@ -20,6 +20,8 @@ from aerocal.ingest.problems import ProblemLog
 
 #: ``images.camera_id`` of an image nothing identifies (kept as earlier flights' tables hold it)
 UNKNOWN_CAMERA_ID = "unknown|unknown||"
+#: the largest ``camera.json`` or ``flight.json`` ingest reads (bytes; both hold a few hundred): a larger file is
+#: not one of them and is reported and ignored unread (also :func:`aerocal.ingest.readiness.read_flight_json`)
 MAX_JSON_BYTES = 4 * 1024 * 1024
 
 

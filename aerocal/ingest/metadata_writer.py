@@ -32,6 +32,8 @@ from aerocal.io import atomic_path
 #: a sequence of ints (SHORT/LONG) or of floats (RATIONAL: written as num/10**6)
 Entry = tuple[int, int, object]
 
+#: the XML namespace of the ``drone-dji`` XMP fields DJI drones write (position, gimbal and aircraft attitude;
+#: :mod:`aerocal.ingest.dji`)
 DJI_NAMESPACE = "http://www.dji.com/drone-dji/1.0/"
 
 

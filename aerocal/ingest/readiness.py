@@ -18,11 +18,11 @@ import pyarrow as pa
 
 from aerocal.camera import Camera
 from aerocal.certificates.identity import CameraIdentity
+from aerocal.ingest.camera_json import MAX_JSON_BYTES
 from aerocal.ingest.crs_strings import CrsTextError, crs_kind, normalise_crs
 from aerocal.ingest.problems import ProblemLog
 from aerocal.poses import has_priors
 
-MAX_JSON_BYTES = 4 * 1024 * 1024
 #: flight.json fields and their checks: name -> (kind, low, high); lists are checked element-wise
 FLIGHT_FIELDS: dict[str, tuple[str, float, float]] = {
     "height_agl_m": ("number", 1.0, 20000.0),

@@ -16,6 +16,8 @@ Modules: :mod:`.features` (detection on tiles), :mod:`.pairs` (footprint overlap
 :mod:`.retrieval` (candidate pairs from a coarse match, for flights without records),
 :mod:`.stream` (detection and matching streamed on Dask), :mod:`.cluster` (Dask), :mod:`.config` (the
 configuration dataclasses).
+
+Tests: tests/test_matching.py, tests/test_rendered_matching.py, tests/test_retrieval.py, tests/test_dask_cluster.py.
 """
 
 from aerocal.matching.cluster import ExecutionConfig, dask_client, local_client

@@ -13,7 +13,7 @@ from aerocal.adjust import AdjustConfig, adjust_fixed_io
 from aerocal.adjust.partition import PartitionedSolver
 from aerocal.calibrate.eo_checks import correct_recorded_eo
 from aerocal.certificates.document import Certificate
-from aerocal.diagnose.extension import correct_measurements, measurement_terms
+from aerocal.diagnose.extension import measurement_terms, remove_image_terms
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.matching.cluster import ExecutionConfig, n_workers
 from aerocal.pipeline.config import BlockStepConfig
@@ -65,7 +65,7 @@ def adjust_step(runner: Runner, ingest: StepResult, observations: str, certifica
                 first = adjust_fixed_io(images, obs, cert.camera, acfg, gcps, gobs, thermal)
                 poses, points = first.poses, first.points
             t0 = thermal.t0 if thermal is not None else 0.0  # each thermal term carries its own reference
-            obs, gobs = correct_measurements(terms, images, obs, gobs, gcps, cert.camera, poses, points, t0)
+            obs, gobs = remove_image_terms(terms, images, obs, gobs, gcps, cert.camera, poses, points, t0)
         corrections = None
         if config.recorded_eo_images and acfg.gnss_sigma_m is not None:
             n, m = images.num_rows, config.recorded_eo_images

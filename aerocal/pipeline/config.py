@@ -21,7 +21,7 @@ from aerocal.enhance import EnhanceConfig
 from aerocal.matching import FeatureConfig, MatchConfig
 from aerocal.matching.retrieval import RetrievalConfig
 from aerocal.orient import IncrementalConfig
-from aerocal.pipeline.dataset import IngestSettings
+from aerocal.pipeline.dataset import IngestStepConfig
 from aerocal.pipeline.runner import configuration_json
 from aerocal.products.dense import DenseConfig
 from aerocal.products.dsm import DsmConfig
@@ -42,9 +42,6 @@ class CertificateMode(StrEnum):
 CERTIFICATE_MODES = tuple(m.value for m in CertificateMode)
 #: the ``certificate`` mode that adjusts the block with the nominal camera
 NOMINAL = CertificateMode.NOMINAL
-
-#: the ingest step's configuration (kept under this name for flow configurations)
-IngestStepConfig = IngestSettings
 
 #: the calibration step's configuration is the engine's
 CalibrationStepConfig = CalibrationConfig
@@ -91,6 +88,11 @@ class OrientStepConfig:
 
     incremental: IncrementalConfig | None = None
 
+    def __post_init__(self) -> None:
+        if self.incremental is not None and not isinstance(self.incremental, IncrementalConfig):
+            raise ValueError(f"OrientStepConfig.incremental must be None or an IncrementalConfig, got "
+                             f"{self.incremental!r}")
+
 
 @dataclass(frozen=True)
 class ControlStepConfig:
@@ -99,6 +101,13 @@ class ControlStepConfig:
 
     screening: ControlScreeningConfig = field(default_factory=ControlScreeningConfig)
     enabled: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.screening, ControlScreeningConfig):
+            raise ValueError(f"ControlStepConfig.screening must be a ControlScreeningConfig (enabled=False to skip "
+                             f"the screening), got {self.screening!r}")
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"ControlStepConfig.enabled must be True or False, got {self.enabled!r}")
 
 
 @dataclass(frozen=True)

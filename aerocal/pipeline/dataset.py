@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from enum import StrEnum
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any, Protocol
 
 import pyarrow as pa
@@ -64,14 +64,25 @@ class FlightInputError(ValueError):
 
 
 @dataclass(frozen=True)
-class IngestSettings:
-    """Ingest settings: ``gcp_file`` / ``eo_file`` override the folder's own files, ``crs`` the automatic
-    UTM zone (image mode only); ``flight_name`` defaults to the folder's (or dataset's) name."""
+class IngestStepConfig:
+    """The ingest step's settings (the configuration a dataset is read with): ``gcp_file`` / ``eo_file``
+    override the folder's own files, ``crs`` the automatic UTM zone (image mode only); ``flight_name`` defaults
+    to the folder's (or dataset's) name. ``None`` everywhere: the folder decides. A value given is a non-empty
+    string (a path may be a :class:`~pathlib.Path`); whether the files exist and the CRS is a projected one is
+    ingest's to judge, which reports them as problems of the flight (:func:`aerocal.ingest.ingest_folder`)."""
 
     gcp_file: str | None = None
     eo_file: str | None = None
     crs: str | None = None
     flight_name: str | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("gcp_file", "eo_file", "crs", "flight_name"):
+            value = getattr(self, name)
+            paths = (str, PurePath) if name.endswith("_file") else (str,)
+            if value is not None and not (isinstance(value, paths) and str(value).strip()):
+                what = "a non-empty path" if name.endswith("_file") else "a non-empty string"
+                raise ValueError(f"IngestStepConfig.{name} must be None or {what}, got {value!r}")
 
 
 @dataclass
@@ -109,7 +120,7 @@ class FlightDataset(Protocol):
         """What identifies the dataset's content (a changed input changes it)."""
         ...
 
-    def read(self, settings: IngestSettings) -> IngestedFlight:
+    def read(self, settings: IngestStepConfig) -> IngestedFlight:
         """Read everything; raises :class:`FlightInputError` naming what is wrong."""
         ...
 
@@ -226,7 +237,7 @@ class FolderDataset:
         return {"schema": "aerocal.flight-manifest/1", "mode": mode.value,
                 "files": files}
 
-    def read(self, settings: IngestSettings) -> IngestedFlight:
+    def read(self, settings: IngestStepConfig) -> IngestedFlight:
         return self._read_observations() if self.observations_mode else self.read_images(settings)
 
     def _read_observations(self) -> IngestedFlight:
@@ -253,7 +264,7 @@ class FolderDataset:
             raise FlightInputError("\n".join(lines))
         return IngestedFlight(tabs, cam_doc, meta, crs, FlightMode.OBSERVATIONS, [str(p) for p in found])
 
-    def read_images(self, settings: IngestSettings) -> IngestedFlight:
+    def read_images(self, settings: IngestStepConfig) -> IngestedFlight:
         """The folder's images as image mode reads them (also where it holds observation tables: ``aerocal
         match`` makes them again), the tables, camera and flight metadata ingest gives the pipeline."""
         res = ingest_folder(self.folder, gcp_file=settings.gcp_file, eo_file=settings.eo_file, crs=settings.crs)
@@ -323,7 +334,7 @@ class MemoryDataset:
             "crs": self.crs,
         }
 
-    def read(self, settings: IngestSettings) -> IngestedFlight:
+    def read(self, settings: IngestStepConfig) -> IngestedFlight:
         tabs = {}
         for kind in OBSERVATION_TABLES:
             try:

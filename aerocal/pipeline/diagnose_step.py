@@ -16,7 +16,7 @@ from aerocal.certificates.document import Certificate
 from aerocal.diagnose.engine import DiagnoseConfig, Diagnosis, diagnose
 from aerocal.diagnose.io_uncertainty import IOUncertainty
 from aerocal.diagnose.run import diagnose_tables
-from aerocal.pipeline.dataset import FlightInputError, FolderDataset, IngestSettings
+from aerocal.pipeline.dataset import FlightInputError, FolderDataset, IngestStepConfig
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
 
 
@@ -112,7 +112,7 @@ def diagnose_folder(folder: str | Path, certificate: str | Path | None = None,
         raise FlightInputError(f"{dataset.folder / 'observations' / 'observations.parquet'} is missing; the "
                                f"diagnosis needs a block's measurements: run `aerocal match {folder}` first, or "
                                "`aerocal process` and diagnose its run folder")
-    read = dataset.read(IngestSettings())
+    read = dataset.read(IngestStepConfig())
     t = read.tables
     return diagnose_tables(t["images"], t["observations"], t["gcps"], t["gcp_observations"], read.metadata,
                            Camera.from_dict(read.camera["camera"]), certificate, config)

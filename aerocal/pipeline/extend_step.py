@@ -17,8 +17,8 @@ from aerocal.diagnose.extension import (
     BLOCK_TERMS,
     ModelTerm,
     apply_block_terms,
-    correct_measurements,
     extend_certificate,
+    remove_image_terms,
     terms_of_diagnosis,
 )
 from aerocal.effects import rotation_zero_point, rotation_zero_point_text
@@ -57,10 +57,10 @@ def extend_step(runner: Runner, ingest: StepResult, observations: str, certifica
         block = tuple(t for t in terms if t.name in BLOCK_TERMS)
         camera = tuple(t for t in terms if t.belongs_to_camera)
         ext_images = apply_block_terms(block, images, poses)
-        ext_obs, ext_gobs = correct_measurements(block, ext_images, obs, gobs, gcps, cert.camera, poses, points,
-                                                 t_ref)
-        cal_obs, cal_gobs = correct_measurements(terms, ext_images, obs, gobs, gcps, cert.camera, poses, points,
-                                                 t_ref)
+        ext_obs, ext_gobs = remove_image_terms(block, ext_images, obs, gobs, gcps, cert.camera, poses, points,
+                                               t_ref)
+        cal_obs, cal_gobs = remove_image_terms(terms, ext_images, obs, gobs, gcps, cert.camera, poses, points,
+                                               t_ref)
         extended = extend_certificate(cert, camera, flight.get("name") or "unnamed flight", t_ref)
         doc = {"terms": [t.to_dict() for t in terms], "camera_terms": [t.name for t in camera],
                "block_terms": [t.name for t in block], "reference_temperature": t_ref,

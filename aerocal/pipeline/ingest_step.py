@@ -8,8 +8,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from aerocal.pipeline.config import IngestStepConfig
-from aerocal.pipeline.dataset import FlightDataset
+from aerocal.pipeline.dataset import FlightDataset, IngestStepConfig
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
 

@@ -6,6 +6,8 @@ depths across views into a dense cloud, which :mod:`pointcloud` writes as LAZ; :
 ground out of it (a DTM);
 :mod:`mosaic` rectifies every frame on that surface into an orthomosaic (counts and, where the frames are
 radiometric, temperature) as cloud-optimised GeoTIFFs, in tiles that run on a Dask cluster; :mod:`kernels`
-holds its numeric inner loops. Inputs are the pipeline's tables (poses, points, cameras); nothing here
-estimates geometry.
+holds its numeric inner loops; :mod:`range_check` compares the surface with the frames' laser ranges. Inputs are
+the pipeline's tables (poses, points, cameras); nothing here estimates geometry.
+
+Tests: tests/test_dense.py, tests/test_dsm.py, tests/test_mosaic.py, tests/test_range_check.py.
 """

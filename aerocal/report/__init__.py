@@ -1,7 +1,10 @@
 """The flight report: figures (:mod:`aerocal.report.figures`), the figures of a processed flight from its
 step outputs (:mod:`aerocal.report.flight_figures`), the words a reader sees (:mod:`aerocal.report.wording`),
 the page rendered from Jinja2 templates (:mod:`aerocal.report.html`, ``templates/``) and the report of a
-processed flight (:func:`aerocal.report.flight_report.write_flight_report`)."""
+processed flight (:func:`aerocal.report.flight_report.write_flight_report`).
+
+Tests: tests/test_report.py.
+"""
 
 from aerocal.report.figures import (
     Figure,

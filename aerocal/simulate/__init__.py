@@ -9,6 +9,8 @@ plan, attitudes, times and temperatures from real images. The truth is written b
 (``truth.json``) for tests and studies to judge with.
 
 Entry points: :func:`simulate_flight` (in memory) and :func:`write_flight` (a flight folder).
+
+Tests: tests/test_simulate.py, tests/test_scene.py, tests/test_raycast.py, tests/test_rendered_flight.py.
 """
 
 from aerocal.simulate.presets import PRESETS, FlightSpec, PresetError, get_preset

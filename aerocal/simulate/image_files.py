@@ -29,11 +29,15 @@ import tifffile
 from PIL import Image
 
 from aerocal.ingest.flir import KELVIN, FlirCameraInfo, celsius_to_raw
-from aerocal.ingest.metadata_writer import dji_xmp_packet, exif_block, fff_file, jpeg_with_flir, jpeg_with_metadata
+from aerocal.ingest.metadata_writer import (
+    DJI_NAMESPACE,
+    dji_xmp_packet,
+    exif_block,
+    fff_file,
+    jpeg_with_flir,
+    jpeg_with_metadata,
+)
 from aerocal.io import atomic_path
-
-DJI_NAMESPACE = "http://www.dji.com/drone-dji/1.0/"
-XMP_APP1_HEADER = b"http://ns.adobe.com/xap/1.0/\x00"
 
 # EXIF tag codes
 TAG_MAKE, TAG_MODEL, TAG_DATETIME, TAG_XMP, TAG_EXIF_IFD = 271, 272, 306, 700, 34665

@@ -307,14 +307,14 @@ def match(
         from aerocal.io import write_json_atomic
         from aerocal.matching.cluster import ExecutionConfig
         from aerocal.pipeline.config import MatchStepConfig
-        from aerocal.pipeline.dataset import FlightInputError, FolderDataset, IngestSettings
+        from aerocal.pipeline.dataset import FlightInputError, FolderDataset, IngestStepConfig
         from aerocal.pipeline.ingest_step import flight_summary
         from aerocal.pipeline.match_step import match_images, pairs_from
 
         # the flight as `aerocal process` reads it: the same images, camera (camera.json, else the nominal camera
         # from the files) and flying height
         dataset = FolderDataset(folder)
-        read = dataset.read_images(IngestSettings())
+        read = dataset.read_images(IngestStepConfig())
         images, gcps = read.tables["images"], read.tables["gcps"]
         if images.num_rows == 0:
             raise FlightInputError(f"{folder}: no image could be ingested; run `aerocal ingest {folder}` to see why")
