@@ -63,11 +63,10 @@ class EnhanceConfig:
     wallis_c:
         Contrast constant c in [0, 1] (default 0.95): c = 1 forces the target standard deviation
         everywhere; below 1 the gain ``c s_f / (c s_g + (1 - c) s_f)`` is capped at c / (1 - c) (19 for
-        0.95) where the frame is flat, so noise there is not amplified without bound. Measured on six
-        H20T forest frames (six neighbouring pairs, default SIFT and matching settings): c = 0.8, a
-        common choice for visible images, gave 190 verified matches per pair and c = 0.95 gave 410;
-        after a flight-wide stretch the local standard deviation of a thermal frame is ~1 % of the
-        range, so the gain has to reach ~20.
+        0.95) where the frame is flat, so noise there is not amplified without bound. On H20T forest
+        frames c = 0.8, a common choice for visible images, gave about half the verified matches of
+        c = 0.95 (``benchmarks/history/engine_measurements.md``); after a flight-wide stretch the local
+        standard deviation of a thermal frame is ~1 % of the range, so the gain has to reach ~20.
     wallis_b:
         Brightness constant b in [0, 1] (default 0.9): 1 forces the target mean, 0 keeps the local mean.
     wallis_window:
@@ -327,13 +326,11 @@ def resolve_method(img: np.ndarray, method: Method) -> Method:
     """The enhancement ``method="auto"`` stands for on this frame: ``"wallis"`` for more than 8 bits,
     ``"linear"`` for 8-bit frames; any other method is returned unchanged.
 
-    Measured (SIFT capped at the strongest 8000 keypoints, exact matching, MAGSAC++ at 1 px, one core):
-    on six 16-bit H20T thermal frames the Wallis filter gives 966 tie points per image against 67 for
-    the linear stretch alone (``studies/enhancement_h20t.py``); on nine seneca JPEGs (8-bit NIR colour,
-    their luminance; three strips, nine neighbouring pairs) the linear stretch gives 5008 verified
-    matches against 3080 with the Wallis filter (2604 against 1427 at 4000 keypoints): its gain of up
-    to 19 (``wallis_c`` 0.95), which a thermal frame's 1 % local contrast needs, lifts the JPEG's 8x8
-    block noise of flat crop fields into keypoints.
+    On 16-bit H20T thermal frames the Wallis filter gives many times the tie points of the linear stretch
+    alone (``studies/enhancement_h20t.py``); on seneca's 8-bit JPEGs (NIR colour, their luminance) the linear
+    stretch gives more verified matches than the Wallis filter (``benchmarks/history/engine_measurements.md``):
+    its gain of up to 19 (``wallis_c`` 0.95), which a thermal frame's 1 % local contrast needs, lifts the
+    JPEG's 8x8 block noise of flat crop fields into keypoints.
     """
     if method != "auto":
         return method

@@ -10,7 +10,7 @@ tests/test_adjust_laser.py, tests/test_conte_strategies.py, tests/test_thermal_m
 """
 
 from aerocal.adjust.bundle import AdjustmentResult, adjust, corrected_to_t0, scale_tie_sigma, screened_rows
-from aerocal.adjust.problem import AdjustConfig, AdjustmentError
+from aerocal.adjust.problem import AdjustConfig, AdjustmentError, RobustLoss
 from aerocal.adjust.strategy import (
     STRATEGIES,
     StrategyResult,
@@ -27,6 +27,7 @@ __all__ = [
     "AdjustConfig",
     "AdjustmentError",
     "AdjustmentResult",
+    "RobustLoss",
     "StrategyResult",
     "ThermalFit",
     "ThinningConfig",

@@ -27,7 +27,7 @@ from aerocal.adjust.covariance import (
     t_values,
     triangulate_check_points,
 )
-from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block, build_block
+from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block, RobustLoss, build_block
 from aerocal.adjust.projection import IDX, THERMAL_PARAMS, project
 from aerocal.adjust.selection import select_parameters
 from aerocal.adjust.solver import (
@@ -379,7 +379,7 @@ def adjust(
     tie_scale = 1.0
     rejection: list[str] = []
     first = None
-    screened = config.robust_loss != "none" and config.reject_chi2 is not None
+    screened = config.robust_loss != RobustLoss.NONE and config.reject_chi2 is not None
     reuse = (screened and initial is not None and initial.kept_rows is not None
              and len(initial.residuals) == n_rows)
     if reuse:
@@ -394,7 +394,7 @@ def adjust(
         if config.estimate_tie_sigma:
             tie_scale = initial.tie_sigma_scale
             observations = scale_tie_sigma(observations, tie_scale)
-        config = dataclasses.replace(config, robust_loss="none")
+        config = dataclasses.replace(config, robust_loss=RobustLoss.NONE)
     elif screened:
         # a robust pass finds the blunders, they are removed, and the block is adjusted by least squares
         # (data snooping): sigma0, covariances and the check-point prediction then describe clean data
@@ -408,7 +408,7 @@ def adjust(
         if config.estimate_tie_sigma:
             tie_scale = float(np.sqrt(variance_factor))
             observations = scale_tie_sigma(observations, tie_scale)
-        config = dataclasses.replace(config, robust_loss="none")
+        config = dataclasses.replace(config, robust_loss=RobustLoss.NONE)
 
     def setup(obs: pa.Table, previous: AdjustmentResult | None) -> tuple[Block, State]:
         blk0 = build_block(images, obs, gcps, gcp_observations, config, thermal_correction=thermal_correction,

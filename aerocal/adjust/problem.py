@@ -7,6 +7,7 @@ local origin (the mean recorded GNSS position), so that the normal equations sta
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 import pyarrow as pa
@@ -25,7 +26,17 @@ class AdjustmentError(ValueError):
     """Input the adjustment cannot use; the message names the table, the field and the fix."""
 
 
-ROBUST_LOSSES = ("none", "huber", "cauchy")
+class RobustLoss(StrEnum):
+    """The loss of an adjustment's tie-point observations (:attr:`AdjustConfig.robust_loss`), of their squared
+    normalised residual ``s`` with the scale ``c`` (``AdjustConfig.robust_scale``, in sigmas)."""
+
+    NONE = "none"  #: least squares: rho(s) = s
+    HUBER = "huber"  #: rho(s) = s up to s = c^2, 2 c sqrt(s) - c^2 beyond: a gross residual's influence is bounded
+    CAUCHY = "cauchy"  #: rho(s) = c^2 ln(1 + s / c^2): a gross residual's influence falls towards zero
+
+
+#: the values of :class:`RobustLoss` (what a configuration may give as a string)
+ROBUST_LOSSES = tuple(loss.value for loss in RobustLoss)
 
 
 @dataclass(frozen=True)
@@ -43,13 +54,13 @@ class AdjustConfig:
     * ``attitude_sigma_deg``: a-priori std of the recorded attitude about the camera x, y, z axes,
       degrees; ``None`` (default) = attitude not used as an observation (only as starting value).
     * ``use_gcps``: GCPs with role "control" enter as weighted observations with their survey sigmas.
-    * ``robust_loss``: "none" (default), "huber" or "cauchy", on tie-point observations only, with
-      ``robust_scale`` in units of the observation's sigma (default 3). With a robust loss and
-      ``reject_chi2`` (default 13.8, the 99.9 % point of chi-square with 2 degrees of freedom) the robust
-      pass (at most ``robust_iterations``, default 15) only screens: observations whose squared
-      normalised residual exceeds ``reject_chi2`` times the robust variance factor are removed and the
-      block is adjusted again by least squares, so sigma0 and the covariances describe clean data;
-      ``reject_chi2=None`` keeps the robust solution itself.
+    * ``robust_loss``: :class:`RobustLoss` ("none", default; "huber" or "cauchy"; its string value is accepted
+      and held as the member), on tie-point observations only, with ``robust_scale`` in units of the
+      observation's sigma (default 3). With a robust loss and ``reject_chi2`` (default 13.8, the 99.9 % point
+      of chi-square with 2 degrees of freedom) the robust pass (at most ``robust_iterations``, default 15) only
+      screens: observations whose squared normalised residual exceeds ``reject_chi2`` times the robust
+      variance factor are removed and the block is adjusted again by least squares, so sigma0 and the
+      covariances describe clean data; ``reject_chi2=None`` keeps the robust solution itself.
     * ``estimate_tie_sigma``: with that screening, the tie observations' sigma is estimated from the block
       (default True): scaled by the square root of their variance factor (mean normalised squared
       residual over the mean redundancy), first from the robust pass, then from the least-squares
@@ -94,7 +105,7 @@ class AdjustConfig:
     gnss_sigma_m: tuple[float, float, float] | None = (0.10, 0.10, 0.15)
     attitude_sigma_deg: tuple[float, float, float] | None = None
     use_gcps: bool = True
-    robust_loss: str = "none"
+    robust_loss: RobustLoss = RobustLoss.NONE
     robust_scale: float = 3.0
     reject_chi2: float | None = 13.8
     robust_iterations: int = 15
@@ -123,10 +134,12 @@ class AdjustConfig:
             raise AdjustmentError(
                 f"AdjustConfig.thermal has unknown parameter(s) {bad}; valid: {THERMAL_PARAMS}"
             )
-        if self.robust_loss not in ROBUST_LOSSES:
+        try:
+            object.__setattr__(self, "robust_loss", RobustLoss(self.robust_loss))
+        except ValueError:
             raise AdjustmentError(
                 f"AdjustConfig.robust_loss {self.robust_loss!r} unknown; valid: {ROBUST_LOSSES}"
-            )
+            ) from None
 
 
 @dataclass

@@ -29,7 +29,7 @@ from scipy.linalg import lapack
 
 from aerocal.adjust import cholesky
 from aerocal.adjust.laser import LaserRows, laser_residuals, laser_rows
-from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block
+from aerocal.adjust.problem import AdjustConfig, AdjustmentError, Block, RobustLoss
 from aerocal.adjust.projection import (
     IDX,
     THERMAL_PARAMS,
@@ -139,15 +139,15 @@ class ObsBlocks:
     layout: PairLayout  # the image-image blocks of the reduced system and the observations by point
 
 
-def _robust(s: np.ndarray, loss: str, c: float) -> tuple[np.ndarray, np.ndarray]:
+def _robust(s: np.ndarray, loss: RobustLoss, c: float) -> tuple[np.ndarray, np.ndarray]:
     """rho(s) and rho'(s) of squared normalised residual norms ``s``."""
-    if loss == "huber":
+    if loss == RobustLoss.HUBER:
         c2 = c * c
         root = np.sqrt(np.maximum(s, 1e-300))
         rho = np.where(s <= c2, s, 2 * c * root - c2)
         drho = np.where(s <= c2, 1.0, c / root)
         return rho, drho
-    if loss == "cauchy":
+    if loss == RobustLoss.CAUCHY:
         c2 = c * c
         return c2 * np.log1p(s / c2), 1.0 / (1.0 + s / c2)
     return s, np.ones_like(s)
@@ -319,7 +319,7 @@ class BundleProblem:
             inv_sigma = self._inv_sigma
         else:
             inv_sigma = 1.0 / sigma
-        robust = self.cfg.robust_loss != "none"
+        robust = self.cfg.robust_loss != RobustLoss.NONE
         Hpp = None
         if jac:
             self.blocks = None  # the last Jacobian's blocks go before the new ones are formed
@@ -380,7 +380,7 @@ class BundleProblem:
             l_s = l_r * l_r
             # always under a Cauchy loss: a laser that passed a canopy's gap to the ground is a blunder of tens of
             # sigmas that no screening of the image observations sees
-            l_rho, l_w = _robust(l_s, "cauchy", self.cfg.robust_scale)
+            l_rho, l_w = _robust(l_s, RobustLoss.CAUCHY, self.cfg.robust_scale)
             cost_parts.append(float(np.sum(l_rho)))
         cost = 0.5 * sum(cost_parts)
         if not jac:
@@ -995,9 +995,9 @@ def levenberg_marquardt(
             # robust loss, which slides off along its rays and would keep the cost creeping down)
             # or the step lowered the chi-square by less than CHI2_TOLERANCE. A block whose datum only weak GNSS
             # holds (the rendered xt2-survey, no GCPs, 2 / 5 m: a direction of 1e-8 of the others' information)
-            # otherwise creeps along that direction, 0.13 sigma and a chi-square of 0.03 a step, and never meets
-            # the relative tolerance: stopped there it was 1.3 in chi-square (about a sigma along its weakest,
-            # datum-like direction) above where 56 more steps took it, sigma0 the same to 5 digits
+            # otherwise creeps along that direction, a fraction of a sigma a step, and never meets the relative
+            # tolerance; stopped there it is about a sigma along that datum-like direction from where many more
+            # steps take it, with the same sigma0 (benchmarks/history/engine_measurements.md)
             if (rel < cfg.tolerance or abs(step_metric) < cfg.step_tolerance**2
                     or 2.0 * (history[-2] - new_cost) < CHI2_TOLERANCE):
                 converged = True

@@ -1,11 +1,11 @@
 """Tie-point thinning: the adjustment's tie tracks, a few per cell of a grid over every image.
 
-Matched frames hold far more tie points than the orientation needs: the 100 central frames of the
-rendered conte-city flight give 35,700 tracks and 100,000 observations, about 1000 per image, where the
-precision of the poses and of the check points is set by the GCPs, the GNSS and the geometry of the rays
-long before. The adjustment's cost grows with the observations, so it spends most of its time on tie
-points that add nothing. This is what Metashape's "tie point limit" and MicMac's ``Schnaps``/``Ratafia``
-reduction do; aerocal's form of it:
+Matched frames hold far more tie points than the orientation needs: about a thousand observations per
+image on the rendered conte-city flight (``benchmarks/RESULTS.md``, "Tie-point thinning: adjustments with
+every track and thinned, same run"), where the precision of the poses and of the check points is set by
+the GCPs, the GNSS and the geometry of the rays long before. The adjustment's cost grows with the
+observations, so it spends most of its time on tie points that add nothing. This is what Metashape's
+"tie point limit" and MicMac's ``Schnaps``/``Ratafia`` reduction do; aerocal's form of it:
 
 * every image is cut into ``grid`` cells (columns x rows over the frame);
 * in each cell of each image, the ``per_cell`` tracks with the most rays are chosen (more rays: better
@@ -14,8 +14,9 @@ reduction do; aerocal's form of it:
 * a track chosen in any image is kept whole, with all its observations.
 
 So every image keeps tie points in every part of the frame where it had any, and tracks shared by many
-images are preferred. The flow thins the block adjustment only: a self-calibration from thinned tracks
-(real seneca sub-block, 15 % of the observations) lost the focal length's temperature slope.
+images are preferred. The flow thins the block adjustment only: a self-calibration from thinned tracks of
+the real seneca sub-block lost the focal length's temperature slope (``benchmarks/RESULTS.md``, the notes of
+"City scale: conte-city rendered, end to end" of 2026-11-22).
 """
 
 from __future__ import annotations

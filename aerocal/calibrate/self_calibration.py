@@ -367,7 +367,7 @@ def self_calibrate(
             fast = {n: v for n, v in result.thermal_slopes.items() if abs(v) > limit}
             if fast:
                 # (2) of the rule: a held-out gain from a slope no lens has is another cause's signal (the real
-                # seneca flight: df/dT 3.4 px/degC, 3.8 % of f over its 14 degC, which its study refuted)
+                # seneca flight's slope, which its study refuted: benchmarks/history/engine_measurements.md)
                 notes.append(f"{', '.join(f'{n} = {v:+.3g}' for n, v in fast.items())} px/degC dropped all the "
                              f"same: beyond {config.decision.max_thermal_slope:g} x f = {limit:.3g} px/degC, no lens "
                              "drifts that fast; the certificate holds a constant IO")
@@ -503,8 +503,9 @@ def _overdispersion(images: pa.Table, observations: pa.Table, camera: Camera, ru
     """The overdispersion of the calibration block (:func:`aerocal.diagnose.engine.overdispersion`), measured
     on the calibration's own model: its blunders left out, its tie sigma, least squares, its thermal slopes as a
     correction of the measurements to their reference temperature (the null's random per-image focal lengths
-    otherwise take part of a drift the model holds: a warming Daakir calibration block measured 24.9 with a
-    focal drift and 53 with Eq. 2's, against 1.0 without a drift, and raised the significance bar 5-7x).
+    otherwise take part of a drift the model holds: on a warming Daakir calibration block they measured an
+    overdispersion many times the drift-free block's and raised the significance bar with it:
+    ``benchmarks/history/engine_measurements.md``).
 
     Returns ``(phi, failure)``: 1.0 and a sentence saying why when the null could not be fitted."""
     if draws <= 0:
@@ -565,7 +566,8 @@ def certificate_from_calibration(
     significance: dict[str, ParameterSignificance] = {}
     for n, t in zip(cal.names, np.asarray(cal.t_values, dtype=float), strict=True):
         t = float(t) if np.isfinite(t) else 0.0
-        # significant against the calibrated t: seneca's cx had a formal t of 2.9 and a calibrated one of 1.0
+        # significant against the calibrated t: seneca's cx was significant by its formal t and not by its
+        # calibrated one (benchmarks/history/engine_measurements.md)
         significance[SLOPE_NAMES.get(n, n)] = ParameterSignificance(
             t, bool(cal.significant.get(n, False)) and abs(t) / root_phi > t_critical(int(cal.dof)),
             calibrated_t=t / root_phi, **tested(n))

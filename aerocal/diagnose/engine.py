@@ -70,22 +70,25 @@ from aerocal.diagnose.twin import compare as compare_twins
 from aerocal.effects import CATALOGUE, rotation_zero_point, rotation_zero_point_text
 
 #: A switch effect (refraction) has a known size: on = 1. An estimate further than this many sigmas from
-#: 1 is a signal of the effect's shape but not the effect, and is not named. Measured on a rendered,
-#: effect-free conte-city block of 150 frames: "refraction" came out at 216 +- 36, the signature of a
-#: focal length 2 px (1.3 certificate sigmas) off the truth at a constant flying height.
+#: 1 is a signal of the effect's shape but not the effect, and is not named. On a rendered, effect-free
+#: conte-city block "refraction" came out at many times on, well determined: the signature of a focal length
+#: off the truth by about its certificate sigma at a constant flying height
+#: (``benchmarks/history/engine_measurements.md``).
 SWITCH_TOLERANCE_SIGMA = 4.0
 
 
 #: An effect is testable on a block only when every parameter's sigma is at most this fraction of its
-#: plausible size (:func:`aerocal.diagnose.hypotheses.plausible`): per-strip IO with sigmas of 40-560 px on a
-#: real block without GCPs (plausible: 12 px) says nothing about the camera.
+#: plausible size (:func:`aerocal.diagnose.hypotheses.plausible`): per-strip IO with sigmas many times its
+#: plausible 12 px on a real block without GCPs says nothing about the camera (seneca: ``benchmarks/RESULTS.md``,
+#: the notes of "City scale: conte-city rendered, end to end" of 2026-11-22).
 DETERMINED_FRACTION = 1.0 / 3.0
 
 #: An image effect is named only when its estimate moves at least 1 % of the block's measurements by this many
 #: pixels (:attr:`Evidence.shift_px`). Below it an effect cannot be told from the measurements' own systematic
 #: errors: sub-pixel matching biases (pixel locking), a rendering's interpolation, a lens's residual profile.
-#: The rendered, effect-free 818-frame conte-city block (global shutter) named a rolling shutter of
-#: 0.243 +- 0.051 ms at 4.8 sigma: at 60 m/s and a GSD of 0.5 m, 0.029 px between the first and the last row.
+#: The rendered, effect-free 818-frame conte-city block (global shutter) named a rolling shutter that moved its
+#: last row against its first by a few hundredths of a pixel (``benchmarks/RESULTS.md``, "2026-11-28: the city
+#: flow's calibration, the expert COLMAP pipeline, seneca again").
 MATERIAL_SHIFT_PX = 0.05
 
 
@@ -388,7 +391,8 @@ def _image_shift_px(cols: np.ndarray, theta: np.ndarray, obs_sigma: np.ndarray) 
 
 
 #: a hypothesis whose conditional information matrix has eigenvalues below this fraction of its diagonal is
-#: not determined by the block (measured on seneca without GCPs: a GNSS bias came out at -503 +- 0 m)
+#: not determined by the block (on real seneca, without GCPs, a GNSS bias came out with a sigma of zero:
+#: ``benchmarks/history/engine_measurements.md``)
 SINGULAR_RELATIVE = 1e-9
 
 
@@ -981,14 +985,16 @@ def _try_extension(current: Baseline, ctx: hyp.Context, best: Evidence, accepted
                                                   round_no, config.family_alpha)
     settled = dataclasses.replace(best, estimate=[float(v) for v in total])
     if extended_base.solution.sigma0 > EXTENSION_WORSE * current.solution.sigma0:
-        # the data corrected for the effect fit worse than before (real seneca, radial_k3: sigma0 2.6 -> 33):
-        # the refit did not settle; an overdispersion measured on it would be that failure, not the block
+        # the data corrected for the effect fit worse than before (real seneca, radial_k3: sigma0 an order of
+        # magnitude larger, benchmarks/history/engine_measurements.md): the refit did not settle; an
+        # overdispersion measured on it would be that failure, not the block
         return (f"{best.name}: the block corrected for {total[0]:.3g} {best.units} fits worse (sigma0 "
                 f"{current.solution.sigma0:.3g} -> {extended_base.solution.sigma0:.3g}): not named")
     why = physical_verdict(settled, current.camera, ctx)
     if why is not None:
-        # the correct-and-refit iterations ran away from the first estimate (the real seneca block: k3 -0.062
-        # at first, 0.59 after refitting, beyond any lens): the effect is not named and the model not extended
+        # the correct-and-refit iterations ran away from the first estimate (the real seneca block's k3 changed
+        # sign and grew beyond any lens: benchmarks/history/engine_measurements.md): the effect is not named and
+        # the model not extended
         return (f"{best.name}: {best.estimate[0]:.3g} at first, {total[0]:.3g} once the data were corrected "
                 f"and refitted: {why}; not named")
     calibrated = _calibrated(best, extended_base, config, n_tests)

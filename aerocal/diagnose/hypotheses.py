@@ -156,7 +156,7 @@ def signature(name: str, cam, R: np.ndarray, strip: np.ndarray, ctx: Context, im
         # the row the point is imaged on, from its adjusted position (xn), not the measured row: the measurement's
         # noise in the row would enter the signature and correlate with the residual, a bias of order
         # sigma_px^2 / height in the gradient that the poses do not absorb (an effect-free xt2-survey block named a
-        # 0.114 +- 0.013 s readout from the measured rows, -0.021 +- 0.013 s from the adjusted ones)
+        # readout from the measured rows and none from the adjusted ones: benchmarks/history/engine_measurements.md)
         frac = cam.normalised_to_pixels(cam.distort(xn))[:, 1] / cam.height - 0.5
         dC = np.einsum("mab,mb->ma", R[img], ctx.velocity[img])  # camera motion in its frame
         return (-np.einsum("mab,mb->ma", duv_dpc, dC) * frac[:, None])[:, :, None]

@@ -176,8 +176,8 @@ def reduce(lin: Linear, extra: np.ndarray) -> Reduced:
 
     The camera part is the sparse Schur complement; the extra columns' parts are formed densely from
     ``Jp^T E`` and the point blocks' inverses. Appending hundreds of dense columns to the sparse Jacobian (as
-    this did before) made every sparse product of the elimination dense in those rows: a whole `process` run of
-    a conte-calibration flight spent 5 of its 18 s there (``benchmarks/history/engine_measurements.md``)."""
+    this did before) made every sparse product of the elimination dense in those rows, a large share of a whole
+    `process` run of a conte-calibration flight (``benchmarks/history/engine_measurements.md``)."""
     S_cc, rhs_c, Hpp_inv, Hcp, gp = schur_complement(lin.Jc, lin.Jp, lin.Hpp, lin.r, 0.0)
     nc = lin.Jc.shape[1]
     g_c = -np.asarray(rhs_c).ravel()

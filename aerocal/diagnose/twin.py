@@ -93,8 +93,8 @@ PER_IMAGE = ("per_image_scale", "per_image_row_field", "per_image_column_field")
 #: rounds that size an extension (the first injects the residual excess, the next ones correct it by the share of
 #: the injected variance the adjustment leaves in the residuals, pooled over the rounds so far)
 EXTENSION_ROUNDS = 3
-#: iterations of a twin's adjustment (it starts at its truth; on real seneca the statistics after 3 iterations are
-#: within 1 % of those after 8)
+#: iterations of a twin's adjustment (it starts at its truth; on real seneca 3 iterations gave nearly the statistics
+#: of 8 in far less time: ``benchmarks/history/engine_measurements.md``)
 TWIN_ITERATIONS = 3
 #: largest per-frame focal jitter (relative standard deviation) taken as physically possible: 0.2 % of f, the
 #: same bound as the largest thermal drift per degC (DecisionConfig.max_thermal_slope). It is an assumption,
@@ -498,9 +498,10 @@ def compare(base: Baseline, n_twins: int = 5, seed: int = 0, z_limit: float = 3.
 
     The block-wide candidates are tried in order, each sized and judged on top of those named before it (on
     real seneca, mismatches and a tie-point noise sized each on its own both took the tie variance factor, and
-    together gave six times its gap); a statistic a named candidate reproduces is not given to a later one. The
-    per-frame candidates are then tried, as alternatives, on top of every block-wide cause named, for the
-    per-image statistics still differing from the twins of the block-wide causes (:func:`_per_frame_cause`)."""
+    together gave several times its gap: ``benchmarks/history/engine_measurements.md``); a statistic a named
+    candidate reproduces is not given to a later one. The per-frame candidates are then tried, as alternatives,
+    on top of every block-wide cause named, for the per-image statistics still differing from the twins of the
+    block-wide causes (:func:`_per_frame_cause`)."""
     real = block_statistics(base)
     twins = _twins_statistics(base, [seed + k for k in range(n_twins)])
     mean, sd = _spread(twins)

@@ -14,7 +14,7 @@ from typing import Any
 
 from aerocal.adjust import AdjustConfig, ThinningConfig
 from aerocal.adjust.control import ControlScreeningConfig
-from aerocal.adjust.problem import ROBUST_LOSSES
+from aerocal.adjust.problem import ROBUST_LOSSES, RobustLoss
 from aerocal.calibrate.self_calibration import CalibrationConfig
 from aerocal.diagnose.engine import DiagnoseConfig
 from aerocal.enhance import EnhanceConfig
@@ -146,7 +146,7 @@ class MosaicStepConfig:
     :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults); the tiles run on the Dask cluster
     (:class:`aerocal.matching.cluster.ExecutionConfig`) except for mosaics of at most ``serial_max_megapixels``
     (25) of frames in all, which run here without a cluster: starting a local cluster's worker processes costs
-    about 4 s, more than half the tiles of a mosaic that small take (``benchmarks/history/engine_measurements.md``,
+    more than half of what the tiles of a mosaic that small take (``benchmarks/history/engine_measurements.md``,
     the mosaic's serial threshold)."""
 
     dsm: DsmConfig | None = None
@@ -191,14 +191,14 @@ class ProcessConfig:
     * ``use_flight_sigmas``: GNSS and IMU sigmas declared by the flight (``flight.json``:
       ``gnss_sigma_m`` [horizontal, vertical], ``imu_sigma_deg``) replace the adjustments' a-priori
       sigmas (default True); the run records the effective values.
-    * ``matched_robust_loss``: robust loss of the adjustments' screening pass when the observations come from
-      image matching ("cauchy", default: a few wrong matches survive geometric verification and, unweighted,
-      can make a tie point's normal matrix singular); observations given by the flight keep the adjustment
-      configurations' own loss. Cauchy rather than Huber because a mismatch keeps a Huber influence that
-      grows with its size, and with the IO free it bends the weakest parameters before the screening judges
-      the residuals: on the real seneca flight the Huber pass left f, cx and cy undetermined and on the
-      rendered conte-city flight a k3 the true lens lacks, where the Cauchy pass recovered the lens
-      (``benchmarks/history/engine_measurements.md``).
+    * ``matched_robust_loss``: :class:`~aerocal.adjust.problem.RobustLoss` (or its string value, held as the
+      member) of the adjustments' screening pass when the observations come from image matching ("cauchy",
+      default: a few wrong matches survive geometric verification and, unweighted, can make a tie point's
+      normal matrix singular); observations given by the flight keep the adjustment configurations' own loss.
+      Cauchy rather than Huber because a mismatch keeps a Huber influence that grows with its size, and with
+      the IO free it bends the weakest parameters before the screening judges the residuals: on the real
+      seneca flight the Huber pass left f, cx and cy undetermined and on the rendered conte-city flight a k3
+      the true lens lacks, where the Cauchy pass recovered the lens (``benchmarks/history/engine_measurements.md``).
     * ``matched_tie_thinning``: :class:`aerocal.adjust.thinning.ThinningConfig` of the full-block
       adjustment when the observations come from image matching (default: its defaults, 4 tracks per cell
       of 8 x 6 per image; ``None``: every track adjusted). The tracks left out are intersected afterwards
@@ -225,14 +225,16 @@ class ProcessConfig:
     report: ReportStepConfig = field(default_factory=ReportStepConfig)
     max_certificate_age_days: float | None = None
     use_flight_sigmas: bool = True
-    matched_robust_loss: str = "cauchy"
+    matched_robust_loss: RobustLoss = RobustLoss.CAUCHY
     matched_tie_thinning: ThinningConfig | None = field(default_factory=ThinningConfig)
     extend: bool = True
 
     def __post_init__(self) -> None:
-        if self.matched_robust_loss not in ROBUST_LOSSES:
+        try:
+            object.__setattr__(self, "matched_robust_loss", RobustLoss(self.matched_robust_loss))
+        except ValueError:
             raise ValueError(f"ProcessConfig.matched_robust_loss {self.matched_robust_loss!r} unknown; valid: "
-                             f"{', '.join(ROBUST_LOSSES)}")
+                             f"{', '.join(ROBUST_LOSSES)}") from None
         age = self.max_certificate_age_days
         if age is not None and not age > 0:
             raise ValueError(f"ProcessConfig.max_certificate_age_days must be positive days or None, got {age}")
@@ -273,7 +275,7 @@ def effective_adjustments(config: ProcessConfig, flight: dict, matched: bool) ->
     cal, blk = config.calibration.adjust, config.block.adjust
     if config.use_flight_sigmas:
         cal, blk = with_flight_sigmas(cal, flight), with_flight_sigmas(blk, flight)
-    if matched and config.matched_robust_loss != "none":
+    if matched and config.matched_robust_loss != RobustLoss.NONE:
         cal = dataclasses.replace(cal, robust_loss=config.matched_robust_loss)
         blk = dataclasses.replace(blk, robust_loss=config.matched_robust_loss)
     if matched and config.matched_tie_thinning is not None:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
-from enum import StrEnum
 from pathlib import Path, PurePath
 from typing import Any, Protocol
 
@@ -39,6 +38,7 @@ from aerocal.ingest.sidecars import sidecar_problems
 from aerocal.io import file_sha256
 from aerocal.matching.ground import flying_height
 from aerocal.pipeline.runner import table_sha256
+from aerocal.pipeline.summary import FlightMode
 from aerocal.poses import has_priors
 
 #: stem of the simulator's truth files and folder, which processing never reads (nor hashes)
@@ -50,13 +50,6 @@ OBSERVATION_TABLES = ("images", "observations", "gcps", "gcp_observations")
 #: a reference surface for the DSM (e.g. a LiDAR DSM) in the flight folder: a single-band north-up GeoTIFF
 #: of heights in metres, in the flight's CRS
 REFERENCE_DSM = Path("reference") / "dsm.tif"
-
-
-class FlightMode(StrEnum):
-    """Where a flight's image measurements come from."""
-
-    IMAGES = "images"  #: matched from its frames
-    OBSERVATIONS = "observations"  #: given as tables (``observations/*.parquet``), nothing matched
 
 
 class FlightInputError(ValueError):
@@ -89,18 +82,21 @@ class IngestStepConfig:
 class IngestedFlight:
     """What a dataset holds, read: the tables by kind (``images``, ``gcps``, ``gcp_observations`` and, in
     observations mode, ``observations``), the camera document (``identity``, ``camera`` and ``source``), the
-    flight's metadata as its ``flight.json`` says it (plan, sigmas, height above ground), its CRS, the mode
-    (``"observations"`` or ``"images"``), ingest's problems (one line each), the images left out and the
-    flight facts ingest inferred."""
+    flight's metadata as its ``flight.json`` says it (plan, sigmas, height above ground), its CRS, the
+    :class:`FlightMode` (its string value is accepted and held as the member), ingest's problems (one line
+    each), the images left out and the flight facts ingest inferred."""
 
     tables: dict[str, pa.Table]
     camera: dict[str, Any]
     metadata: dict[str, Any]
     crs: str | None
-    mode: str
+    mode: FlightMode
     problems: list[str] = field(default_factory=list)
     skipped_images: list[str] = field(default_factory=list)
     facts: dict[str, str] | None = None
+
+    def __post_init__(self) -> None:
+        self.mode = FlightMode(self.mode)
 
 
 class FlightDataset(Protocol):

@@ -10,14 +10,15 @@ import pyarrow as pa
 
 from aerocal.pipeline.dataset import FlightDataset, IngestStepConfig
 from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
+from aerocal.pipeline.summary import FlightMode
 
 
-def flight_summary(images: pa.Table, meta: dict, crs: str | None, name: str, mode: str,
+def flight_summary(images: pa.Table, meta: dict, crs: str | None, name: str, mode: FlightMode | str,
                    folder: str | None) -> dict[str, Any]:
     """The flight's summary (the ``flight`` document every later step reads): name, folder (``None`` for a
-    dataset in memory), mode, CRS, date (of the first image, else the plan's start, else today), image count,
-    sensor temperature range (degC), bounding box of the GNSS positions (E min, N min, E max, N max in the
-    CRS) and the declared sigmas and height above ground (metres)."""
+    dataset in memory), mode (the :class:`FlightMode`'s value), CRS, date (of the first image, else the plan's
+    start, else today), image count, sensor temperature range (degC), bounding box of the GNSS positions
+    (E min, N min, E max, N max in the CRS) and the declared sigmas and height above ground (metres)."""
     times = [t for t in images.column("time").to_pylist() if t is not None]
     start = meta.get("start_time")
     if times:
@@ -33,7 +34,7 @@ def flight_summary(images: pa.Table, meta: dict, crs: str | None, name: str, mod
     return {
         "name": name,
         "folder": folder,
-        "mode": mode,
+        "mode": FlightMode(mode).value,
         "crs": crs,
         "date": day,
         "n_images": images.num_rows,

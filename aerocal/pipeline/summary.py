@@ -18,6 +18,13 @@ from typing import Any
 from aerocal.pipeline.findings import Finding
 
 
+class FlightMode(StrEnum):
+    """Where a flight's image measurements come from."""
+
+    IMAGES = "images"  #: matched from its frames
+    OBSERVATIONS = "observations"  #: given as tables (``observations/*.parquet``), nothing matched
+
+
 class StepStatus(StrEnum):
     """What became of a step in a run."""
 
@@ -85,7 +92,8 @@ class GroundControlSummary:
 class RunSummary:
     """A processing run at a glance.
 
-    Fields: ``run_id``; ``flight`` (its name) and ``mode`` (``"images"`` or ``"observations"``); ``certificate_id``
+    Fields: ``run_id``; ``flight`` (its name) and ``mode`` (:class:`FlightMode`; its string value is accepted and
+    held as the member, and ``run.json`` holds the value); ``certificate_id``
     (``None``: the nominal camera) and ``certificate_reason`` (why, in words); the ``steps`` in the order they ran;
     what ingest left out or complained of (``images_skipped_at_ingest``, ``ingest_problems`` as
     ``"... [error]"`` / ``"... [warning]"`` lines) and what it inferred (``flight_facts``: name -> words with their
@@ -107,7 +115,7 @@ class RunSummary:
 
     run_id: str
     flight: str
-    mode: str
+    mode: FlightMode
     certificate_id: str | None
     certificate_reason: str
     steps: dict[str, StepRecord] = field(default_factory=dict)
@@ -135,6 +143,10 @@ class RunSummary:
     def __post_init__(self) -> None:
         if not self.run_id:
             raise ValueError("a run summary needs its run id")
+        try:
+            object.__setattr__(self, "mode", FlightMode(self.mode))
+        except ValueError:
+            raise ValueError(f"a run summary's mode is one of {', '.join(FlightMode)}, got {self.mode!r}") from None
         for name, step in self.steps.items():
             if not isinstance(step, StepRecord):
                 raise TypeError(f"step {name!r}: {type(step).__name__}, not a StepRecord")
@@ -156,7 +168,9 @@ class RunSummary:
         doc: dict[str, Any] = {}
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if f.name == "steps":
+            if f.name == "mode":
+                value = value.value
+            elif f.name == "steps":
                 value = {k: v.to_json() for k, v in value.items()}
             elif f.name == "ground_control":
                 value = value.to_json()

@@ -36,10 +36,10 @@ one-pixel border) and the sub-pixel rays are interpolated bilinearly; a sample o
 1e-4 px (or 0.1 mm of origin). Pixel-centre rays are traced fully; where a pixel and its 8 neighbours
 hit coherently (no step in distance, hits less than a cell apart horizontally, so no DSM feature fits
 between them unseen) its sub-pixel rays are intersected exactly starting 0.3 cell before their
-interpolated distance; all other sub-pixel rays are traced fully. Measured on a 640 x 480 frame with
-3 x 3 sub-pixels (CPU time of one core): 0.9 s over a flat block and 1.8 s over
-a city with 30 m buildings, against 2.3 s and 4.1 s tracing every sub-pixel ray; the two images differ
-by < 1e-3 K on 99.9 % of the pixels (tests/test_raycast.py).
+interpolated distance; all other sub-pixel rays are traced fully. Over a flat block and over a city alike
+this more than halved a frame's time against tracing every sub-pixel ray
+(``benchmarks/history/engine_measurements.md``; a frame's current time: ``benchmarks/RESULTS.md``,
+"Simulator"); the two images differ by < 1e-3 K on 99.9 % of the pixels (tests/test_raycast.py).
 """
 
 from __future__ import annotations

@@ -19,8 +19,9 @@ The texture of a point is the sum of a gridded base and a procedural detail:
   64 cells so that SIFT finds features everywhere;
 * finer detail (octaves of 1/2, 1/4 and 1/8 cell) is hash-based value noise evaluated at the query
   points, so memory does not grow with the rendering's resolution: a scene stores 16 bytes per cell
-  (160 MB for 4 km x 2.5 km at 1 m cells; ~1 GB peak while generating it, ~4 s). Octaves finer than the
-  footprint of a rendering sample are faded out (a band limit, so supersampled renderings do not alias);
+  (160 MB for 4 km x 2.5 km at 1 m cells; several times that at its peak while generating it:
+  ``benchmarks/history/engine_measurements.md``). Octaves finer than the footprint of a rendering sample
+  are faded out (a band limit, so supersampled renderings do not alias);
 * signalised targets (:meth:`Scene.place_targets`) are analytic: a hot/bright disc on a cold/dark
   square, edges anti-aliased over the sample footprint, so the centroid of a rendered target is exact.
 
@@ -551,8 +552,10 @@ def _trees(
 def make_scene(config: SceneConfig, seed: int) -> Scene:
     """Generate a scene from ``config``; the same seed gives the same scene.
 
-    A 4 km x 2.5 km scene at 1 m cells takes ~4 s and stores 160 MB (DSM, terrain, thermal base float32;
-    classes uint8; RGB base 3 x uint8), with a peak of ~1 GB while generating.
+    A scene stores 16 bytes per cell, 160 MB for 4 km x 2.5 km at 1 m cells (DSM, terrain, thermal base
+    float32; classes uint8; RGB base 3 x uint8), with a peak of several times that while generating (its time
+    and peak: ``benchmarks/history/engine_measurements.md``; a whole flight's simulation, scene included:
+    ``benchmarks/RESULTS.md``, "Simulator").
     """
     cfg = config
     rng = np.random.default_rng(seed)
