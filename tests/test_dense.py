@@ -393,3 +393,21 @@ def test_the_dense_frames_kept_are_released_when_the_surface_is_done(tmp_path):
     tifffile.imwrite(path, np.full((48, 64), 30000, dtype=np.uint16))
     again = mosaic_step.dense_frame(1, {1: str(path)}, params, EnhanceConfig())
     assert again is not first and float(np.ptp(again[1])) == 0.0
+
+
+def test_the_cloud_is_ordered_by_cell_and_compacted_as_numpy_would():
+    """The confirmation's counting sort against numpy's stable argsort, and the in-place compaction of the kept
+    points against boolean indexing (a city's cloud is 10^8 points: neither may hold a second copy)."""
+    from aerocal.products.dense import _cells_in_order, _gathered, _kept
+
+    rng = np.random.default_rng(SEED)
+    key = rng.integers(0, 400, 20_000).astype(np.int64)
+    order, bounds = _cells_in_order(key)
+    expected = np.argsort(key, kind="stable")
+    np.testing.assert_array_equal(order, expected)
+    np.testing.assert_array_equal(bounds, np.flatnonzero(np.r_[True, key[expected][1:] != key[expected][:-1], True]))
+    keep = rng.random(20_000) < 0.3
+    for values in (rng.normal(size=(20_000, 3)), rng.integers(0, 9, 20_000).astype(np.uint8)):
+        np.testing.assert_array_equal(_kept(values.copy(), keep), values[keep])
+    parts = [rng.normal(size=(n, 3)) for n in (5, 0, 7)]
+    np.testing.assert_array_equal(_gathered(list(parts)), np.concatenate(parts))

@@ -674,10 +674,7 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     if not len(xyz):
         return np.zeros(0, dtype=bool)
     xyz = np.asarray(xyz, dtype=np.float64)
-    key = _cell_keys(xyz, float(cell_m))
-    order = np.argsort(key, kind="stable")
-    bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
-    del key
+    order, bounds = _cells_in_order(_cell_keys(xyz, float(cell_m)))
     views = (np.full(len(xyz), 3, dtype=np.uint8) if views is None else np.asarray(views, dtype=np.uint8))
     return _confirm_cells(order, bounds, xyz, np.asarray(rank, dtype=np.uint8), np.asarray(image_id), views,
                           float(tol_m))
@@ -700,6 +697,38 @@ def _cell_keys(xyz: np.ndarray, cell_m: float) -> np.ndarray:
         key[i] = (np.int64(np.floor(xyz[i, 1] / cell_m)) - np.int64(r_min)) * cols + (
             np.int64(np.floor(xyz[i, 0] / cell_m)) - np.int64(c_min))
     return key
+
+
+@numba.njit(cache=True)
+def _cells_in_order(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The points ordered by cell, in their own order within a cell (``np.argsort(key, kind="stable")``), and
+    where each occupied cell's run starts in that order, with the count at the end: a counting sort, linear in
+    the points and the cells, without the sort's and the comparison's copies of the keys (a city's cloud holds
+    10^8 points)."""
+    n = key.shape[0]
+    n_cells = 0
+    for i in range(n):
+        n_cells = max(n_cells, key[i] + 1)
+    start = np.zeros(n_cells + 1, dtype=np.int64)
+    for i in range(n):
+        start[key[i] + 1] += 1
+    occupied = 0
+    for c in range(n_cells):
+        if start[c + 1] > 0:
+            occupied += 1
+        start[c + 1] += start[c]
+    bounds = np.empty(occupied + 1, dtype=np.int64)
+    j = 0
+    for c in range(n_cells):
+        if start[c + 1] > start[c]:
+            bounds[j] = start[c]
+            j += 1
+    bounds[occupied] = n
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):  # start[c] becomes the next free place of cell c
+        order[start[key[i]]] = i
+        start[key[i]] += 1
+    return order, bounds
 
 
 @numba.njit(cache=True)
@@ -801,24 +830,58 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     if not results:
         results = [(0, ReferencePoints.empty())]
     image_id = np.concatenate([np.full(len(r.xyz), i, np.int32) for i, r in results])
-    # one field at a time, each reference's copy released once gathered: the parts and the whole cloud are never
-    # all held at once (benchmarks/RESULTS.md, "Dense surface: the cloud's memory")
+    # one field at a time, each reference's part released as it is copied: the parts and the whole cloud are
+    # never all held at once (benchmarks/RESULTS.md, "Dense surface: the cloud's memory")
     fields = {name: [getattr(r, name) for _, r in results] for name in ("xyz", "value", "views", "rank")}
     del results
-    xyz = np.concatenate(fields.pop("xyz"))
-    rank = np.concatenate(fields.pop("rank"))
-    views = np.concatenate(fields.pop("views"))
+    xyz = _gathered(fields.pop("xyz"))
+    rank = _gathered(fields.pop("rank"))
+    views = _gathered(fields.pop("views"))
     gsd = float(np.median([(f.C[2] - ground_height_m) / (f.camera.f * scale) for f in frames]))
     keep = confirmed(xyz, rank, image_id, gsd, config.fill_agreement_gsd * gsd, views)
     n_pairs = sum(len(p) for p in plans.values())
     stats = {"frames": len(frames), "references": len(jobs), "pairs": n_pairs,
              "pairs_left_out": sum(len(v) for v in neighbours.values()) - n_pairs,
              "points": int(keep.sum()), "unconfirmed": int(len(keep) - keep.sum()), "scale": scale}
-    xyz, rank, image_id = xyz[keep], rank[keep], image_id[keep]
-    value = np.concatenate(fields.pop("value"))[keep]
-    views = views[keep]
+    xyz, rank, image_id, views = (_kept(a, keep) for a in (xyz, rank, image_id, views))
+    value = _kept(_gathered(fields.pop("value")), keep)
     stats["two_view_points"] = int(np.count_nonzero(views == 2))
     return DenseCloud(xyz=xyz, value=value, views=views, image_id=image_id, gsd_m=gsd, stats=stats, rank=rank)
+
+
+def _gathered(parts: list[np.ndarray]) -> np.ndarray:
+    """The ``parts`` (arrays of one dtype and trailing shape) concatenated, each part dropped from the list as it
+    is copied (the caller holds no other reference): the whole and all the parts are never held at once."""
+    total = sum(len(p) for p in parts)
+    out = np.empty((total, *parts[0].shape[1:]), dtype=parts[0].dtype)
+    parts.reverse()
+    at = 0
+    while parts:
+        part = parts.pop()
+        out[at:at + len(part)] = part
+        at += len(part)
+    return out
+
+
+def _kept(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``values[keep]`` written over ``values`` itself (which is then no longer valid): the kept rows moved to the
+    front in order and the array shrunk, without a second copy of a cloud-sized array."""
+    if not (values.flags.c_contiguous and values.flags.owndata):
+        return values[keep]
+    n = _move_kept(values.reshape(len(values), -1), keep)
+    values.resize((n, *values.shape[1:]), refcheck=False)
+    return values
+
+
+@numba.njit(cache=True)
+def _move_kept(rows: np.ndarray, keep: np.ndarray) -> int:
+    j = 0
+    for i in range(rows.shape[0]):
+        if keep[i]:
+            if j != i:
+                rows[j] = rows[i]
+            j += 1
+    return j
 
 
 def cell_views(cloud: DenseCloud, dsm: Dsm, measured: np.ndarray) -> np.ndarray:
