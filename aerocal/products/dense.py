@@ -885,14 +885,15 @@ def _move_kept(rows: np.ndarray, keep: np.ndarray) -> int:
 
 
 def cell_views(cloud: DenseCloud, dsm: Dsm, measured: np.ndarray) -> np.ndarray:
-    """Per cell of ``dsm`` (the cloud's DSM), the most views that agree on a point of the cloud within one cell of
-    it (uint8, the DSM's shape; 0 where the cell is not ``measured``): 2 where the cell's height stands on one pair
-    that no third view could check, 3 or more where it was checked. A DSM cell is measured within 1.5 cells of a
-    point, so each takes the points of its 3 x 3 neighbourhood."""
+    """Per cell of ``dsm`` (the cloud's DSM), the most views that agree on a point of the cloud in it (uint8, the
+    DSM's shape; 0 where the cell is not ``measured``): 2 where the cell's height stands on one pair that no third
+    view could check, 3 or more where it was checked. A DSM cell is measured within 1.5 cells of a point: a
+    measured cell without a point of its own takes the most of its 3 x 3 neighbourhood's."""
     rows, cols = dsm.shape
-    most = _most_views(np.ascontiguousarray(cloud.xyz, dtype=np.float64), np.asarray(cloud.views, dtype=np.uint8),
-                       float(dsm.west), float(dsm.north), float(dsm.cell_m), rows, cols)
-    return np.where(measured, maximum_filter(most.reshape(rows, cols), size=3), 0).astype(np.uint8)
+    own = _most_views(np.ascontiguousarray(cloud.xyz, dtype=np.float64), np.asarray(cloud.views, dtype=np.uint8),
+                      float(dsm.west), float(dsm.north), float(dsm.cell_m), rows, cols).reshape(rows, cols)
+    around = maximum_filter(own, size=3)
+    return np.where(measured, np.where(own > 0, own, around), 0).astype(np.uint8)
 
 
 @numba.njit(cache=True)
