@@ -409,5 +409,6 @@ def test_the_cloud_is_ordered_by_cell_and_compacted_as_numpy_would():
     keep = rng.random(20_000) < 0.3
     for values in (rng.normal(size=(20_000, 3)), rng.integers(0, 9, 20_000).astype(np.uint8)):
         np.testing.assert_array_equal(_kept(values.copy(), keep), values[keep])
+    assert _kept(np.zeros((0, 3)), np.zeros(0, bool)).shape == (0, 3)  # a block with no point
     parts = [rng.normal(size=(n, 3)) for n in (5, 0, 7)]
     np.testing.assert_array_equal(_gathered(list(parts)), np.concatenate(parts))

@@ -32,8 +32,8 @@ from aerocal.pipeline.config import MosaicStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.progress import step_progress
 from aerocal.pipeline.runner import FileOutput, JsonOutput, Runner, StepInputs, StepResult
-from aerocal.products.dense import cell_views, dense_cloud
-from aerocal.products.dsm import Dsm, DsmConfig, dsm_from_points, read_dsm, write_dsm
+from aerocal.products.dense import dense_cloud, own_views, views_of_cells
+from aerocal.products.dsm import Dsm, DsmConfig, cells_from_points, dsm_from_points, filled, read_dsm, write_dsm
 from aerocal.products.mosaic import (
     FrameCache,
     FrameGeometry,
@@ -181,17 +181,24 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
         info["surface"] = (f"tie points: dense matching found no surface in {len(frames)} frames (no pair with "
                            "texture that two other views agree on)")
         return None
-    dsm = dsm_from_points(cloud.xyz, flight["crs"], gsd_m=cloud.gsd_m, config=config.dense_dsm)
-    measured = dsm.distance_m <= 1.5 * dsm.cell_m
-    views = cell_views(cloud, dsm, measured)
+    # the cloud's cells first; the cloud is written and released before the holes are filled (a city's cloud is
+    # 10^8 points, and the filling's triangulation and distance transforms need the memory)
+    cells = cells_from_points(cloud.xyz, flight["crs"], gsd_m=cloud.gsd_m, config=config.dense_dsm)
+    own = own_views(cloud, cells)
     flir, _ = common_camera_info(list(paths.values()))
     temperature = None if flir is None else functools.partial(raw_to_celsius, info=flir)
     laz = write_laz(cloud, work / "cloud.laz", flight["crs"], temperature)
+    stats, gsd, median_views = dict(cloud.stats), cloud.gsd_m, float(np.median(cloud.views))
+    del cloud
+    dsm = filled(cells, config.dense_dsm)
+    del cells
+    measured = dsm.distance_m <= 1.5 * dsm.cell_m
+    views = views_of_cells(own, measured)
     info["surface"] = "dense"
-    info["dense"] = {**dict(cloud.stats), "seconds": round(seconds, 1), "gsd_m": cloud.gsd_m, "dsm_cell_m": dsm.cell_m,
+    info["dense"] = {**stats, "seconds": round(seconds, 1), "gsd_m": gsd, "dsm_cell_m": dsm.cell_m,
                      "measured_fraction": float(np.mean(measured)),
                      "two_view_fraction": float(np.count_nonzero(views == 2) / max(np.count_nonzero(measured), 1)),
-                     "median_views": float(np.median(cloud.views)), "temperature": flir is not None}
+                     "median_views": median_views, "temperature": flir is not None}
     return dsm, measured, views, {"cloud": FileOutput(laz, "cloud", temporary=True)}
 
 

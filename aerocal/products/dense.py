@@ -866,7 +866,7 @@ def _gathered(parts: list[np.ndarray]) -> np.ndarray:
 def _kept(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """``values[keep]`` written over ``values`` itself (which is then no longer valid): the kept rows moved to the
     front in order and the array shrunk, without a second copy of a cloud-sized array."""
-    if not (values.flags.c_contiguous and values.flags.owndata):
+    if not len(values) or not (values.flags.c_contiguous and values.flags.owndata):
         return values[keep]
     n = _move_kept(values.reshape(len(values), -1), keep)
     values.resize((n, *values.shape[1:]), refcheck=False)
@@ -885,15 +885,24 @@ def _move_kept(rows: np.ndarray, keep: np.ndarray) -> int:
 
 
 def cell_views(cloud: DenseCloud, dsm: Dsm, measured: np.ndarray) -> np.ndarray:
-    """Per cell of ``dsm`` (the cloud's DSM), the most views that agree on a point of the cloud in it (uint8, the
-    DSM's shape; 0 where the cell is not ``measured``): 2 where the cell's height stands on one pair that no third
-    view could check, 3 or more where it was checked. A DSM cell is measured within 1.5 cells of a point: a
-    measured cell without a point of its own takes the most of its 3 x 3 neighbourhood's."""
+    """Per cell of ``dsm`` (the cloud's DSM, or its cells before the filling), the most views that agree on a point
+    of the cloud in it (uint8, the DSM's shape; 0 where the cell is not ``measured``): 2 where the cell's height
+    stands on one pair that no third view could check, 3 or more where it was checked. :func:`views_of_cells` of
+    :func:`own_views`."""
+    return views_of_cells(own_views(cloud, dsm), measured)
+
+
+def own_views(cloud: DenseCloud, dsm: Dsm) -> np.ndarray:
+    """Per cell of ``dsm``'s grid, the most views of the cloud's points in it (uint8; 0: no point)."""
     rows, cols = dsm.shape
-    own = _most_views(np.ascontiguousarray(cloud.xyz, dtype=np.float64), np.asarray(cloud.views, dtype=np.uint8),
-                      float(dsm.west), float(dsm.north), float(dsm.cell_m), rows, cols).reshape(rows, cols)
-    around = maximum_filter(own, size=3)
-    return np.where(measured, np.where(own > 0, own, around), 0).astype(np.uint8)
+    return _most_views(np.ascontiguousarray(cloud.xyz, dtype=np.float64), np.asarray(cloud.views, dtype=np.uint8),
+                       float(dsm.west), float(dsm.north), float(dsm.cell_m), rows, cols).reshape(rows, cols)
+
+
+def views_of_cells(own: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """:func:`cell_views` from the cells' own views (:func:`own_views`): a DSM cell is measured within 1.5 cells of
+    a point, and a measured cell without a point of its own takes the most of its 3 x 3 neighbourhood's."""
+    return np.where(measured, np.where(own > 0, own, maximum_filter(own, size=3)), 0).astype(np.uint8)
 
 
 @numba.njit(cache=True)

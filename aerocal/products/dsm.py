@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numba
@@ -329,7 +329,27 @@ def dsm_from_points(
     """Grid a DSM from 3D tie points (N, 3: E, N, height, metres in ``crs``) or a ``points`` table.
 
     ``bounds`` (west, south, east, north) fixes the extent (default: the points' extent), to which a margin
-    of ``config.margin_cells`` is added; the grid is snapped to multiples of the cell size.
+    of ``config.margin_cells`` is added; the grid is snapped to multiples of the cell size. The same as
+    :func:`filled` of :func:`cells_from_points`, which a caller holding a large cloud calls in turn, releasing the
+    cloud between them.
+    """
+    config = config or DsmConfig()
+    return filled(cells_from_points(points, crs, gsd_m, config, bounds), config)
+
+
+def cells_from_points(
+    points: np.ndarray,
+    crs: str,
+    gsd_m: float | None = None,
+    config: DsmConfig | None = None,
+    bounds: tuple[float, float, float, float] | None = None,
+) -> Dsm:
+    """The first half of :func:`dsm_from_points` (same arguments): the grid and the median height of the points in
+    each cell (float64, as :func:`filled` takes them), NaN where a cell holds none (``counts`` per cell,
+    ``distance_m`` not yet computed); nothing filled.
+
+    Raises:
+        ValueError: ``points`` is not (N, 3) or holds fewer than 3 finite points.
     """
     config = config or DsmConfig()
     if hasattr(points, "column"):  # an Arrow points table
@@ -370,20 +390,26 @@ def dsm_from_points(
     cols = int(np.ceil((e + m - west) / cell))
     rows = int(np.ceil((north - (s - m)) / cell))
     heights, counts = _cell_medians(good, west, north, cell, (rows, cols))
-    del good  # the cells hold what the filling needs: a city's cloud is not kept through it
-    has = np.isfinite(heights)
+    del good
+    stats = {"points": n_points, "rejected_outliers": n_rejected, "cells": int(rows * cols), "cell_m": float(cell)}
+    return Dsm(heights=heights, west=float(west), north=float(north), cell_m=float(cell), crs=crs, counts=counts,
+               stats=stats)
 
-    distance = ndimage.distance_transform_edt(~has).astype(np.float32) * np.float32(cell)
+
+def filled(cells: Dsm, config: DsmConfig | None = None) -> Dsm:
+    """The second half of :func:`dsm_from_points`: ``cells`` (from :func:`cells_from_points`, NaN where no point)
+    with each cell's distance to the nearest cell that held data (``distance_m``, metres) and, as ``config`` asks,
+    its holes filled (:func:`fill_holes`) up to ``config.max_fill_distance_m``; heights float32."""
+    config = config or DsmConfig()
+    heights = cells.heights
+    has = np.isfinite(heights)
+    distance = ndimage.distance_transform_edt(~has).astype(np.float32) * np.float32(cells.cell_m)
     if config.fill and has.sum() >= 3:
         heights = fill_holes(heights, has, pinholes=config.fill_pinholes)
         if config.max_fill_distance_m is not None:
             heights[distance > config.max_fill_distance_m] = np.nan
-    stats = {
-        "points": n_points, "rejected_outliers": n_rejected, "cells_with_data": int(has.sum()),
-        "cells": int(rows * cols), "cell_m": float(cell),
-    }
-    return Dsm(heights=heights.astype(np.float32), west=float(west), north=float(north), cell_m=float(cell),
-               crs=crs, distance_m=distance, counts=counts, stats=stats)
+    stats = {**cells.stats, "cells_with_data": int(has.sum())}
+    return replace(cells, heights=heights.astype(np.float32), distance_m=distance, stats=stats)
 
 
 def bulk_extent(xy: np.ndarray, tail: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
