@@ -674,7 +674,13 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     if not len(xyz):
         return np.zeros(0, dtype=bool)
     xyz = np.asarray(xyz, dtype=np.float64)
-    order, bounds = _cells_in_order(_cell_keys(xyz, float(cell_m)))
+    key = _cell_keys(xyz, float(cell_m))
+    if int(key.max()) < 4 * len(key) + 1_000_000:
+        order, bounds = _cells_in_order(key)
+    else:  # the cloud's box holds far more cells than points (a few points far off): no array per cell
+        order = np.argsort(key, kind="stable")
+        bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
+    del key
     views = (np.full(len(xyz), 3, dtype=np.uint8) if views is None else np.asarray(views, dtype=np.uint8))
     return _confirm_cells(order, bounds, xyz, np.asarray(rank, dtype=np.uint8), np.asarray(image_id), views,
                           float(tol_m))
