@@ -45,6 +45,11 @@ class OrientationError(RuntimeError):
     """The block could not be oriented; the message says what was missing and what to try."""
 
 
+#: COLMAP models the mapper's camera can be seeded as: f, cx, cy, k1; f_x, f_y, cx, cy; or the whole Brown model
+#: (:func:`aerocal.camera.to_pycolmap`)
+COLMAP_SEED_MODELS = ("SIMPLE_RADIAL", "PINHOLE", "FULL_OPENCV")
+
+
 @dataclass(frozen=True)
 class IncrementalConfig:
     """Options of the incremental mapper (documented defaults)."""
@@ -52,11 +57,14 @@ class IncrementalConfig:
     min_model_size: int = 3  # smallest reconstruction kept
     refine_intrinsics: bool = False  # keep the starting camera: flat nadir blocks do not determine it
     multiple_models: bool = False  # one model; images that do not join it stay unregistered
-    camera_model: str = "SIMPLE_RADIAL"  # COLMAP model seeded from the starting camera (f, cx, cy, k1)
+    camera_model: str = "SIMPLE_RADIAL"  # COLMAP model seeded from the starting camera (COLMAP_SEED_MODELS)
 
     def __post_init__(self) -> None:
         if self.min_model_size < 2:
             raise ValueError(f"IncrementalConfig.min_model_size must be 2 or more images, got {self.min_model_size}")
+        if self.camera_model not in COLMAP_SEED_MODELS:
+            raise ValueError(f"IncrementalConfig.camera_model must be one of {', '.join(COLMAP_SEED_MODELS)}, got "
+                             f"{self.camera_model!r}")
 
 
 def orient_from_priors(images: pa.Table) -> pa.Table:

@@ -3,6 +3,7 @@ the value, instead of failing (or silently misbehaving) steps later."""
 
 import pytest
 
+from aerocal.adjust.control import ControlScreeningConfig
 from aerocal.calibrate.heldout import HeldOutConfig
 from aerocal.calibrate.self_calibration import CalibrationConfig
 from aerocal.calibrate.subset import SubsetConfig
@@ -34,6 +35,10 @@ BAD = [
     (lambda: DiagnoseConfig(family_alpha=1.5), "DiagnoseConfig.family_alpha"),
     (lambda: ExecutionConfig(local_workers=-1), "ExecutionConfig.local_workers"),
     (lambda: IncrementalConfig(min_model_size=1), "IncrementalConfig.min_model_size"),
+    (lambda: IncrementalConfig(camera_model="SIMPLE_RADIAL_FISHEYE"), "IncrementalConfig.camera_model"),
+    (lambda: ControlScreeningConfig(neighbour_tracks=0), "ControlScreeningConfig.neighbour_tracks"),
+    (lambda: ControlScreeningConfig(camera_tolerance=0.0), "ControlScreeningConfig.camera_tolerance"),
+    (lambda: ControlScreeningConfig(min_points_for_scatter=1), "ControlScreeningConfig.min_points_for_scatter"),
     (lambda: MatchStepConfig(min_overlap=1.0), "MatchStepConfig.min_overlap"),
     (lambda: BlockStepConfig(partition_max_images=0), "BlockStepConfig.partition_max_images"),
     (lambda: MosaicStepConfig(serial_max_megapixels=-1.0), "MosaicStepConfig.serial_max_megapixels"),
@@ -73,5 +78,5 @@ def test_the_defaults_are_valid():
     for cls in (HeldOutConfig, CalibrationConfig, SubsetConfig, DecisionConfig, DiagnoseConfig, ExecutionConfig,
                 IncrementalConfig, MatchStepConfig, BlockStepConfig, MosaicStepConfig, ReportStepConfig,
                 FlightPlanConfig, SensorConfig, IngestStepConfig, OrientStepConfig, ControlStepConfig, SelectionRules,
-                DemoConfig):
+                DemoConfig, ControlScreeningConfig):
         cls()

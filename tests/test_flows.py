@@ -302,11 +302,11 @@ def test_image_mode_flight_is_matched_on_dask_and_the_step_resumes(tmp_path, mon
 def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
     """A flight larger than ``whole_flight_max_images`` calibrates on the sub-block that
     :func:`aerocal.calibrate.subset.propose_subset` predicts best; the certificate's conditions describe it."""
+    from aerocal.calibrate.self_calibration import CalibrationConfig
     from aerocal.calibrate.subset import SubsetConfig
     from aerocal.certificates.document import Certificate
     from aerocal.pipeline import FolderDataset
     from aerocal.pipeline.calibrate_step import calibrate_step
-    from aerocal.pipeline.config import CalibrationStepConfig
     from aerocal.pipeline.ingest_step import ingest_step
     from aerocal.pipeline.runner import JsonOutput
     from storage.migrations import upgrade
@@ -322,7 +322,7 @@ def test_large_flight_calibrates_on_the_proposed_sub_block(flight, tmp_path):
         session.commit()
     runner, dataset = StoreRunner(ctx, prefect_tasks=False), FolderDataset(flight)
     ing = ingest_step(runner, dataset, runner.put(JsonOutput(dataset.manifest(), "flight-manifest")))
-    config = CalibrationStepConfig(
+    config = CalibrationConfig(
         whole_flight_max_images=10, subset=SubsetConfig(strip_counts=(2, 3), images_per_strip=(3, 4))
     )
     cal = calibrate_step(runner, ing, ing["observations"], config)

@@ -92,6 +92,14 @@ class ControlScreeningConfig:
         for name in ("measurement_limit_px", "floor_gsd", "floor_vertical"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"ControlScreeningConfig.{name} must be positive, got {getattr(self, name)}")
+        if self.neighbour_tracks < 1:
+            raise ValueError(f"ControlScreeningConfig.neighbour_tracks must be at least 1, got {self.neighbour_tracks}")
+        if not 0.0 < self.camera_tolerance < 0.5:
+            raise ValueError("ControlScreeningConfig.camera_tolerance must be in (0, 0.5), got "
+                             f"{self.camera_tolerance}")
+        if self.min_points_for_scatter < 2:
+            raise ValueError("ControlScreeningConfig.min_points_for_scatter must be at least 2 (a scatter needs two "
+                             f"points), got {self.min_points_for_scatter}")
 
     @property
     def limit(self) -> float:

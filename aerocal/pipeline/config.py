@@ -43,10 +43,6 @@ CERTIFICATE_MODES = tuple(m.value for m in CertificateMode)
 #: the ``certificate`` mode that adjusts the block with the nominal camera
 NOMINAL = CertificateMode.NOMINAL
 
-#: the calibration step's configuration is the engine's
-CalibrationStepConfig = CalibrationConfig
-
-
 @dataclass(frozen=True)
 class MatchStepConfig:
     """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
@@ -218,7 +214,7 @@ class ProcessConfig:
     match: MatchStepConfig = field(default_factory=MatchStepConfig)
     orient: OrientStepConfig = field(default_factory=OrientStepConfig)
     control: ControlStepConfig = field(default_factory=ControlStepConfig)
-    calibration: CalibrationStepConfig = field(default_factory=CalibrationStepConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     block: BlockStepConfig = field(default_factory=BlockStepConfig)
     mosaic: MosaicStepConfig = field(default_factory=MosaicStepConfig)
     diagnose: DiagnoseConfig | None = None
