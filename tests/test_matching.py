@@ -140,6 +140,28 @@ def test_keypoints_are_in_the_aerocal_pixel_convention(h20t_paths, h20t_loader):
     assert abs(offset) < 0.01, f"x + x' - W = {offset:.3f} px (0 expected; -1 would be OpenCV's convention)"
 
 
+def test_a_frame_detected_from_octave_0_keeps_the_pixel_convention_and_its_tiles_agree(h20t_paths, h20t_loader):
+    """A frame above ``fine_octave_max_pixels`` is reduced twice before OpenCV sees it: its keypoints are in the
+    frame's pixels (a mirrored frame gives x + x' = W), and tiles of the frame give the whole frame's keypoints."""
+    img = cv2.resize(h20t_loader(str(h20t_paths[5])), (1280, 1024), interpolation=cv2.INTER_CUBIC)
+    octave0 = {"fine_octave_max_pixels": 1_000_000}  # the 1.3 MP frame detected from octave 0
+    whole, _ = detect(img, FeatureConfig(max_features=0, tile_size=0, **octave0))
+    upsampled, _ = detect(img, FeatureConfig(max_features=0, tile_size=0))
+    assert 500 < len(whole) < 0.8 * len(upsampled), (len(whole), len(upsampled))
+    tiled, _ = detect(img, FeatureConfig(max_features=0, tile_size=576, tile_overlap=64, **octave0))  # 3 x 2 tiles
+    d, _ = cKDTree(whole[:, :2]).query(tiled[:, :2])
+    assert np.mean(d < 0.02) > 0.97 and abs(len(tiled) - len(whole)) < 0.02 * len(whole), (len(tiled), len(whole))
+    mirrored, _ = detect(np.ascontiguousarray(img[:, ::-1]), FeatureConfig(max_features=0, tile_size=0, **octave0))
+    d, j = cKDTree(np.column_stack([1280 - mirrored[:, 0], mirrored[:, 1]])).query(whole[:, :2])
+    ok = d < 0.5
+    assert ok.mean() > 0.9
+    offset = float(np.median(whole[ok, 0] + mirrored[j[ok], 0] - 1280))
+    assert abs(offset) < 0.02, f"x + x' - W = {offset:.3f} px from octave 0 (0 expected)"
+    # octave -1 holds the scales below SIFT's base sigma (1.6 px of the frame); octave 0 none of them
+    assert np.quantile(upsampled[:, 2], 0.05) < 1.4 and np.quantile(whole[:, 2], 0.01) > 1.5, \
+        (np.quantile(upsampled[:, 2], 0.05), np.quantile(whole[:, 2], 0.01))
+
+
 def test_cap_keeps_the_strongest_features(h20t_paths, h20t_loader):
     img = h20t_loader(str(h20t_paths[8]))
     full, dfull = detect(img, FeatureConfig(max_features=0))

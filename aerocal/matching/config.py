@@ -34,6 +34,17 @@ class FeatureConfig:
         OpenCV's ``enable_precise_upscale`` (default True). With OpenCV's default upscaling the keypoints
         sit 0.25 px right of and below the image content (measured on an H20T frame and its mirror
         image: x + x' = W - 0.5 in OpenCV coordinates instead of W - 1); with it they are unbiased.
+    fine_octave_max_pixels:
+        Frames of at most this many pixels (default 12 MP) are detected as OpenCV does, from an octave -1 it
+        makes by upsampling the frame twice; larger frames from octave 0, the frame itself, as COLMAP's
+        ``first_octave=0`` does (OpenCV has no such setting: the tile is reduced twice by area averaging, OpenCV
+        upsamples it back to the frame's grid, and the keypoints are scaled back). The upsampled octave holds
+        three quarters of SIFT's pixels: a 20 MP frame is searched as 80 MP. Without it a frame's keypoints are
+        coarser: on seneca's and copr's 2-3 MP frames detection took a quarter of the time and verified more
+        inliers, but the self-calibration's reprojection RMS grew by half and its formal sigmas by a quarter
+        (its calibrated ones stayed: ``benchmarks/RESULTS.md``, "SIFT from octave 0 on visible frames"), so the
+        default keeps octave -1 up to the size at which COLMAP's default (frames reduced to 3,200 px, then
+        upsampled) searches about as many pixels. 0 detects every frame from octave 0.
     granularity:
         Unit of parallel work on a Dask cluster: ``"image"`` (one task loads, tiles and detects one
         image), ``"tile"`` (one task per tile, the loaded image shared through the cluster; for a few
@@ -48,6 +59,7 @@ class FeatureConfig:
     edge_threshold: float = 10.0
     sigma: float = 1.6
     precise_upscale: bool = True
+    fine_octave_max_pixels: int = 12_000_000
     granularity: Literal["auto", "image", "tile"] = "auto"
 
     def __post_init__(self) -> None:
@@ -64,6 +76,8 @@ class FeatureConfig:
                     f"FeatureConfig: tile_size - tile_overlap = {size - overlap} must be a multiple of "
                     f"{TILE_ALIGN} (e.g. tile_size=1024, tile_overlap=64)"
                 )
+        if self.fine_octave_max_pixels < 0:
+            raise ValueError(f"FeatureConfig.fine_octave_max_pixels must be >= 0, got {self.fine_octave_max_pixels}")
         if self.granularity not in ("auto", "image", "tile"):
             raise ValueError(
                 f"FeatureConfig.granularity {self.granularity!r} unknown; valid: auto, image, tile"

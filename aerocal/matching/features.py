@@ -74,22 +74,35 @@ def tile_boxes(width: int, height: int, config: FeatureConfig) -> np.ndarray:
     return np.array(boxes, dtype=np.int64)
 
 
+def reduction(width: int, height: int, config: FeatureConfig) -> int:
+    """By how much a frame is reduced before OpenCV's SIFT sees it: 1, or 2 for a frame of more than
+    ``config.fine_octave_max_pixels`` pixels (detected from octave 0: :class:`FeatureConfig`)."""
+    return 2 if width * height > config.fine_octave_max_pixels else 1
+
+
 def detect_tile(img8: np.ndarray, box: np.ndarray, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """SIFT on one tile of ``img8``; keeps the keypoints inside the tile's core.
+
+    A frame :func:`reduction` reduces is detected on the tile reduced twice by area averaging (its odd last row
+    or column left out), the keypoints scaled back to the frame's pixels.
 
     Returns ``(kp, desc)``: ``kp`` float64 (N, 5) x, y (full-image pixels, aerocal convention), scale,
     orientation (radians), response; ``desc`` uint8 (N, 128).
     """
     single_threaded_opencv()
     x0, y0, x1, y1, cx0, cy0, cx1, cy1 = (int(v) for v in box)
-    tile = np.ascontiguousarray(img8[y0:y1, x0:x1])
+    r = reduction(img8.shape[1], img8.shape[0], config)
+    tile = np.ascontiguousarray(img8[y0 : y1 - (y1 - y0) % r, x0 : x1 - (x1 - x0) % r])
+    if r > 1:
+        tile = cv2.resize(tile, (tile.shape[1] // r, tile.shape[0] // r), interpolation=cv2.INTER_AREA)
     kps, desc = _sift(config).detectAndCompute(tile, None)
     if not kps:
         return np.zeros((0, _N_COLS)), np.zeros((0, 128), dtype=np.uint8)
     kp = np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response) for k in kps], dtype=np.float64)
-    kp[:, 0] += x0 + 0.5
-    kp[:, 1] += y0 + 0.5
-    kp[:, 2] *= 0.5  # OpenCV size = 2 sigma
+    # OpenCV's pixel centres to the tile's corner convention, then the reduced tile's pixels to the frame's
+    kp[:, 0] = (kp[:, 0] + 0.5) * r + x0
+    kp[:, 1] = (kp[:, 1] + 0.5) * r + y0
+    kp[:, 2] *= 0.5 * r  # OpenCV size = 2 sigma
     kp[:, 3] = np.radians(kp[:, 3])
     own = (kp[:, 0] >= cx0) & (kp[:, 0] < cx1) & (kp[:, 1] >= cy0) & (kp[:, 1] < cy1)
     return kp[own], np.asarray(desc, dtype=np.uint8)[own]
