@@ -66,10 +66,9 @@ class AdjustConfig:
       residual over the mean redundancy), first from the robust pass, then from the least-squares
       adjustment until it changes by less than 5 % (at most 3 rounds, each starting from the last). A
       variance component for the tie points, whose a-priori sigma (``MatchConfig.sigma_px``, 0.5 px) is
-      a guess; GNSS, attitude and GCP sigmas keep their a-priori values. Without it, SIFT tie points three
-      times more precise than assumed (rendered conte-city: 0.19 px against the true geometry) give a
-      sigma0 of 0.39 that shrinks every predicted sigma, the GCP measurements' (1 px) included: check
-      points then miss their prediction in height by rho 2.4-3.1.
+      a guess; GNSS, attitude and GCP sigmas keep their a-priori values. Without it, tie points more
+      precise than assumed give a sigma0 below 1 that shrinks every predicted sigma, the GCP measurements'
+      included, and check points then miss their prediction (``benchmarks/history/engine_measurements.md``).
     * ``tie_thinning``: adjust a thinned set of the tie tracks (:class:`~aerocal.adjust.thinning.ThinningConfig`:
       the tracks with the most rays, a few per cell of a grid over every image), then intersect the
       others with the adjusted poses and IO held fixed, so the points table and the residuals still cover

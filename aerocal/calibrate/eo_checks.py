@@ -2,9 +2,8 @@
 
 Small drones' recorded EO carries gross systematic errors: a height read against another reference (take-off,
 geoid or ellipsoid), a constant GNSS offset. Used as a prior in a self-calibration, such an offset is absorbed
-by the interior orientation: a simulated conte-calibration block (observations mode) with a hidden GNSS
-offset of (0.5, -0.4, 2.0) m and 11 GCPs certified f 4.4 px (8 sigma) off the truth, with its check points
-still inside rho 3.
+by the interior orientation, and the certificate is then confidently wrong while the check points still pass
+(``benchmarks/history/engine_measurements.md``).
 
 :func:`correct_gnss_offset` adjusts the block with the calibration's own model and estimates the
 ``gnss_bias`` hypothesis of :mod:`aerocal.diagnose` against it (sigmas calibrated by the block's
@@ -22,8 +21,8 @@ a lag sits in the calibration's GNSS residuals.
 The image-side effects that mimic a lag (:data:`TIME_LAG_RIVALS`: a rolling-shutter readout) are tested beside
 it; a lag the diagnosis cannot tell apart from one of them is reported and not removed. So is the principal point
 of IO held fixed: its error moves each footprint along the track as a lag does, so the fixed IO's uncertainty (a
-certificate's covariance, a nominal camera's tolerances) is taken into the test (a simulated mitishita-block with
-the nominal camera's cy 0.83 px off had a lag of -1.57 +- 0.22 ms removed when the IO was held exact).
+certificate's covariance, a nominal camera's tolerances) is taken into the test (held exact, a nominal camera's
+small cy error was removed as a significant lag: ``benchmarks/history/engine_measurements.md``).
 """
 
 from __future__ import annotations
@@ -137,12 +136,12 @@ def correct_gnss_offset(
 
 
 #: rounds of the GNSS tests on the positions they corrected: each is a linearised estimate, and a large lag is
-#: underestimated by one (a 0.3 s lag, 18 m along the track of a rendered 16-image block: 0.248 s, the rest found
-#: by the diagnosis afterwards). A lag the first round removed is refined by what the next round estimates beyond
+#: underestimated by one (its rest then found by the diagnosis afterwards: ``benchmarks/history/
+#: engine_measurements.md``). A lag the first round removed is refined by what the next round estimates beyond
 #: :data:`MIN_Z` of its sigma, named again or not: the decision that the lag exists was the first round's (with its
 #: held-out gain), and a remainder the size of the estimate's own error has a held-out gain of half its z, which
-#: left a remainder of 7 % of a rendered 0.3 s lag in the records, where the attitude check took its tilt for a
-#: boresight (benchmarks/RESULTS.md, "Every catalogue effect hidden in rendered conte-calibration frames")
+#: left part of a rendered lag in the records, where the attitude check took its tilt for a boresight
+#: (benchmarks/RESULTS.md, "Every catalogue effect hidden in rendered conte-calibration frames")
 REFINE_ROUNDS = 2
 
 
@@ -187,8 +186,8 @@ def _correct_gnss_offset(images: pa.Table, observations: pa.Table, camera: Camer
         return GnssCorrection(images, notes=[f"GNSS offset and time lag not tested: the block could not be adjusted "
                                              f"({exc})"])
     # what is removed is what the diagnosis names, each estimated given the other (a lag on a block flown
-    # mostly one way is partly a constant offset: both estimated on their own and both subtracted, a
-    # rendered 16-image block with a 0.3 s lag had its check points 14 sigma off in N)
+    # mostly one way is partly a constant offset: both estimated on their own and both subtracted put a
+    # rendered block's check points far off: benchmarks/history/engine_measurements.md)
     named = {e.name: e for e in d.effects}
     out = GnssCorrection(images)
     if offset_testable:
@@ -348,9 +347,10 @@ def correct_recorded_eo(images: pa.Table, observations: pa.Table, camera: Camera
     checked together; the GNSS correction's ``images`` carry both corrections.
 
     Each check looks at the block through the other's records: an attitude offset, observed, turns the block the
-    GNSS tests see, and a GNSS error turns the orientation the attitudes are checked against (a 0.05 s lag, 3 m
-    along the track, tilts the cameras of conte-calibration by 0.2 deg about their x axis, the same in every
-    strip since the camera turns with the heading: it passed as a boresight, and the lag then as a GNSS offset).
+    GNSS tests see, and a GNSS error turns the orientation the attitudes are checked against (a lag tilts the
+    cameras about their x axis, the same in every strip since the camera turns with the heading: checked in one
+    order only, a rendered lag passed as a boresight, and the lag then as a GNSS offset:
+    ``benchmarks/history/engine_measurements.md``).
     So where either check corrects something the records are checked in both orders (attitudes first, positions
     first); when the two orders decide alike the first is kept, otherwise the block is adjusted on the records
     corrected each way and the one that fits better by :data:`SEPARATES_CHI2` wins (the lag's shift grows with
@@ -378,8 +378,8 @@ def correct_recorded_eo(images: pa.Table, observations: pa.Table, camera: Camera
         return att, eo
     # the other order: without an attitude correction the GNSS tests saw the records as they are; with one, the
     # positions are tested on the images alone, the attitudes not observed (observed, a lag's tilt
-    # of the cameras would conflict with them and hold the lag back: a rendered 0.3 s lag then passed as a
-    # 1.2 deg boresight in both orders); the attitudes are then checked against the positions so corrected
+    # of the cameras would conflict with them and hold the lag back, and a rendered lag then passed as a
+    # boresight in both orders); the attitudes are then checked against the positions so corrected
     free = dataclasses.replace(config, attitude_sigma_deg=None)
     other = positions_first(eo if att.offset_deg is None else correct_gnss_offset(
         images, observations, camera, free, gcps, gcp_observations, max_images, io, block))
