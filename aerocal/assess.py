@@ -173,6 +173,9 @@ def mosaic_target_residuals(
     (intensity-weighted centroid of the bright disc; ``window_px`` must be smaller than the target's dark
     square in mosaic pixels). Nodata pixels in the window are replaced by the window's median. Targets
     not found (outside the mosaic, no blob) are left out; ``n`` says how many were found.
+
+    Raises:
+        ValueError: ``mosaic_path`` is not a readable GeoTIFF, or the mosaic is not north-up.
     """
     ids, xyz, _ = _gcp_arrays(gcps, role)
     mosaic_path = Path(mosaic_path)
@@ -234,7 +237,11 @@ class BinnedResiduals:
 
     @classmethod
     def from_dict(cls, d: Mapping) -> BinnedResiduals:
-        """The inverse of :meth:`to_dict` (empty bins, ``None`` there, get a zero mean and count 0)."""
+        """The inverse of :meth:`to_dict` (empty bins, ``None`` there, get a zero mean and count 0).
+
+        Raises:
+            ValueError: ``d['bins']`` disagrees with the shape of ``d['count']``.
+        """
         count = np.asarray(d["count"], dtype=np.int64)
         mean = np.array([[[np.nan if v is None else float(v) for v in cell] for cell in row]
                          for row in d["mean_px"]], dtype=float).reshape(*count.shape, 2)
@@ -289,7 +296,11 @@ def reprojection_stats(
 ) -> ReprojectionStats:
     """Statistics of reprojection ``residuals`` (N, 2 pixels, projected - measured) aligned with the rows of
     an ``observations`` table. ``images`` (an images table) gives strips and image size; RMS is the root
-    mean square of the residual vector length."""
+    mean square of the residual vector length.
+
+    Raises:
+        ValueError: ``residuals`` is not of shape (N, 2), one row per row of ``observations``.
+    """
     obs = tables.validate(observations, "observations")
     r = np.asarray(residuals, dtype=float)
     if r.shape != (obs.num_rows, 2):
@@ -372,6 +383,9 @@ def compare_dems(
     bilinearly at the cell centres. ``mask`` (bool, dem's shape) restricts the compared cells (e.g.
     ``dem.distance_m <= 2`` for cells measured by tie points); describe it in ``selection``.
     ``transects``: ((E0, N0), (E1, N1)) lines sampled every cell: distance, tested and reference heights.
+
+    Raises:
+        ValueError: ``mask`` has another shape than ``dem``.
     """
     ref = reference.height_at if hasattr(reference, "height_at") else reference
     if mask is not None and mask.shape != dem.shape:
@@ -439,6 +453,9 @@ def loop_closure(frames: Sequence, observations, first_pair: tuple[int, int],
     """Loop-closure error from tie points (``observations`` table, pixels) seen in all four images.
 
     ``frames``: :class:`aerocal.products.mosaic.FrameGeometry` of the adjusted block.
+
+    Raises:
+        ValueError: an image of ``first_pair`` or ``last_pair`` has no frame in ``frames``.
     """
     obs = tables.validate(observations, "observations")
     by_id = {f.image_id: f for f in frames}
@@ -507,7 +524,11 @@ def accuracy_ratio(residuals: np.ndarray, predicted_sigma: np.ndarray,
     """Compare residuals (n, k metres) with their predicted standard deviations (n, k, or (k,) for all
     points): the full prediction (adjustment covariance scaled by the variance factor, plus the survey
     variance). The verdict: any axis above the band -> :data:`VERDICT_SYSTEMATIC`; else any below ->
-    :data:`VERDICT_PESSIMISTIC`; else :data:`VERDICT_OK`."""
+    :data:`VERDICT_PESSIMISTIC`; else :data:`VERDICT_OK`.
+
+    Raises:
+        ValueError: a predicted sigma is not positive, or fewer than 2 check points (rows of ``residuals``).
+    """
     e = np.atleast_2d(np.asarray(residuals, dtype=float))
     s = np.broadcast_to(np.asarray(predicted_sigma, dtype=float), e.shape)
     if np.any(~(s > 0)):

@@ -114,6 +114,11 @@ class Camera:
 
     @classmethod
     def from_dict(cls, d: dict) -> Camera:
+        """A camera from the dict :meth:`to_dict` returns.
+
+        Raises:
+            ValueError: ``d`` has a key that is not a camera field (the message lists the valid ones).
+        """
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(d) - names
         if unknown:

@@ -132,7 +132,12 @@ def plausible_size(name: str, f_px: float, corner_radius_px: float | None = None
 
 
 def parse_effect(text: str) -> tuple[str, tuple[float, ...]]:
-    """Parse ``NAME=VALUE`` (``VALUE`` a number, comma-separated numbers, or on/off for switches)."""
+    """Parse ``NAME=VALUE`` (``VALUE`` a number, comma-separated numbers, or on/off for switches).
+
+    Raises:
+        EffectError: ``text`` has no ``=``, names an unknown effect, or gives a value the effect does not take (see
+            :func:`effect_values`).
+    """
     if "=" not in text:
         raise EffectError(f"effect {text!r} must be NAME=VALUE; valid names: {', '.join(CATALOGUE)}")
     name, _, raw = text.partition("=")
@@ -141,7 +146,12 @@ def parse_effect(text: str) -> tuple[str, tuple[float, ...]]:
 
 
 def effect_values(name: str, raw: object) -> tuple[float, ...]:
-    """Validate a magnitude for effect ``name`` (string, number or sequence) and return its values."""
+    """Validate a magnitude for effect ``name`` (string, number or sequence) and return its values.
+
+    Raises:
+        EffectError: ``name`` is not in :data:`CATALOGUE`; a switch given other than on/off (or 0/1); a value that is
+            not numbers, or not the effect's count of finite numbers. The message names the valid values.
+    """
     if name not in CATALOGUE:
         raise EffectError(f"unknown effect {name!r}; valid effects: {', '.join(CATALOGUE)}")
     effect = CATALOGUE[name]

@@ -120,6 +120,10 @@ def histogram16(img: np.ndarray) -> np.ndarray:
 
     Per-frame histograms can be computed in parallel (one per worker) and summed; their sum is what
     :func:`stretch_params` needs.
+
+    Raises:
+        TypeError: ``img`` is not an integer array.
+        ValueError: a value of ``img`` lies outside 0..65535.
     """
     a = np.asarray(img)
     if a.dtype.kind not in "ui":
@@ -160,6 +164,11 @@ def stretch_params(
     Integer frames go through an exact 16-bit histogram: ``lo`` is the smallest count with at least
     ``percent`` % of the pixels at or below it, ``hi`` the largest with at least ``percent`` % at or
     above it. Float frames use ``numpy.percentile`` of the pixels (linear interpolation).
+
+    Raises:
+        ValueError: ``percent`` is outside [0, 50); no frames given; a histogram without 65536 bins; an integer frame
+            with values outside 0..65535; float frames without a finite pixel, or an empty histogram.
+        TypeError: a frame of a dtype neither integer nor float, or integer and float frames mixed.
     """
     if not 0.0 <= percent < 50.0:
         raise ValueError(f"stretch_params: percent must be in [0, 50), got {percent}")
@@ -209,7 +218,11 @@ def stretch_params(
 
 
 def linear_stretch(img: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """``(img - lo) / (hi - lo)`` clipped to [0, 1], as ``float32`` (16-bit counts stay exact)."""
+    """``(img - lo) / (hi - lo)`` clipped to [0, 1], as ``float32`` (16-bit counts stay exact).
+
+    Raises:
+        ValueError: ``hi`` is not greater than ``lo``.
+    """
     if not hi > lo:
         raise ValueError(f"linear_stretch: need hi > lo, got lo={lo}, hi={hi}")
     a = np.asarray(img, dtype=np.float32)
@@ -230,6 +243,9 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
     """A float image in [0, 1] -> ``uint8`` 0..255 (rounded, clipped); ``uint8`` input is copied.
 
     Integer frames of more than 8 bits are refused: stretch them first (:func:`linear_stretch`).
+
+    Raises:
+        TypeError: ``img`` is neither ``uint8`` nor float; stretch integer frames first (:func:`linear_stretch`).
     """
     a = np.asarray(img)
     if a.dtype == np.uint8:
@@ -345,6 +361,10 @@ def enhance(
     A colour frame is turned into its luminance first (:func:`grey`). ``params`` is the flight's
     :class:`StretchParams` (from :func:`stretch_params` over the frames' luminance); it may be ``None``
     only with ``method="none"``.
+
+    Raises:
+        ValueError: ``params`` is ``None`` with a method other than ``"none"`` (``"auto"`` resolves to a stretch), or
+            ``params.hi`` is not greater than ``params.lo``.
     """
     config = config or EnhanceConfig()
     img16 = grey(img16)

@@ -135,7 +135,11 @@ CONVENTIONS = {
 
 
 def attitude_to_R_cw(convention: str, a: float, b: float, c: float) -> np.ndarray:
-    """Dispatch on a convention name stored in the ``images`` table (see :data:`CONVENTIONS`)."""
+    """Dispatch on a convention name stored in the ``images`` table (see :data:`CONVENTIONS`).
+
+    Raises:
+        ValueError: ``convention`` is not a key of :data:`CONVENTIONS` (the message lists the valid ones).
+    """
     if convention not in CONVENTIONS:
         raise ValueError(f"attitude convention {convention!r} unknown; valid: {', '.join(CONVENTIONS)}")
     return CONVENTIONS[convention](a, b, c)
@@ -177,7 +181,11 @@ def world_to_camera(R_cw: np.ndarray, C: np.ndarray, X: np.ndarray) -> np.ndarra
 
 # ----------------------------------------------------------------------------- CRS helpers
 def utm_crs_for(lon: float, lat: float) -> str:
-    """The WGS84 UTM zone CRS (``"EPSG:326zz"`` north, ``"EPSG:327zz"`` south) holding (lon, lat)."""
+    """The WGS84 UTM zone CRS (``"EPSG:326zz"`` north, ``"EPSG:327zz"`` south) holding (lon, lat).
+
+    Raises:
+        ValueError: (lon, lat) is outside the UTM domain (longitude -180..180, latitude -80..84 degrees).
+    """
     if not (-180.0 <= lon <= 180.0 and -80.0 <= lat <= 84.0):
         raise ValueError(f"position lon={lon}, lat={lat} is outside the UTM domain")
     zone = int((lon + 180.0) // 6.0) % 60 + 1
@@ -246,6 +254,10 @@ def estimate_similarity(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | 
     """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991), optionally weighted.
 
     Needs at least three non-collinear points.
+
+    Raises:
+        ValueError: ``src`` and ``dst`` are not both (N, 3) arrays of the same shape with N >= 3, or the points are
+            collinear.
     """
     src = np.asarray(src, dtype=float)
     dst = np.asarray(dst, dtype=float)

@@ -68,7 +68,11 @@ class IncrementalConfig:
 
 
 def orient_from_priors(images: pa.Table) -> pa.Table:
-    """Initial poses from the recorded GNSS/IMU (the adjustment refines them)."""
+    """Initial poses from the recorded GNSS/IMU (the adjustment refines them).
+
+    Raises:
+        OrientationError: an image lacks a recorded position or attitude; use :func:`orient_incremental`.
+    """
     if not has_priors(images):
         raise OrientationError("some images lack a recorded position or attitude; use orient_incremental")
     im = images.to_pydict()
@@ -129,6 +133,9 @@ def orient_incremental(
 
     ``observations`` holds the registered measurements of the reconstruction's tracks (track ids are
     COLMAP's point ids).
+
+    Raises:
+        OrientationError: incremental mapping finds no initial pair; check the matches, or give GNSS/IMU priors.
     """
     config = config or IncrementalConfig()
     pycolmap.logging.minloglevel = 2  # COLMAP's own progress lines: our callback reports progress
@@ -238,6 +245,11 @@ def georeference(poses: pa.Table, camera: Camera, gcps: pa.Table, gcp_observatio
     The similarity is fitted on the points that pass the data snooping of
     :func:`aerocal.adjust.control.screen_points` (each point against the similarity of the others): a
     control point with wrong coordinates or a wrong label would otherwise tilt and shift the whole block.
+
+    Raises:
+        OrientationError: fewer than 3 control points are seen in at least 2 oriented images; add ground control or
+            GNSS.
+        ValueError: the intersected control points are collinear (:func:`aerocal.geometry.estimate_similarity`).
     """
     config = screening or ControlScreeningConfig()
     ids, R, C = poses_arrays(poses)

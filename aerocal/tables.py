@@ -274,7 +274,12 @@ def write(table: pa.Table, path: str | Path, kind: str) -> Path:
 
 
 def read(path: str | Path, kind: str) -> pa.Table:
-    """Read a Parquet table and validate it against ``kind``; errors name the file."""
+    """Read a Parquet table and validate it against ``kind``; errors name the file.
+
+    Raises:
+        SchemaError: ``path`` is not a readable Parquet file, or the table does not match the ``kind`` schema; the
+            message names the file.
+    """
     path = Path(path)
     try:
         table = pq.read_table(path)

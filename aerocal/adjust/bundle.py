@@ -170,7 +170,12 @@ def _intersect_in_front(
 
 
 def initial_state(block: Block, camera: Camera) -> tuple[Block, State]:
-    """Poses from the recorded GNSS/IMU, tie points triangulated, control GCPs at their surveyed position."""
+    """Poses from the recorded GNSS/IMU, tie points triangulated, control GCPs at their surveyed position.
+
+    Raises:
+        AdjustmentError: no tie track can be triangulated in front of the cameras from the recorded poses; check the
+            images' GNSS positions and attitude convention.
+    """
     io = camera.params()
     slopes = np.zeros(3)
     i, j = block.obs_image, block.obs_point

@@ -151,7 +151,11 @@ class PardisoCholesky:
         return x
 
     def solve(self, b: np.ndarray) -> np.ndarray:
-        """``A^-1 b`` for ``b`` of shape (n,) or (n, k)."""
+        """``A^-1 b`` for ``b`` of shape (n,) or (n, k).
+
+        Raises:
+            ValueError: ``b`` has another number of rows than the factor (``n``).
+        """
         b = np.asarray(b, dtype=np.float64)
         if b.shape[0] != self.n:
             raise ValueError(f"right-hand side has {b.shape[0]} rows, the factor {self.n}")

@@ -222,6 +222,15 @@ def build_block(
 
     With ``thermal_correction`` the tie-point and GCP measurements are first corrected to the model's
     reference temperature (Daakir 2019's workflow) using ``correction_camera`` (IO at T0).
+
+    Raises:
+        AdjustmentError: a table lacks a needed column; ``images.image_id`` has duplicates; ``initial_poses`` with
+            ``config.gnss_sigma_m`` or ``config.attitude_sigma_deg`` set, or without a pose for an image; without
+            ``initial_poses``, an image lacks its attitude (roll/pitch/yaw/attitude_convention) or gnss_x/gnss_y/gnss_z;
+            an image lacks ``temperature_c`` while ``config.thermal`` or ``thermal_correction`` is set; an observation
+            or GCP observation names an image_id absent from ``images``; an observation sigma is not positive; a control
+            GCP's sigma_x/sigma_y/sigma_z is not positive; a ``gcp_observations`` gcp_id is absent from ``gcps``;
+            ``thermal_correction`` without ``correction_camera``. The message names the row and the fix.
     """
     config = config or AdjustConfig()
     images = tables.validate(images, "images", source="images")

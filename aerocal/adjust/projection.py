@@ -245,7 +245,12 @@ def project_observations(io: np.ndarray, slopes: np.ndarray, dtemp_img: np.ndarr
     ``scale`` (M,) and ``Hpp`` (P, 3, 3, zeroed by the caller), with ``d_rot_out`` (M, 2, 6): the loop also
     does :func:`aerocal.adjust.schur_kernels.jacobian_blocks`' work (the returned ``d_rot`` and ``d_point``
     are then the scaled blocks, ``d_rot_out`` the whole image block, ``Hpp`` summed): one pass over the
-    observations less."""
+    observations less.
+
+    Raises:
+        ValueError: ``d_rot_out`` or ``d_point_out`` is not a C-contiguous float64 array of shape (M, 2, >= 3);
+            ``scale`` without ``Hpp`` or with a ``d_rot_out`` not of shape (M, 2, 6).
+    """
     M = len(image)
     uv, depth = np.empty((M, 2)), np.empty(M)
     shape = (M, 2, 3) if jacobians else (0, 2, 3)

@@ -254,7 +254,11 @@ def jacobian_blocks(point: np.ndarray, Ji: np.ndarray, Jx: np.ndarray, scale: np
     and ``Jx`` the point's, both scaled. One compiled pass instead of numpy's strided products and batched
     (3 x 2) by (2 x 3) ones with a sparse sum. Written in place of the projection's own arrays: no (M, 2, 3)
     array more per iteration, and the same arrays serve every iteration
-    (:meth:`aerocal.adjust.solver.BundleProblem.residuals`)."""
+    (:meth:`aerocal.adjust.solver.BundleProblem.residuals`).
+
+    Raises:
+        ValueError: ``Ji`` or ``Jx`` is not a C-contiguous float64 array.
+    """
     f8 = np.float64
     if not (Ji.dtype == f8 and Jx.dtype == f8 and Ji.flags.c_contiguous and Jx.flags.c_contiguous):
         raise ValueError("Ji and Jx must be C-contiguous float64 arrays")

@@ -731,6 +731,10 @@ def factorise(S, n_global: int | None = None, earlier=None) -> tuple:
     ``earlier``: a factor an earlier call returned for a system of the same pattern (the steps of one
     adjustment); PARDISO's analysis of it is kept and only the numbers are factorised again (the factor
     given is then spent: it becomes the one returned).
+
+    Raises:
+        AdjustmentError: ``S`` has non-finite entries: a projection overflowed, the start poses or a tie point are far
+            from any consistent geometry.
     """
     S = S if sp.issparse(S) and S.format == "csc" else sp.csc_matrix(S)
     diag = S.diagonal()
@@ -846,7 +850,12 @@ class ReducedSolver:
         return None
 
     def solve(self, S, rhs: np.ndarray) -> np.ndarray:
-        """``S x = rhs`` (``rhs`` (n,) or (n, k))."""
+        """``S x = rhs`` (``rhs`` (n,) or (n, k)).
+
+        Raises:
+            AdjustmentError: ``rhs`` has non-finite entries: a projection overflowed, the start poses or a tie point are
+                far from any consistent geometry.
+        """
         rhs = np.asarray(rhs, dtype=float)
         if not np.isfinite(rhs).all():
             bad = np.flatnonzero(~np.isfinite(rhs.reshape(len(rhs), -1)).all(axis=1))
@@ -1013,7 +1022,11 @@ def levenberg_marquardt(
 
 def redundancy(problem: BundleProblem) -> int:
     """Degrees of freedom of ``problem``: its residuals (2 per image observation, 3 per image and prior, 3 per
-    control GCP) less its unknowns; an :class:`AdjustmentError` when there is no redundancy."""
+    control GCP) less its unknowns; an :class:`AdjustmentError` when there is no redundancy.
+
+    Raises:
+        AdjustmentError: the problem has no more residuals than unknowns (no redundancy).
+    """
     b, lay = problem.b, problem.layout
     priors = (problem.gnss_sigma is not None) + (problem.att_sigma is not None)
     n_res = 2 * len(b.obs_image) + 3 * b.n_images * priors + 3 * len(b.control_ids) + len(problem.laser or ())

@@ -122,7 +122,12 @@ def run_strategy(
     subset_image_ids=None,
     subset_config: AdjustConfig | None = None,
 ) -> StrategyResult:
-    """Run one of :data:`STRATEGIES` on a block (see the module docstring)."""
+    """Run one of :data:`STRATEGIES` on a block (see the module docstring).
+
+    Raises:
+        AdjustmentError: ``strategy`` is not one of :data:`STRATEGIES` (the message lists them), or it is
+            ``'certificate'`` without ``subset_image_ids``.
+    """
     config = config or AdjustConfig()
     if strategy == "fixed":
         return StrategyResult(

@@ -85,6 +85,12 @@ def calibration_at_temperature(
     A certificate without correlations of f, cx, cy is taken as uncorrelated. A result adjusted with
     ``thermal_correction`` holds IO at that model's t0, which the result does not record: pass it as
     ``temperature_c``.
+
+    Raises:
+        AdjustmentError: ``temperature_c`` is not given and the temperature is unknown: an :class:`AdjustmentResult`
+            whose ``t0`` was set by ``AdjustConfig.thermal_t0`` without estimated slopes, or a certificate with neither
+            a linear thermal model nor ``conditions.temperature_range``; ``source`` is of another type; the temperature
+            is not a finite number.
     """
     if isinstance(source, CalibrationAtTemperature):
         if temperature_c is None and label is None:
@@ -219,6 +225,12 @@ def fit_thermal_model(
     the calibration temperatures, where the values at T0 and the slopes are uncorrelated for equal
     sigmas. ``alpha``: level of the chi-square consistency test.
     Every calibration must have estimated every parameter of ``params``.
+
+    Raises:
+        AdjustmentError: ``params`` is empty or not a subset of f, cx, cy; ``temperatures`` has not one value per
+            calibration; fewer than 2 calibrations, or all at the same temperature; a calibration did not estimate a
+            parameter of ``params``, or its covariance of them is not positive definite; a calibration's temperature is
+            unknown (see :func:`calibration_at_temperature`). The message names the calibration.
     """
     params = tuple(params)
     bad = [p for p in params if p not in THERMAL_IO]

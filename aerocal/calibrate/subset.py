@@ -209,7 +209,13 @@ def _empty_obs() -> pa.Table:
 def propose_subset(
     images: pa.Table, camera: Camera, gcps: pa.Table | None = None, config: SubsetConfig | None = None
 ) -> SubsetProposal:
-    """Propose the calibration sub-block with the best predicted IO precision (see the module docstring)."""
+    """Propose the calibration sub-block with the best predicted IO precision (see the module docstring).
+
+    Raises:
+        ValueError: the terrain height is unknown (give ``gcps``, ``SubsetConfig.terrain_height_m`` or
+            ``SubsetConfig.height_agl_m``), or no candidate sub-block has at most ``SubsetConfig.max_images`` images
+            (lower ``SubsetConfig.strip_counts``).
+    """
     cfg = config or SubsetConfig()
     ids = images.column("image_id").to_numpy().astype(int)
     strip = images.column("strip").to_numpy().astype(int)

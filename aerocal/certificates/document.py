@@ -219,6 +219,9 @@ def sigmas_and_correlation(
 
     ``covariance`` in the parameters' units squared (pixels^2 for f, cx, cy, b1, b2), already scaled by
     the a-posteriori variance factor if that is wanted.
+
+    Raises:
+        CertificateError: ``covariance`` is not square with one row and column per name of ``names``.
     """
     names = tuple(names)
     cov = np.asarray(covariance, dtype=float)
@@ -548,6 +551,9 @@ class Certificate:
         ``None`` (a flight without temperatures) is always covered. A certificate that records no
         temperature range covers no given range: nothing says it holds there. ``margin`` (degC) widens
         the certificate's range on both sides.
+
+        Raises:
+            CertificateError: ``temperature_range`` is not finite ``(lo, hi)`` with ``lo <= hi``.
         """
         if temperature_range is None:
             return True

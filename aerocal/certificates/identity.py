@@ -89,7 +89,11 @@ class CameraIdentity:
     @classmethod
     def from_key(cls, key: str) -> CameraIdentity:
         """Inverse of :attr:`key` (and of :attr:`camera_id`): ``"make|model|serial|lens"``, or
-        ``"make|model|serial"`` for an unknown lens; an empty part is unknown."""
+        ``"make|model|serial"`` for an unknown lens; an empty part is unknown.
+
+        Raises:
+            CertificateError: ``key`` has not 3 or 4 ``|``-separated parts.
+        """
         parts = str(key).split("|")
         if len(parts) not in (3, 4):
             raise CertificateError(
@@ -124,7 +128,12 @@ class CameraIdentity:
     @classmethod
     def coerce(cls, value: object) -> CameraIdentity:
         """An identity from an identity, a mapping (:meth:`from_mapping`), a key (:meth:`from_key`), or any
-        object with ``make``, ``model``, ``serial`` and ``lens`` attributes (a database ``cameras`` row)."""
+        object with ``make``, ``model``, ``serial`` and ``lens`` attributes (a database ``cameras`` row).
+
+        Raises:
+            TypeError: ``value`` is none of the accepted kinds.
+            CertificateError: a malformed mapping or key (see :meth:`from_mapping` and :meth:`from_key`).
+        """
         if isinstance(value, CameraIdentity):
             return value
         if isinstance(value, Mapping):

@@ -190,7 +190,11 @@ def undetermined_io(predicted: dict[str, float], camera: Camera, config: Decisio
 def nominal_sigma(name: str, camera: Camera, config: DecisionConfig | None = None) -> float:
     """Standard deviation of a nominal IO value of ``camera`` held as it is: ``f``, ``cx``, ``cy`` in pixels;
     ``k1``, ``k2`` (a nominal camera has no distortion: its lens's unknown radial distortion, sized so that
-    either term alone moves the image corners by ``nominal_corner_distortion`` of their radius)."""
+    either term alone moves the image corners by ``nominal_corner_distortion`` of their radius).
+
+    Raises:
+        ValueError: ``name`` is not one of f, cx, cy, k1, k2.
+    """
     config = config or DecisionConfig()
     if name == "f":
         return config.nominal_focal_tolerance * camera.f

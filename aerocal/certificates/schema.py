@@ -563,7 +563,12 @@ def validate_document(doc: Any) -> CertificateDocument:
 
 
 def parse_json(text: str | bytes) -> Any:
-    """Parse strict JSON text (no NaN or Infinity); a syntax error names the line and column."""
+    """Parse strict JSON text (no NaN or Infinity); a syntax error names the line and column.
+
+    Raises:
+        CertificateError: ``text`` is not valid JSON (the message names the line and column), or it holds a NaN or
+            Infinity constant.
+    """
     try:
         return json.loads(text, parse_constant=_refuse_constant)
     except json.JSONDecodeError as e:

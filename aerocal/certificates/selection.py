@@ -151,7 +151,11 @@ def _candidate(value: Candidate | Certificate) -> Candidate:
 # ----------------------------------------------------------------------------------- the flight's facts
 def flight_day(value: dt.date | dt.datetime | str) -> dt.date:
     """The flight's date from a date, a datetime (its UTC date when aware) or ISO text (the first 10
-    characters, so ``"2017-05-02T10:00:00Z"`` reads as 2017-05-02); ``ValueError`` naming the value otherwise."""
+    characters, so ``"2017-05-02T10:00:00Z"`` reads as 2017-05-02); ``ValueError`` naming the value otherwise.
+
+    Raises:
+        ValueError: ``value`` is neither a date, a datetime nor text starting with an ISO date (YYYY-MM-DD).
+    """
     if isinstance(value, dt.datetime):
         return value.astimezone(dt.UTC).date() if value.tzinfo else value.date()
     if isinstance(value, dt.date):
@@ -165,7 +169,11 @@ def flight_day(value: dt.date | dt.datetime | str) -> dt.date:
 
 
 def flight_temperatures(value: Sequence[float] | None) -> tuple[float, float] | None:
-    """``(min, max)`` degC of the flight's sensor temperatures (either order given), or ``None``."""
+    """``(min, max)`` degC of the flight's sensor temperatures (either order given), or ``None``.
+
+    Raises:
+        ValueError: a temperature of ``value`` is not a finite number.
+    """
     if value is None:
         return None
     lo, hi = (float(v) for v in value)

@@ -550,7 +550,11 @@ COMPONENT_SIGMAS = 2.0
 def diagnose_baseline(baseline: Baseline, config: DiagnoseConfig | None = None,
                       io: IOUncertainty | None = None) -> Diagnosis:
     """Diagnose an adjusted block (see the module docstring for the method); ``io``: the covariance of the
-    IO the block holds fixed (:mod:`aerocal.diagnose.io_uncertainty`), taken into every statistic."""
+    IO the block holds fixed (:mod:`aerocal.diagnose.io_uncertainty`), taken into every statistic.
+
+    Raises:
+        ValueError: ``config.hypotheses`` names an unknown hypothesis (the message lists the valid ones).
+    """
     config = config or DiagnoseConfig()
     unknown = [n for n in config.hypotheses if n not in hyp.HYPOTHESES]
     if unknown:
@@ -746,6 +750,11 @@ class BackgroundCall:
         self._thread.start()
 
     def result(self):
+        """Wait for the call to end and return its value.
+
+        Raises:
+            BaseException: whatever ``fn`` raised, raised again here in the caller's thread.
+        """
         self._thread.join()
         if self._error is not None:
             raise self._error

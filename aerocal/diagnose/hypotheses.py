@@ -136,7 +136,11 @@ def signature(name: str, cam, R: np.ndarray, strip: np.ndarray, ctx: Context, im
     ``xn`` (M, 2), ``pc`` (M, 3) and ``duv_dpc`` (M, 2, 3): each measured point's undistorted normalised
     coordinates, its camera-frame position and d(pixels)/d(camera-frame point) at the adjusted geometry
     (:func:`aerocal.diagnose.model.observation_geometry`). Every covariate is taken from the adjusted geometry,
-    never from the measurement itself: its noise would correlate with the residuals."""
+    never from the measurement itself: its noise would correlate with the residuals.
+
+    Raises:
+        KeyError: ``name`` is not an image-space hypothesis.
+    """
     col = PARAM_NAMES.index
     if name in ("thermal_focal", "thermal_principal_point", "affinity_skew", "radial_k3", PER_STRIP):
         Jio = cam.param_jacobian(xn)
@@ -174,7 +178,11 @@ def signature(name: str, cam, R: np.ndarray, strip: np.ndarray, ctx: Context, im
 
 
 def columns(name: str, lin: Linear, base: Baseline, ctx: Context) -> np.ndarray:
-    """d(whitened residuals)/d(effect parameters) at zero effect: (rows, k)."""
+    """d(whitened residuals)/d(effect parameters) at zero effect: (rows, k).
+
+    Raises:
+        KeyError: ``name`` is not a hypothesis of :data:`HYPOTHESES`.
+    """
     b, st = base.block, base.state
     k = size(name, ctx)
     out = np.zeros((len(lin.r), k))
@@ -228,7 +236,11 @@ def correct_block(name: str, theta: np.ndarray, b: Block, camera, R: np.ndarray,
     (``obs_uv``, and ``check_uv`` where ``check_geometry`` is given), the recorded positions (``gnss``) or the
     recorded attitudes (``R_rec``). ``camera``, ``R`` (adjusted world-to-camera, one per image), ``strip`` and
     ``geometry`` (xn, pc, duv_dpc of every image measurement, :func:`aerocal.diagnose.model.observation_geometry`)
-    describe the adjusted block the signatures are taken at; ``ctx`` its per-image covariates."""
+    describe the adjusted block the signatures are taken at; ``ctx`` its per-image covariates.
+
+    Raises:
+        KeyError: ``name`` is not a hypothesis of :data:`HYPOTHESES`.
+    """
     theta = np.asarray(theta, dtype=float)
     if name in IMAGE_EFFECTS:
         J = signature(name, camera, R, strip, ctx, b.obs_image, *geometry)

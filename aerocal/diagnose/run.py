@@ -69,7 +69,11 @@ def diagnose_tables(images: pa.Table, observations: pa.Table, gcps: pa.Table | N
 
 
 def read_run_diagnosis(folder: str | Path) -> dict | None:
-    """The diagnosis a processing run stored (``diagnosis.json`` of a run folder), or None."""
+    """The diagnosis a processing run stored (``diagnosis.json`` of a run folder), or None.
+
+    Raises:
+        DiagnoseInputError: ``diagnosis.json`` is not valid JSON; re-run the diagnose step.
+    """
     path = Path(folder) / "diagnosis.json"
     if not path.is_file() or (Path(folder) / "observations").is_dir():
         return None

@@ -428,7 +428,11 @@ def make_twin(base: Baseline, seed: int, extensions: dict[str, float] | None = N
     measurement; mismatches: the fraction of tie measurements given one of ``measured.tail_z`` (times their
     sigma) on top of their noise; tie-point noise: the multiple of the tie measurements' sigma their noise is
     drawn with; attitude noise: the same for the recorded attitudes; time-correlated GNSS: the correlation from
-    one image to the next)."""
+    one image to the next).
+
+    Raises:
+        KeyError: ``extensions`` names an extension not in :data:`EXTENSIONS` (the message lists the known ones).
+    """
     extensions = {k: v for k, v in (extensions or {}).items() if v > 0}
     unknown = set(extensions) - set(_BY_NAME)
     if unknown:

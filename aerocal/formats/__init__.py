@@ -70,6 +70,11 @@ def export_certificate(doc_or_cert: Certificate | Mapping[str, Any], fmt: str, p
     ``drop_skew``; metashape ``form`` (:func:`aerocal.formats.metashape.write_metashape_xml`).
     Formats without skew refuse a non-zero ``b2`` unless ``drop_skew=True``.
     Returns the path written.
+
+    Raises:
+        FormatError: ``fmt`` is not one of :data:`FORMATS`; ``doc_or_cert`` is not a valid certificate document; the
+            format has no skew and ``b2`` is non-zero without ``drop_skew=True``.
+        TypeError: an option in ``options`` that ``fmt`` does not accept (the message lists the valid ones).
     """
     _check_format(fmt)
     _check_options(fmt, options, EXPORT_OPTIONS, "export")
@@ -100,6 +105,12 @@ def import_certificate(path: str | Path, fmt: str | None = None, *, identity: Ca
     for foreign formats (``unknown`` otherwise; a certificate JSON records its own and refuses one).
     ``options`` by format: colmap ``camera_id``, opensfm ``key``, metashape ``sensor`` (id or label),
     each choosing one camera in a file that holds several.
+
+    Raises:
+        TypeError: ``identity`` given for a certificate JSON, or an option in ``options`` that the format does not
+            accept.
+        FormatError: ``fmt`` is not one of :data:`FORMATS` or cannot be guessed, or the file does not read as that
+            format; the message names the file, the line and the field.
     """
     path = Path(path)
     fmt = _check_format(fmt) if fmt is not None else guess_format(path)
@@ -118,7 +129,12 @@ def import_certificate(path: str | Path, fmt: str | None = None, *, identity: Ca
 
 
 def read_certificate_json(path: str | Path) -> Certificate:
-    """Read and strictly validate a certificate JSON file; errors name the file and the field path."""
+    """Read and strictly validate a certificate JSON file; errors name the file and the field path.
+
+    Raises:
+        FormatError: the file is missing, not a regular file, too large or not UTF-8, or its content is not a valid
+            certificate (the message names the field path).
+    """
     path = Path(path)
     text = decode_text(path, read_bytes(path))
     try:
@@ -133,6 +149,10 @@ def guess_format(path: str | Path) -> str:
     ``.yaml``/``.yml`` opencv; ``.txt`` colmap; ``.json`` certificate when it carries the aerocal
     schema, else opensfm; ``.xml`` opencv for ``<opencv_storage>``, else metashape. Without a known
     extension the content decides (``%YAML``, ``<``, ``{``/``[``).
+
+    Raises:
+        FormatError: neither the extension nor the content tells the format (pass ``fmt=``); the file is missing, not a
+            regular file, too large or not UTF-8; XML content that :func:`parse_xml` refuses.
     """
     path = Path(path)
     suffix = path.suffix.lower()

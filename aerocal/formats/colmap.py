@@ -57,6 +57,13 @@ def read_colmap_cameras(
     """Read a COLMAP ``cameras.txt``; with several cameras, ``camera_id`` chooses one.
 
     Errors name the file, the line and the field (model, width, height, parameter count).
+
+    Raises:
+        FormatError: the file is missing, too large or not UTF-8; a camera line with fewer than 4 fields, a CAMERA_ID,
+            WIDTH or HEIGHT that is not a positive whole number, a model the Brown model cannot hold, parameters that
+            are not finite numbers or not as many as the model needs, or a repeated CAMERA_ID; no camera line; several
+            cameras and no ``camera_id``, or no camera ``camera_id``; the camera's values do not convert or make no
+            consistent certificate. The message names the file, the line and the field.
     """
     path = Path(path)
     data = read_bytes(path)

@@ -38,7 +38,11 @@ def imported_certificate(
     date: str | None = None,
     reprojection_rms_px: float | None = None,
 ) -> Certificate:
-    """A certificate holding what an imported file said; ``data`` are the file's bytes (hashed)."""
+    """A certificate holding what an imported file said; ``data`` are the file's bytes (hashed).
+
+    Raises:
+        FormatError: the values do not make a consistent certificate; the message names ``source``.
+    """
     source = Path(source)
     try:
         return Certificate(

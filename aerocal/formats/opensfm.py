@@ -163,7 +163,14 @@ def write_opensfm_cameras(
 def read_opensfm_cameras(
     path: str | Path, identity: CameraIdentity | None = None, key: str | None = None
 ) -> Certificate:
-    """Read an OpenSfM/ODM ``cameras.json`` (or a ``reconstruction.json``); ``key`` chooses among cameras."""
+    """Read an OpenSfM/ODM ``cameras.json`` (or a ``reconstruction.json``); ``key`` chooses among cameras.
+
+    Raises:
+        FormatError: the file is missing, too large or not UTF-8; invalid JSON (the message names the line and column)
+            or a NaN/Infinity constant; neither a ``{camera_key: camera}`` object nor a ``reconstruction.json`` with
+            cameras; several cameras and no ``key``, or no camera ``key``; a camera whose values cannot be read, or make
+            no consistent certificate.
+    """
     path = Path(path)
     data = read_bytes(path)
     text = decode_text(path, data)

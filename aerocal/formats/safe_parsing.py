@@ -45,7 +45,11 @@ def format_error(path: str | Path, where: str | None, problem: str, fix: str) ->
 
 
 def read_bytes(path: str | Path) -> bytes:
-    """The file's bytes, after checking it exists, is a regular file and is not absurdly large."""
+    """The file's bytes, after checking it exists, is a regular file and is not absurdly large.
+
+    Raises:
+        FormatError: ``path`` does not exist, is not a regular file, or is larger than :data:`MAX_FILE_BYTES`.
+    """
     path = Path(path)
     if not path.exists():
         raise format_error(path, None, "file not found", "check the path")
@@ -59,7 +63,11 @@ def read_bytes(path: str | Path) -> bytes:
 
 
 def decode_text(path: str | Path, data: bytes) -> str:
-    """UTF-8 text (a byte-order mark is dropped)."""
+    """UTF-8 text (a byte-order mark is dropped).
+
+    Raises:
+        FormatError: ``data`` is not UTF-8 text; the message names ``path`` and the first bad byte.
+    """
     try:
         return data.decode("utf-8-sig")
     except UnicodeDecodeError as e:
@@ -68,7 +76,13 @@ def decode_text(path: str | Path, data: bytes) -> str:
 
 # --------------------------------------------------------------------------------------------- XML
 def parse_xml(path: str | Path, data: bytes) -> ET.Element:
-    """Parse XML with ``defusedxml``; any DTD, entity declaration or external reference is refused."""
+    """Parse XML with ``defusedxml``; any DTD, entity declaration or external reference is refused.
+
+    Raises:
+        FormatError: ``data`` holds a document type declaration, an entity declaration or an external reference; it is
+            malformed XML (the message names the line and column); its declared encoding is unknown or does not decode
+            it.
+    """
     try:
         return DET.fromstring(data, forbid_dtd=True, forbid_entities=True, forbid_external=True)
     except DTDForbidden:
@@ -157,6 +171,10 @@ def load_yaml_mapping(path: str | Path, text: str) -> tuple[dict[str, Any], dict
 
     A leading ``%YAML`` directive line (OpenCV's ``%YAML:1.0`` or ``%YAML 1.2``) is blanked.
     Errors name the file, the line and the top-level field being read.
+
+    Raises:
+        FormatError: invalid YAML; an empty document or one whose top level is not a mapping; a YAML tag other than
+            plain data and ``!!opencv-matrix``; a top-level key that is not text or is given twice.
     """
     lines = text.split("\n")
     if lines and lines[0].lstrip().startswith("%YAML"):

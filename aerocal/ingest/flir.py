@@ -139,7 +139,12 @@ def has_flir(jpeg: JpegStructure) -> bool:
 
 
 def fff_bytes(jpeg: JpegStructure) -> bytes | None:
-    """The FFF file assembled from the APP1 ``FLIR`` segments, or ``None`` when there are none."""
+    """The FFF file assembled from the APP1 ``FLIR`` segments, or ``None`` when there are none.
+
+    Raises:
+        FlirFormatError: a FLIR segment is shorter than its 8-byte header, the segments disagree on their count, an
+            index appears twice, or segments are missing (file cut or edited).
+    """
     segments = [p for m, p in jpeg.app_segments if m == APP1 and p.startswith(SEGMENT_MAGIC)]
     if not segments:
         return None

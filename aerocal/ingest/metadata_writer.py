@@ -191,7 +191,11 @@ def write_tiff_with_metadata(
     xmp: str | None = None,
     lens: str | None = None,
 ) -> Path:
-    """Write an uncompressed TIFF (uint8/uint16, (H, W) or (H, W, C)) with EXIF and XMP, atomically."""
+    """Write an uncompressed TIFF (uint8/uint16, (H, W) or (H, W, C)) with EXIF and XMP, atomically.
+
+    Raises:
+        ValueError: ``pixels`` is not uint8 or uint16, or not of shape (H, W) or (H, W, C).
+    """
     arr = np.ascontiguousarray(pixels)
     if arr.dtype not in (np.uint8, np.uint16) or arr.ndim not in (2, 3):
         raise ValueError(f"pixels must be uint8/uint16 (H, W[, C]); got {arr.dtype} {arr.shape}")
@@ -276,6 +280,10 @@ def fff_file(raw: np.ndarray, info, byte_order: str = "<", payload: str = "raw",
     ``byte_order`` ``"<"`` writes the header and records little-endian (DJI Zenmuse XT family), ``">"``
     a big-endian header (FLIR handhelds; records stay little-endian, as those cameras write them);
     ``payload`` ``"raw"`` stores the counts unwrapped, ``"png"`` as a 16-bit PNG with FLIR's swapped bytes.
+
+    Raises:
+        ValueError: ``raw`` is not a 2-D uint16 array; ``payload`` is neither ``"raw"`` nor ``"png"``; OpenCV cannot
+            encode the frame as PNG.
     """
     raw = np.asarray(raw)
     if raw.dtype != np.uint16 or raw.ndim != 2:
@@ -315,7 +323,11 @@ def fff_file(raw: np.ndarray, info, byte_order: str = "<", payload: str = "raw",
 
 
 def flir_app1_segments(fff: bytes, chunk: int = 65000) -> list[bytes]:
-    """The APP1 payloads carrying ``fff``: ``FLIR\\0``, 1, segment index, last index, then the bytes."""
+    """The APP1 payloads carrying ``fff``: ``FLIR\\0``, 1, segment index, last index, then the bytes.
+
+    Raises:
+        ValueError: ``fff`` needs more than 256 segments of ``chunk`` bytes.
+    """
     parts = [fff[i : i + chunk] for i in range(0, len(fff), chunk)]
     if len(parts) > 256:
         raise ValueError(f"an FFF file of {len(fff)} bytes needs more than 256 APP1 segments")

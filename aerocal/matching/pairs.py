@@ -248,6 +248,11 @@ def candidate_pairs_from_footprints(
         Also return the overlap fraction of every pair.
 
     Returns int64 (P, 2) image ids with ``id1 < id2`` sorted (and the (P,) overlaps if asked).
+
+    Raises:
+        ValueError: ``min_overlap`` is outside [0, 1]; a mapping of cameras without an images ``camera_id`` column, or a
+            camera_id it has no camera for; and as :func:`prior_poses` and :func:`footprints` (images without a position
+            or attitude, a camera at or below the terrain height).
     """
     if not 0.0 <= min_overlap <= 1.0:
         raise ValueError(f"min_overlap must be a fraction in [0, 1], got {min_overlap}")

@@ -112,7 +112,12 @@ def choose_stored(store: CertificateStore, cam_doc: dict, flight: dict, pin: str
                   max_age_days: float | None) -> tuple[dict | None, str]:
     """The stored certificate that applies to the flight (or the one pinned by id), reviewed against the
     flight's nominal camera, as ``(document, reason)``; ``(None, why)`` when none qualifies (with a pin the
-    store's :class:`NoCertificateError` propagates, and so does a failed review)."""
+    store's :class:`NoCertificateError` propagates, and so does a failed review).
+
+    Raises:
+        NoCertificateError: with ``pin``: the pinned certificate does not apply to the flight (from the store), or its
+            review against the flight's nominal camera fails.
+    """
     try:
         document, reason = store.choose(identity_of(cam_doc), flight["date"], flight.get("temperature_range"),
                                         pin=pin, max_age_days=max_age_days)

@@ -174,7 +174,12 @@ def blocking_report(result) -> str:
 
 
 def camera_document(path: Path) -> dict:
-    """An observations-mode ``camera.json``, checked as a certificate's camera is (finite, plausible values)."""
+    """An observations-mode ``camera.json``, checked as a certificate's camera is (finite, plausible values).
+
+    Raises:
+        FlightInputError: ``path`` is not valid JSON (the message names the line), or its ``camera`` is missing or not a
+            valid camera.
+    """
     try:
         doc = json.loads(path.read_text())
         validate_camera(Camera.from_dict(doc["camera"]))
@@ -219,7 +224,11 @@ class FolderDataset:
         return observations_mode(self.folder)
 
     def manifest(self) -> dict[str, Any]:
-        """Every file of the folder (relative path -> SHA-256 and size), truth and hidden files left out."""
+        """Every file of the folder (relative path -> SHA-256 and size), truth and hidden files left out.
+
+        Raises:
+            FlightInputError: the folder holds no files.
+        """
         files = {}
         for p in sorted(self.folder.rglob("*")):
             rel = p.relative_to(self.folder)
@@ -262,7 +271,12 @@ class FolderDataset:
 
     def read_images(self, settings: IngestStepConfig) -> IngestedFlight:
         """The folder's images as image mode reads them (also where it holds observation tables: ``aerocal
-        match`` makes them again), the tables, camera and flight metadata ingest gives the pipeline."""
+        match`` makes them again), the tables, camera and flight metadata ingest gives the pipeline.
+
+        Raises:
+            FlightInputError: ingest finds problems that stop processing (the message is their report), or the flying
+                height is needed and cannot be measured (:func:`measured_flying_height`).
+        """
         res = ingest_folder(self.folder, gcp_file=settings.gcp_file, eo_file=settings.eo_file, crs=settings.crs)
         if res.blocking:
             raise FlightInputError(blocking_report(res))
@@ -331,6 +345,12 @@ class MemoryDataset:
         }
 
     def read(self, settings: IngestStepConfig) -> IngestedFlight:
+        """Validate the tables and the camera document and return them as the pipeline reads a flight.
+
+        Raises:
+            FlightInputError: a table does not match its :mod:`aerocal.tables` schema, or ``camera['camera']`` is
+                missing or not a valid camera; the message names the dataset.
+        """
         tabs = {}
         for kind in OBSERVATION_TABLES:
             try:

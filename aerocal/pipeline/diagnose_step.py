@@ -45,6 +45,10 @@ def diagnose_step(runner: Runner, ingest: StepResult, observations: str, certifi
     held fixed is tested against a camera bent towards it. The parameters the calibration estimated are then
     estimated again with every hypothesis (the self-calibration extended by it); those it held at their nominal
     values stay fixed with their tolerances.
+
+    Raises:
+        ValueError: when the step is computed: the block adjustment's ``obs_weight`` has another number of rows than the
+            observations; re-run the adjust step.
     """
     inputs = {k: ingest[k] for k in ("images", "gcps", "gcp_observations")}
     inputs.update(observations=observations, certificate=certificate)

@@ -53,7 +53,12 @@ class _QuietAfterInterrupt:
 def interrupts_noted() -> Iterator[None]:
     """:func:`interrupt_handler` as the SIGINT handler for the block (main thread only; elsewhere the block
     runs as it is), the previous handler restored after it. Exceptions in finalizers after Ctrl-C are quiet
-    (:class:`_QuietAfterInterrupt`) until the next block starts."""
+    (:class:`_QuietAfterInterrupt`) until the next block starts.
+
+    Raises:
+        KeyboardInterrupt: the block raised another exception after a Ctrl-C (a library's error for the interrupt); that
+            exception is its cause. Other exceptions of the block pass through unchanged.
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return

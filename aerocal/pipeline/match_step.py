@@ -45,7 +45,11 @@ def frame_loader(paths: list[str], config: EnhanceConfig | None = None):
 
 def terrain_height(images: pa.Table, gcps: pa.Table, flight: dict) -> float:
     """Ground height (metres, datum of ``gnss_z``) for footprints: the GCPs' mean, else the mean GNSS height
-    minus ``flight["height_agl_m"]``."""
+    minus ``flight["height_agl_m"]``.
+
+    Raises:
+        FlightInputError: no GCPs and no ``height_agl_m`` in ``flight``; give one of them.
+    """
     if gcps.num_rows:
         return float(np.mean(gcps.column("Z").to_numpy()))
     if flight.get("height_agl_m"):
@@ -131,7 +135,12 @@ def pairs_from(images: pa.Table) -> str:
 
 def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | None = None,
                execution: ExecutionConfig | None = None) -> StepResult:
-    """Outputs ``keypoints``, ``matches`` and ``observations`` (tables) of :func:`match_images`."""
+    """Outputs ``keypoints``, ``matches`` and ``observations`` (tables) of :func:`match_images`.
+
+    Raises:
+        FlightInputError: when the step is computed: an image's pixels cannot be decoded although its header was read
+            (replace the file, or move it out of ``images/``); and as :func:`match_images`.
+    """
     config = config or MatchStepConfig()
     inputs = {k: ingest[k] for k in ("images", "camera", "flight", "gcps")}
 

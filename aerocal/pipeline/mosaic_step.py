@@ -158,7 +158,11 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
     ``info["surface"]`` says why.
 
     ``frames`` are those the orthomosaic rectifies (:func:`frames_of`): the certificate's IO at each frame's
-    temperature, its readout and thermal rotation."""
+    temperature, its readout and thermal rotation.
+
+    Raises:
+        ValueError: ``config.dense`` is ``None``.
+    """
     ecfg = EnhanceConfig()
     names = {i: str(p) for i, p in paths.items()}
     params = stretch_params(list(names.values()), percent=ecfg.percent, loader=lambda p: grey(read_raw(p)))

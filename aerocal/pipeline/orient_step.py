@@ -28,6 +28,11 @@ def orient_step(runner: Runner, ingest: StepResult, observations: str, config: O
     A block oriented by SfM also outputs ``images``: the registered images with the oriented exterior
     orientation in place of the missing records (:func:`aerocal.orient.images_with_poses`), and
     ``extra["method"] == "incremental"``; later steps then adjust it without GNSS/IMU observations.
+
+    Raises:
+        FlightInputError: when the step is computed: an image lacks a recorded position or attitude and there are no
+            matches to orient from (give an EO file with ``--eo FILE``), or incremental orientation or its
+            georeferencing on the control points fails; the message names the flight.
     """
     config = config or OrientStepConfig()
     inputs = {"images": ingest["images"], "observations": observations, "flight": ingest["flight"]}

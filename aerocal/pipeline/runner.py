@@ -256,6 +256,11 @@ bytes, an array's ``.npy`` bytes, and of a table's kind, schema and Arrow buffer
         self.timings: dict[str, float] = {}
 
     def put(self, output: Output) -> str:
+        """Keep the value of ``output`` and return its reference (the SHA-256 of its content).
+
+        Raises:
+            TypeError: ``output`` is not a TableOutput, JsonOutput, FileOutput or ArrayOutput.
+        """
         if isinstance(output, TableOutput):
             value: Any = output.table
             ref = table_sha256(value, output.kind)

@@ -97,6 +97,11 @@ class DsmConfig:
             raise ValueError(f"DsmConfig.outlier_neighbours must be at least 3, got {self.outlier_neighbours}")
 
     def cell_size(self, gsd_m: float | None) -> float:
+        """The cell size in metres: ``cell_m``, else ``cell_gsd`` times ``gsd_m``.
+
+        Raises:
+            ValueError: ``cell_m`` is not set and ``gsd_m`` is ``None`` or not positive.
+        """
         if self.cell_m is not None:
             return float(self.cell_m)
         if gsd_m is None or not gsd_m > 0:
@@ -583,7 +588,12 @@ def read_views(path: str | Path) -> np.ndarray | None:
 
 
 def read_dsm(path: str | Path) -> Dsm:
-    """Read a single-band north-up GeoTIFF (as :func:`write_dsm` writes) into a :class:`Dsm`."""
+    """Read a single-band north-up GeoTIFF (as :func:`write_dsm` writes) into a :class:`Dsm`.
+
+    Raises:
+        ValueError: ``path`` is not a readable GeoTIFF; its transform is not north-up with square cells (warp it first,
+            e.g. with gdalwarp); it has no CRS.
+    """
     path = Path(path)
     try:
         src = rasterio.open(path)

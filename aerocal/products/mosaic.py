@@ -176,6 +176,9 @@ def frames_from_poses(
     (:attr:`FrameGeometry.motion`); ``turn``: per image id a rotation (3, 3) about the camera's own axes applied to
     its adjusted attitude (a thermal rotation of the image about the principal point: the adjusted pose is the
     camera's at the certificate's reference temperature).
+
+    Raises:
+        ValueError: with ``thermal_model``, an image id without a finite temperature in ``temperatures``.
     """
     poses = tables.validate(poses, "poses")
     ids = poses.column("image_id").to_numpy()
@@ -310,7 +313,11 @@ def render_tile(
     tile: TileSpec, frames: Sequence[FrameGeometry], pixels: Sequence[np.ndarray | str | Path], dsm: Dsm,
     feather_px: float, nodata: int, dtype: str, bands: int,
 ) -> tuple[TileSpec, np.ndarray]:
-    """Compute one tile: (bands, rows, cols) array of ``dtype``; nodata where no frame sees the ground."""
+    """Compute one tile: (bands, rows, cols) array of ``dtype``; nodata where no frame sees the ground.
+
+    Raises:
+        ValueError: a frame's pixels are not of its camera's width and height; give the frame's original pixels.
+    """
     cv2.setNumThreads(1)
     shape = (tile.rows, tile.cols)
     out = np.full((bands,) + shape, nodata, dtype=dtype)
@@ -503,6 +510,10 @@ def build_mosaic(
     ``images`` maps image id -> original pixels (array) or a file path (read by :func:`read_frame` where
     the tile is computed). ``client``: a ``distributed.Client`` (tiles run on its workers), or None
     (serial). ``progress(done, total)`` is called after each tile is written.
+
+    Raises:
+        ValueError: ``images`` has no pixels for a frame; ``frames`` is empty; the output grid is empty; the frames are
+            neither uint8 nor uint16; a frame's pixels are not of its camera's size (:func:`render_tile`).
     """
     config = config or MosaicConfig()
     out_path = Path(out_path)

@@ -285,7 +285,11 @@ def overview_for_flight(
 ) -> Figure:
     """The overview map: orthomosaic thumbnail (when ``orthomosaic`` is a GeoTIFF), image-overlap counts
     (:func:`overlap_counts`), camera centres, control and check points ((id, E, N) metres). Without an
-    orthomosaic the caption says why (``no_mosaic_reason``, a sentence)."""
+    orthomosaic the caption says why (``no_mosaic_reason``, a sentence).
+
+    Raises:
+        FigureSkipped: ``frames`` is empty (the adjustment holds no oriented image).
+    """
     if not len(frames):
         raise FigureSkipped("Overview map: not drawn, the adjustment holds no oriented image.")
     counts, extent = overlap_counts(frames, dsm, ground_height_m)
@@ -306,7 +310,11 @@ def overview_for_flight(
 
 
 def tie_points_for_flight(points, centres_en: np.ndarray | None = None) -> Figure:
-    """Tie-point coverage from the adjusted ``points`` table (X, Y metres, ``n_obs``, ``error`` px)."""
+    """Tie-point coverage from the adjusted ``points`` table (X, Y metres, ``n_obs``, ``error`` px).
+
+    Raises:
+        FigureSkipped: ``points`` is ``None`` or empty, or no point records how many images measured it (``n_obs``).
+    """
     if points is None or points.num_rows == 0:
         raise FigureSkipped("Tie points: not drawn, the adjustment holds no tie point.")
     en = np.column_stack([points.column("X").to_numpy(), points.column("Y").to_numpy()])

@@ -318,7 +318,11 @@ FAULTS: dict[str, Callable[[Path, np.random.Generator], AppliedFault]] = {
 
 
 def apply_fault(kind: str, folder: str | Path, seed: int) -> AppliedFault:
-    """Apply fault ``kind`` to ``folder`` (in place) with generator seed ``seed``."""
+    """Apply fault ``kind`` to ``folder`` (in place) with generator seed ``seed``.
+
+    Raises:
+        ValueError: ``kind`` is not a key of :data:`FAULTS` (the message lists the known ones).
+    """
     if kind not in FAULTS:
         raise ValueError(f"unknown fault {kind!r}; known: {', '.join(FAULTS)}")
     return FAULTS[kind](Path(folder), np.random.default_rng(seed))

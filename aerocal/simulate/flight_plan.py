@@ -184,7 +184,11 @@ def plan_flight(
 
 def wind_triangle(track_deg: float, airspeed_m_s: float, wind_m_s: tuple[float, float]) -> tuple[float, float]:
     """The crab angle (degrees, heading minus track, clockwise) and the ground speed (m/s) of an aircraft keeping
-    the track ``track_deg`` (clockwise from north) at ``airspeed_m_s`` in the wind ``wind_m_s`` (east, north)."""
+    the track ``track_deg`` (clockwise from north) at ``airspeed_m_s`` in the wind ``wind_m_s`` (east, north).
+
+    Raises:
+        ValueError: the cross wind is at least ``airspeed_m_s``, or the head wind leaves no positive ground speed.
+    """
     t = math.radians(track_deg)
     along = (math.sin(t), math.cos(t))
     right = (math.cos(t), -math.sin(t))

@@ -88,7 +88,11 @@ class FrameMetadata:
 
 def xmp_packet(meta: FrameMetadata) -> bytes:
     """The XMP packet (UTF-8) holding the ``drone-dji`` fields, formatted as DJI writes them
-    (attributes of one ``rdf:Description``, signed decimals)."""
+    (attributes of one ``rdf:Description``, signed decimals).
+
+    Raises:
+        ValueError: a key of ``meta.extra_xmp`` is not a valid XML name.
+    """
     fields: dict[str, str] = {
         "GpsLatitude": f"{meta.gps_latitude:+.9f}",
         "GpsLongitude": f"{meta.gps_longitude:+.9f}",
@@ -134,6 +138,9 @@ def write_thermal_tiff(path: str | Path, img_uint16: np.ndarray, meta: FrameMeta
 
     tifffile cannot write IFD-type tags, so the EXIF IFD is appended after tifffile has written the
     file and the ExifIFD tag (34665, written as a LONG placeholder) is patched to point at it.
+
+    Raises:
+        ValueError: ``img_uint16`` is not a 2-D uint16 array, or a key of ``meta.extra_xmp`` is not a valid XML name.
     """
     img = np.asarray(img_uint16)
     if img.dtype != np.uint16 or img.ndim != 2:
@@ -197,7 +204,12 @@ def _append_exif_ifd(path: Path, entries: dict[int, str]) -> None:
 # --------------------------------------------------------------------------------------------- JPEG
 def write_rgb_jpeg(path: str | Path, img_uint8: np.ndarray, meta: FrameMetadata, quality: int = 95) -> Path:
     """Write a (H, W, 3) uint8 RGB frame as a baseline JPEG with EXIF (APP1 ``Exif``) and XMP (APP1
-    ``http://ns.adobe.com/xap/1.0/``) segments. Channel order of the array: R, G, B."""
+    ``http://ns.adobe.com/xap/1.0/``) segments. Channel order of the array: R, G, B.
+
+    Raises:
+        ValueError: ``img_uint8`` is not an (H, W, 3) uint8 array, or a key of ``meta.extra_xmp`` is not a valid XML
+            name.
+    """
     img = np.asarray(img_uint8)
     if img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
         raise ValueError(f"{path}: an RGB frame must be an (H, W, 3) uint8 array, got {img.dtype} {img.shape}")
@@ -241,6 +253,9 @@ def write_flir_rjpeg(path: str | Path, dn_uint16: np.ndarray, meta: FrameMetadat
     (no serial number when ``meta.serial`` is empty, as on the XT2), the DJI XMP altitude and gimbal
     attitude (plus ``meta.extra_xmp``, e.g. RelativeAltitude), and the FFF file in APP1 ``FLIR`` segments
     (little-endian, unwrapped counts, as in ``fff_dji_xt2.jpg``).
+
+    Raises:
+        ValueError: ``dn_uint16`` is not a 2-D uint16 array.
     """
     dn = np.asarray(dn_uint16)
     if dn.dtype != np.uint16 or dn.ndim != 2:

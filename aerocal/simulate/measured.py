@@ -32,7 +32,11 @@ class MeasuredFlightError(ValueError):
 
 
 def stations_from_images(folder: str | Path) -> dict:
-    """True stations (from the recorded EO) of a real flight: positions, rotations, times, strips, temperatures."""
+    """True stations (from the recorded EO) of a real flight: positions, rotations, times, strips, temperatures.
+
+    Raises:
+        MeasuredFlightError: ``folder`` is not a folder, or some of its images lack a GNSS position.
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise MeasuredFlightError(f"{folder} is not a folder of images; give --source with the seneca images")

@@ -176,6 +176,9 @@ class Scene:
         """``count`` random (E, N) positions on open ground (no roof, tree or water within ``clearance_m``,
         at least ``margin_m`` inside the scene, at least ``min_spacing_m`` apart), e.g. where ground
         control points are surveyed. (count, 2), metres.
+
+        Raises:
+            ValueError: fewer than ``count`` positions qualify; lower ``clearance_m`` or ``min_spacing_m``.
         """
         c = self.config
         blocked = self.classes != CLASS_GROUND
@@ -275,6 +278,10 @@ class Scene:
         half-side ``target_square_ratio * radius_m`` (cold / dark), axis-aligned with E and N. The DSM is
         not changed: a target lies on the surface at ``height_at(e, n)``. Targets already placed are
         kept; squares must not overlap.
+
+        Raises:
+            ValueError: ``positions`` is not (M, 2); a radius is not positive; a target lies outside the scene's bounds;
+                the squares of two targets (new or already placed) overlap.
         """
         pos = np.atleast_2d(np.asarray(positions, dtype=float))
         if pos.shape[1] != 2:
