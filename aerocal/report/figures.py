@@ -38,8 +38,10 @@ def _canvas(width_in: float = 7.0, height_in: float = 5.0):
 
 
 def _png(fig) -> bytes:
+    """The figure as PNG bytes at 100 dpi. zlib's fastest level: a tenth of a report's figure time for files 8 %
+    larger than the default level 6 (a report's eight figures: 0.70 MB against 0.65 MB)."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
+    fig.savefig(buf, format="png", dpi=100, pil_kwargs={"compress_level": 1})
     return buf.getvalue()
 
 
