@@ -43,6 +43,7 @@ BAD = [
     (lambda: BlockStepConfig(partition_max_images=0), "BlockStepConfig.partition_max_images"),
     (lambda: MosaicStepConfig(serial_max_megapixels=-1.0), "MosaicStepConfig.serial_max_megapixels"),
     (lambda: ReportStepConfig(measured_within_m=0.0), "ReportStepConfig.measured_within_m"),
+    (lambda: ReportStepConfig(figures="no"), "ReportStepConfig.figures"),
     (lambda: FlightPlanConfig(direction="diagonal"), "FlightPlanConfig.direction"),
     (lambda: FlightPlanConfig(side_overlap=1.2), "side_overlap"),
     (lambda: SensorConfig(gnss_sigma_h_m=float("nan")), "SensorConfig"),

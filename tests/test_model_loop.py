@@ -27,6 +27,7 @@ from tolerance import assert_within_sigma
 
 from aerocal.pipeline import ProcessConfig, RunSummary, process
 from aerocal.pipeline.certificates import MemoryCertificates
+from aerocal.pipeline.config import ReportStepConfig
 from aerocal.pipeline.findings import Finding
 from aerocal.simulate import PRESETS, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
@@ -53,11 +54,16 @@ def refraction_block():
                                                                                               tie_sigma_px=0.3))
 
 
+#: what these tests judge is the loop (the diagnosis, the extension, the certificates), not the report: its
+#: figures, most of a small flight's report time, are not drawn (their captions and numbers are)
+CONFIG = ProcessConfig(report=ReportStepConfig(figures=False))
+
+
 def run(spec, seed: int, effects: dict, store: MemoryCertificates | None = None, max_images: int | None = None,
         name: str | None = None):
     sim = simulate_flight(spec, seed=seed, effects=effects, max_images=max_images)
     store = store if store is not None else MemoryCertificates()
-    return process(as_dataset(sim, name=name), ProcessConfig(), certificates=store), store
+    return process(as_dataset(sim, name=name), CONFIG, certificates=store), store
 
 
 def found(summary: RunSummary, name: str) -> Finding | None:
@@ -236,7 +242,7 @@ def test_a_readout_is_told_from_an_affinity_where_ingest_left_a_strips_first_fra
     strip[firsts] = -1
     images = sim.images.set_column(sim.images.schema.get_field_index("strip"), "strip", pa.array(strip, pa.int32()))
     sim = dataclasses.replace(sim, images=images)
-    fr = process(as_dataset(sim), ProcessConfig(), certificates=MemoryCertificates())
+    fr = process(as_dataset(sim), CONFIG, certificates=MemoryCertificates())
     s = fr.summary
     f = found(s, "rolling_shutter")
     assert f is not None, f"seed {seed}: found {s.findings}; diagnosis {s.diagnosis}"

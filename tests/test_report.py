@@ -404,6 +404,22 @@ def test_flight_report_reads_as_a_report(processed_flight, tmp_path):
     assert overview["overlap_max"] >= 4, f"seed {SEED}: a calibration block sees its centre from many images"
 
 
+def test_a_report_without_figures_keeps_every_caption_and_number(processed_flight, tmp_path):
+    """``ReportStepConfig(figures=False)``: the same page and summary.json, each figure's caption and numbers
+    without its picture."""
+    from aerocal.report.figures import figures_drawn
+
+    _write(processed_flight, tmp_path / "drawn")
+    with figures_drawn(False):
+        _write(processed_flight, tmp_path / "text")
+    drawn, text = _read(tmp_path / "drawn" / "report.html"), _read(tmp_path / "text" / "report.html")
+    assert len(drawn.srcs) == len(drawn.figures) == 8 and not text.srcs, (len(drawn.srcs), len(text.srcs))
+    assert text.figures == drawn.figures and text.visible() == drawn.visible()
+    a, b = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("drawn", "text"))
+    a.pop("created_utc"), b.pop("created_utc")
+    assert a == b
+
+
 def test_flight_report_says_why_a_figure_is_missing(processed_flight, tmp_path):
     """Without a reference DSM, check points or step times the page says so in words where they would be."""
     from aerocal.adjust.control import ControlScreening, GcpVerdict

@@ -166,16 +166,21 @@ class MosaicStepConfig:
 class ReportStepConfig:
     """``title`` of the report (default "Flight report: <flight name>"); ``extra`` key figures added to
     the summary; DSM cells within ``measured_within_m`` (2 m) of a tie point count as measured in the
-    DSM-minus-reference statistics."""
+    DSM-minus-reference statistics; ``figures`` False writes the page and ``summary.json`` with every figure's
+    caption and numbers but no picture (rendering them is most of the report's time: a batch that reads
+    ``summary.json`` alone)."""
 
     title: str | None = None
     extra: dict = field(default_factory=dict)
     measured_within_m: float = 2.0
+    figures: bool = True
 
     def __post_init__(self) -> None:
         if not self.measured_within_m > 0:
             raise ValueError(f"ReportStepConfig.measured_within_m must be positive metres, got "
                              f"{self.measured_within_m}")
+        if not isinstance(self.figures, bool):
+            raise ValueError(f"ReportStepConfig.figures must be True or False, got {self.figures!r}")
 
 
 @dataclass(frozen=True)

@@ -14,6 +14,7 @@ from aerocal.pipeline.config import ReportStepConfig
 from aerocal.pipeline.dataset import REFERENCE_DSM
 from aerocal.pipeline.mosaic_step import reference_dsm_path
 from aerocal.pipeline.runner import FileOutput, Runner, StepInputs, StepResult
+from aerocal.report.figures import figures_drawn
 from aerocal.report.flight_report import write_flight_report
 from aerocal.report.html import REPORT_NAME, SUMMARY_NAME
 
@@ -60,17 +61,18 @@ def report_step(runner: Runner, ingest: StepResult, certificate: str, adjusted: 
 
     def compute(inp: StepInputs) -> dict:
         work = Path(tempfile.mkdtemp(prefix="aerocal-report-"))
-        write_flight_report(
-            work, inp.json("flight"), inp.table("images"), Certificate.from_dict(inp.json("certificate")),
-            inp.json("adjustment"), inp.table("poses"), inp.table("points"), inp.path("dsm"), inp.json("mosaic"),
-            inp.json("assessment"), inp.json("diagnosis"), inp.table("gcps"),
-            inp.json("control_screening") if inp.has("control_screening") else None,
-            inp.path("reference_dsm") if inp.has("reference_dsm") else None,
-            inp.path("orthomosaic") if inp.has("orthomosaic") else None,
-            config.title, config.extra, config.measured_within_m, seconds or None, REFERENCE_DSM.as_posix(),
-            inp.json("extension") if inp.has("extension") else None,
-            tuple(inp.json("certificate_terms")["lines"]) if inp.has("certificate_terms") else (),
-        )
+        with figures_drawn(config.figures):
+            write_flight_report(
+                work, inp.json("flight"), inp.table("images"), Certificate.from_dict(inp.json("certificate")),
+                inp.json("adjustment"), inp.table("poses"), inp.table("points"), inp.path("dsm"), inp.json("mosaic"),
+                inp.json("assessment"), inp.json("diagnosis"), inp.table("gcps"),
+                inp.json("control_screening") if inp.has("control_screening") else None,
+                inp.path("reference_dsm") if inp.has("reference_dsm") else None,
+                inp.path("orthomosaic") if inp.has("orthomosaic") else None,
+                config.title, config.extra, config.measured_within_m, seconds or None, REFERENCE_DSM.as_posix(),
+                inp.json("extension") if inp.has("extension") else None,
+                tuple(inp.json("certificate_terms")["lines"]) if inp.has("certificate_terms") else (),
+            )
         return {
             "report": FileOutput(work / REPORT_NAME, "report", temporary=True),
             "report_summary": FileOutput(work / SUMMARY_NAME, "report-summary", temporary=True),
