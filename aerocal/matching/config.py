@@ -39,12 +39,11 @@ class FeatureConfig:
         makes by upsampling the frame twice; larger frames from octave 0, the frame itself, as COLMAP's
         ``first_octave=0`` does (OpenCV has no such setting: the tile is reduced twice by area averaging, OpenCV
         upsamples it back to the frame's grid, and the keypoints are scaled back). The upsampled octave holds
-        three quarters of SIFT's pixels: a 20 MP frame is searched as 80 MP. Without it a frame's keypoints are
-        coarser: on seneca's and copr's 2-3 MP frames detection took a quarter of the time and verified more
-        inliers, but the self-calibration's reprojection RMS grew by half and its formal sigmas by a quarter
-        (its calibrated ones stayed: ``benchmarks/RESULTS.md``, "SIFT from octave 0 on visible frames"), so the
-        default keeps octave -1 up to the size at which COLMAP's default (frames reduced to 3,200 px, then
-        upsampled) searches about as many pixels. 0 detects every frame from octave 0.
+        three quarters of SIFT's pixels: a 20 MP frame is searched as 80 MP. Without it detection is several
+        times faster and verifies more inliers, but each keypoint is coarser and the self-calibration's formal
+        sigmas grow (``benchmarks/RESULTS.md``, "SIFT from octave 0 on visible frames"), so the default keeps
+        octave -1 up to the size at which COLMAP's default (frames reduced to 3,200 px, then upsampled) searches
+        about as many pixels. 0 detects every frame from octave 0.
     granularity:
         Unit of parallel work on a Dask cluster: ``"image"`` (one task loads, tiles and detects one
         image), ``"tile"`` (one task per tile, the loaded image shared through the cluster; for a few

@@ -84,8 +84,8 @@ def _scan_block(dot: np.ndarray, na: np.ndarray, nb: np.ndarray, start: int, idx
     so far ``c1``, ``c2`` (updated in place; equal where two rows tie for a column's nearest).
 
     Numpy needed seven passes over each block for the same (an argmin and a minimum per direction, the masks of
-    ties and of the nearest): this one pass took the matching of 6,200 x 6,200 SIFT descriptors from 0.23 s to
-    0.14 s, the matrix product 0.075 s of either (``benchmarks/RESULTS.md``, "Descriptor matching in one pass")."""
+    ties and of the nearest); with one, the matrix product is most of the matching's time
+    (``benchmarks/RESULTS.md``, "Descriptor matching in one pass", against OpenCV's matchers)."""
     two, zero = np.float32(2.0), np.float32(0.0)
     for r in range(dot.shape[0]):
         ai = na[start + r]

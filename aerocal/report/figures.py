@@ -55,9 +55,9 @@ def figures_drawn(drawn: bool) -> Iterator[None]:
 
 
 def _png(fig) -> bytes:
-    """The figure as PNG bytes at 100 dpi (empty outside :func:`figures_drawn`'s True). zlib's fastest level: a
-    tenth of a report's figure time for files 8 % larger than the default level 6 (a report's eight figures:
-    0.70 MB against 0.65 MB)."""
+    """The figure as PNG bytes at 100 dpi (empty inside ``figures_drawn(False)``), at zlib's fastest level: the
+    default level 6 costs a report more time than the few per cent of file size it saves
+    (``benchmarks/RESULTS.md``, "The test suite's time: the matching's scan")."""
     if not _DRAWN.get():
         return b""
     buf = io.BytesIO()
