@@ -41,9 +41,10 @@ class FeatureConfig:
         upsamples it back to the frame's grid, and the keypoints are scaled back). The upsampled octave holds
         three quarters of SIFT's pixels: a 20 MP frame is searched as 80 MP. Without it detection is several
         times faster and verifies more inliers, but each keypoint is coarser and the self-calibration's formal
-        sigmas grow (``benchmarks/RESULTS.md``, "SIFT from octave 0 on visible frames"), so the default keeps
-        octave -1 up to the size at which COLMAP's default (frames reduced to 3,200 px, then upsampled) searches
-        about as many pixels. 0 detects every frame from octave 0.
+        sigmas grow (``benchmarks/RESULTS.md``, "SIFT from octave 0 on visible frames"). The default is a
+        judgement, not a measured crossover: it keeps octave -1, and the finer keypoints, for every thermal
+        camera and for visible frames of up to 12 MP (the shared 2-3 MP visible sets among them), and spares only
+        larger frames, where octave -1 would search 50 MP or more per frame. 0 detects every frame from octave 0.
     granularity:
         Unit of parallel work on a Dask cluster: ``"image"`` (one task loads, tiles and detects one
         image), ``"tile"`` (one task per tile, the loaded image shared through the cluster; for a few
