@@ -166,6 +166,52 @@ def test_hole_filling_gives_scipy_griddata_values(seed):
     assert differ.mean() < 0.05, f"seed {seed}"
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_distance_to_data_is_the_exact_euclidean_transform(seed):
+    """Every cell's distance to the nearest data cell: scipy's exact transform to float32 rounding, 0 on the data,
+    inf where the grid holds no data at all (scipy would measure to a cell beyond the grid)."""
+    from scipy import ndimage
+
+    from aerocal.products.dsm import distance_to_data
+
+    rng = np.random.default_rng(seed)
+    has = ndimage.binary_opening(rng.random((310, 270)) < 0.4) | (rng.random((310, 270)) < 0.002)
+    has[:, :60] = False  # a wide hole on the western edge
+    got = distance_to_data(has)
+    assert got.dtype == np.float32 and got.shape == has.shape
+    np.testing.assert_allclose(got, ndimage.distance_transform_edt(~has), rtol=1e-6, atol=1e-5,
+                               err_msg=f"seed {seed}")
+    assert not got[has].any(), f"seed {seed}"
+    assert np.isinf(distance_to_data(np.zeros((4, 5), dtype=bool))).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pinholes_take_the_mean_of_their_neighbours(seed):
+    """A hole cell whose 8 neighbours hold at least 4 heights takes their mean, pass after pass (zero beyond the
+    grid): the neighbour sums of scipy's convolution to float32 rounding."""
+    from scipy import ndimage
+
+    from aerocal.products.dsm import PINHOLE_PASSES, _fill_pinholes
+
+    rng = np.random.default_rng(seed)
+    heights = (100.0 + rng.normal(0.0, 3.0, (140, 160))).astype(np.float32)
+    has = rng.random(heights.shape) < 0.7
+    heights[~has] = np.nan
+    got, got_has = _fill_pinholes(heights, has)
+    want, want_has = heights.copy(), has.copy()
+    ring = np.ones((3, 3), dtype=np.float32)
+    ring[1, 1] = 0.0
+    for _ in range(PINHOLE_PASSES):
+        count = ndimage.convolve(want_has.astype(np.float32), ring, mode="constant")
+        pin = ~want_has & (count >= 4)
+        total = ndimage.convolve(np.where(want_has, want, 0.0).astype(np.float32), ring, mode="constant")
+        want[pin] = total[pin] / count[pin]
+        want_has |= pin
+    assert np.array_equal(got_has, want_has), f"seed {seed}"
+    np.testing.assert_allclose(got[got_has], want[want_has], rtol=1e-6, err_msg=f"seed {seed}")
+    assert got_has.mean() > has.mean() + 0.2, f"seed {seed}: the pinholes of a 70 % grid close"
+
+
 def test_data_cells_on_one_line_fill_the_grid_with_the_nearest_height():
     """No triangle to interpolate on (one row of tie points, e.g. a single strip's centre line): the DSM is
     filled from the nearest cell instead of failing in qhull."""

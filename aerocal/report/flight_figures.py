@@ -20,10 +20,10 @@ import numpy as np
 import rasterio
 from pyproj import CRS
 from rasterio.enums import Resampling
-from scipy import ndimage
 
 from aerocal.assess import BinnedResiduals, compare_dems
 from aerocal.camera import Camera
+from aerocal.products.dsm import distance_to_data
 from aerocal.products.mosaic import FrameGeometry
 from aerocal.report.figures import (
     Figure,
@@ -153,7 +153,7 @@ def _near_tie_points(dsm, tie_points_en: np.ndarray, within_m: float) -> np.ndar
     has[r[ok], c[ok]] = True
     if not has.any():
         return has
-    return ndimage.distance_transform_edt(~has) * dsm.cell_m <= within_m
+    return distance_to_data(has) * dsm.cell_m <= within_m
 
 
 def _same_crs(a: str, b: str) -> bool:
