@@ -139,15 +139,17 @@ class BlockStepConfig:
 @dataclass(frozen=True)
 class MosaicStepConfig:
     """DSM and orthomosaic settings (:class:`aerocal.products.dsm.DsmConfig`,
-    :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults); the tiles run on the Dask cluster
-    (:class:`aerocal.matching.cluster.ExecutionConfig`) except for mosaics of at most ``serial_max_megapixels``
-    (25) of frames in all, which run here without a cluster: starting a local cluster's worker processes costs
-    more than half of what the tiles of a mosaic that small take (``benchmarks/history/engine_measurements.md``,
-    the mosaic's serial threshold)."""
+    :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults). The dense surface's pairs and the
+    orthomosaic's tiles run on the Dask scheduler given to the run (:class:`aerocal.matching.cluster.ExecutionConfig`)
+    and, without one, on a local cluster only for flights of more than ``serial_max_megapixels`` (100) of frames
+    in all; smaller ones run in this process. There OpenCV's semi-global matcher and GDAL already use every core,
+    each frame is decoded once and nothing is shipped between processes, so a local cluster of worker processes
+    costs more than it gains on a block that size (``benchmarks/RESULTS.md``, "The mosaic step in the calling
+    process"; the earlier 25 MP: ``benchmarks/history/engine_measurements.md``, the mosaic's serial threshold)."""
 
     dsm: DsmConfig | None = None
     mosaic: MosaicConfig | None = None
-    serial_max_megapixels: float = 25.0
+    serial_max_megapixels: float = 100.0
     #: the dense surface matched in the frames (:mod:`aerocal.products.dense`), which the DSM and orthomosaic then
     #: stand on; ``None``: the tie points' surface only (the only one for a flight without frames)
     dense: DenseConfig | None = DenseConfig()
