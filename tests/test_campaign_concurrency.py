@@ -54,8 +54,8 @@ def _check_campaign(url: str, flights: list[tuple[str, int]], tmp_path: Path) ->
 
         def run(folder: Path) -> subprocess.CompletedProcess:
             return subprocess.run([AEROCAL, "process", str(folder), "--out", str(folder) + "-run", "--database-url",
-                                   url, "--artifacts", str(tmp_path / "art")], capture_output=True, text=True,
-                                  env=env, timeout=1200)
+                                   url, "--artifacts", str(tmp_path / "art"), "--no-figures"], capture_output=True,
+                                  text=True, env=env, timeout=1200)
 
         with ThreadPoolExecutor(max_workers=4) as pool:
             done = list(pool.map(run, folders))

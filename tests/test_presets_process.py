@@ -44,7 +44,8 @@ def test_preset_runs_through_process_and_diagnose(preset, max_images, effect, tm
     sim = _cli(*args)
     assert sim.exit_code == 0, sim.output
     result = _cli("process", str(flight), "--certificate", "none", "--out", str(out),
-                  "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", str(tmp_path / "art"))
+                  "--database-url", f"sqlite:///{tmp_path / 'aerocal.db'}", "--artifacts", str(tmp_path / "art"),
+                  "--no-figures")
     assert result.exit_code == 0, f"{preset} seed {seed}: {result.output}"
     cert = Certificate.from_json((out / "calibration_certificate.json").read_text())
     truth = json.loads((flight / "truth.json").read_text())
