@@ -57,6 +57,7 @@ from aerocal.pipeline import MemoryCertificates, process
 from aerocal.simulate import as_dataset, get_preset, simulate_flight
 from aerocal.simulate.sensors import TemperatureCurve
 from studies.papers import (
+    PRODUCT,
     as_checks,
     certificate_row,
     gnss_priors,
@@ -234,7 +235,7 @@ def product_runs(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
     cal, years = flights(cfg, seed, model.effects)
     store = MemoryCertificates()
     out: dict = {}
-    run = process(as_dataset(cal, "conte-calibration"), certificates=store, calibrate_only=True)
+    run = process(as_dataset(cal, "conte-calibration"), PRODUCT, certificates=store, calibrate_only=True)
     out["CAL"] = certificate_row(run)
     certs = {"CAL": run.summary.certificate_id}
     for year, sim in years.items():
@@ -245,7 +246,7 @@ def product_runs(cfg: StudyConfig, model: Model, seed: int, log=print) -> dict:
             pins["STR3"] = certs["STR2 2016"]
         for name, pin in pins.items():
             try:
-                run = process(ds, certificate=pin, certificates=store)
+                run = process(ds, PRODUCT, certificate=pin, certificates=store)
             except NoCertificateError as exc:
                 out[f"{name} {year}"] = {"refused": str(exc)}
                 log(f"  seed {seed} {model.name} aerocal process {name} {year}: refused ({exc})")

@@ -67,7 +67,17 @@ from aerocal.pipeline import MemoryCertificates, ProcessConfig, process
 from aerocal.simulate import as_dataset, get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
 from aerocal.simulate.sensors import TemperatureCurve
-from studies.papers import as_checks, certificate_row, gnss_priors, pyplot, save_png, stats, study_parser, write_study
+from studies.papers import (
+    PRODUCT,
+    as_checks,
+    certificate_row,
+    gnss_priors,
+    pyplot,
+    save_png,
+    stats,
+    study_parser,
+    write_study,
+)
 
 PRESET = "daakir-uav"
 #: focal drift (px/degC, Sec. 4.2.3: 0.07-0.08) and the uncertainty of its separate calibration (px/degC)
@@ -245,11 +255,12 @@ BLOCKS = {"as flown": (False, False), "relative": (True, False), "relative, nois
 
 def product_config(thermal: tuple[str, ...] | None = None, correction: bool = True,
                    relative: bool = False) -> ProcessConfig:
-    """The product's configuration: ``ProcessConfig()`` unless the calibration's thermal slopes (``thermal``),
-    the block's thermal correction (``correction``) or a relative orientation (``relative``) are asked for. The
-    diagnosis's extension of the block is off: the study compares what each certificate's own correction does
-    (with the focal-only certificate the extension adds the principal point's drift the diagnosis finds)."""
-    config = ProcessConfig(extend=False)
+    """The product's configuration: :data:`studies.papers.PRODUCT` unless the calibration's thermal slopes
+    (``thermal``), the block's thermal correction (``correction``) or a relative orientation (``relative``) are
+    asked for. The diagnosis's extension of the block is off: the study compares what each certificate's own
+    correction does (with the focal-only certificate the extension adds the principal point's drift the diagnosis
+    finds)."""
+    config = dataclasses.replace(PRODUCT, extend=False)
     if thermal is not None:
         cal = config.calibration
         config = dataclasses.replace(config, calibration=dataclasses.replace(

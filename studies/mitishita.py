@@ -57,7 +57,17 @@ from aerocal.poses import poses_arrays
 from aerocal.simulate import as_dataset, get_preset, simulate_flight
 from aerocal.simulate.presets import FlightSpec
 from aerocal.simulate.sensors import recorded_R_cw
-from studies.papers import as_checks, certificate_row, pyplot, reference, save_png, stats, study_parser, write_study
+from studies.papers import (
+    PRODUCT,
+    as_checks,
+    certificate_row,
+    pyplot,
+    reference,
+    save_png,
+    stats,
+    study_parser,
+    write_study,
+)
 
 PRESET = "mitishita-block"
 #: the boresight of today's set-up (degrees about camera x, y, z): the size of the paper's angular residuals
@@ -269,13 +279,13 @@ def product_runs(cfg: StudyConfig) -> dict:
         for (name, strips), dz in zip(blocks.items(), SUBBLOCK_HEIGHT_ERROR_M, strict=True):
             ids = sub_block(sim.images, strips)
             cal = process(_part(sim, full, f"{name} sub-block", ids, with_height_error(sim.images, ids, dz)),
-                          certificates=store, calibrate_only=True)
+                          PRODUCT, certificates=store, calibrate_only=True)
             cert = certificate_row(cal)
             cert["f_mm"] = cert["f"] * pix
             out[name]["certificates"].append(cert)
             model = _part(sim, full, name, [i for i in ids_all if i not in ids], checks_only=True)
             for row, pin in (("nominal", "nominal"), ("in situ", cert["certificate"])):
-                r = _product_row(sim, process(model, certificate=pin, certificates=store))
+                r = _product_row(sim, process(model, PRODUCT, certificate=pin, certificates=store))
                 out[name][row].append(r)
                 print(f"  aerocal process seed {seed} {name} {row}: DZ {r['dz']['mean'] * 100:+.1f} cm, centres "
                       f"{r['centre_dz'] * 100:+.1f} cm (certificate f {cert['f_mm']:.4f} mm, "

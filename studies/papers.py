@@ -15,11 +15,16 @@ import pyarrow as pa
 
 from aerocal.adjust import AdjustConfig
 from aerocal.io import atomic_path, write_text_atomic
+from aerocal.pipeline.config import ProcessConfig, ReportStepConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the papers' measured numbers as CSV (beside the repository)
 REFERENCE = ROOT.parent / "shared" / "reference"
 OUT = ROOT / "studies" / "output"
+#: the product's configuration in the studies' runs: its defaults, with each run's report written without pictures
+#: (a study reads the run's certificate, diagnosis and summary, never the report's figures; drawing them was about
+#: a third of the quick Daakir study's time: benchmarks/RESULTS.md, "The test suite's time: reports nobody looks at")
+PRODUCT = ProcessConfig(report=ReportStepConfig(figures=False))
 
 
 def reference(name: str) -> list[dict]:
