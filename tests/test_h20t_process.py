@@ -119,9 +119,9 @@ def test_h20t_forest_calibrates_its_distortion_and_checks_the_recorded_yaw(tmp_p
     # the next survey with this camera (here the same frames, processed again as a user would): the stored
     # certificate is chosen, not made again, and the block adjusted with it names nothing
     again = tmp_path / "again"
-    # (the tie points' surface, as a user who needs the certificate and the mosaic sooner asks for it)
-    result = CliRunner().invoke(app, ["process", str(H20T), "--out", str(again), "--surface", "tie-points", *store],
-                                env={"COLUMNS": "250"})
+    # (the tie points' surface and no pictures, as a user who needs the certificate and the mosaic sooner asks)
+    result = CliRunner().invoke(app, ["process", str(H20T), "--out", str(again), "--surface", "tie-points",
+                                      "--no-figures", *store], env={"COLUMNS": "250"})
     assert result.exit_code == 0, result.output
     reused = json.loads((again / "run.json").read_text())
     assert reused["certificate_id"] == cert.id, reused["certificate_reason"]

@@ -30,7 +30,7 @@ def _cli(*args: str):
 
 
 def _process(flight: Path, out: Path, store: Path, certificate: str = "none") -> dict:
-    result = _cli("process", str(flight), "--certificate", certificate, "--out", str(out), "--json",
+    result = _cli("process", str(flight), "--certificate", certificate, "--out", str(out), "--json", "--no-figures",
                   "--database-url", f"sqlite:///{store / 'aerocal.db'}", "--artifacts", str(store / "art"))
     assert result.exit_code == 0, result.output
     return json.loads((out / "run.json").read_text())  # the summary --json prints, as the run folder keeps it
