@@ -427,6 +427,7 @@ def distance_to_data(has: np.ndarray) -> np.ndarray:
     The exact transform (OpenCV's ``DIST_L2`` with ``DIST_MASK_PRECISE``, Felzenszwalb and Huttenlocher's
     algorithm): the values of ``scipy.ndimage.distance_transform_edt`` to float32 rounding, several times faster
     on a dense DSM's grid (benchmarks/RESULTS.md, "Dense surface: the filling's grid passes")."""
+    has = np.asarray(has, dtype=bool)
     if not has.any():
         return np.full(has.shape, np.inf, dtype=np.float32)
     return cv2.distanceTransform((~has).view(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
