@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench papers clean
+.PHONY: demo test lint bench papers docker-smoke clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -40,6 +40,10 @@ bench: $(STAMP)
 # committed report studies/results/paper_setups.md, each study's own report, figures and numbers beside it
 papers: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(BIN)/python -m studies.paper_setups --out studies/results
+
+# the compose stack brought up for real (needs a Docker daemon; not part of `make test`)
+docker-smoke: $(STAMP)
+	$(BIN)/python docker/smoke.py
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info

@@ -2,17 +2,14 @@
 
 The static checks are what `docker compose config` and a first `up` would trip over: unknown services in
 depends_on, undeclared volumes, missing build context or bind-mounted files, clashing host ports, URLs that
-point at the wrong service, port or credentials. Where a Docker daemon answers, the stack is also brought up
-for real and processes a small simulated flight through its Dask scheduler and PostgreSQL; where none
-answers that test skips and says so.
+point at the wrong service, port or credentials. Bringing the stack up for real needs a Docker daemon, which the
+machines that run this suite lack: that check is ``docker/smoke.py`` (``make docker-smoke``), run on demand, not a
+test that would skip here and prove nothing.
 """
 
 from __future__ import annotations
 
 import re
-import shutil
-import subprocess
-import uuid
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -139,49 +136,3 @@ def test_image_workers_get_the_same_environment_as_local_clusters():
     assert "COPY docker/dask.yaml /etc/dask/" in (DOCKER / "Dockerfile").read_text()
     config = yaml.safe_load((DOCKER / "dask.yaml").read_text())
     assert config["distributed"]["nanny"]["pre-spawn-environ"] == WORKER_ENVIRONMENT
-
-
-def _docker_daemon() -> str | None:
-    """Why no Docker daemon can be used here, or ``None`` when one answers."""
-    if shutil.which("docker") is None:
-        return "no docker client on PATH"
-    try:
-        info = subprocess.run(["docker", "info", "--format", "{{.ServerVersion}}"], capture_output=True,
-                              text=True, timeout=30)
-    except subprocess.TimeoutExpired:
-        return "`docker info` did not answer within 30 s"
-    if info.returncode != 0 or not info.stdout.strip():
-        lines = (info.stderr or info.stdout).strip().splitlines()
-        return lines[-1] if lines else f"`docker info` exited {info.returncode}"
-    return None
-
-
-def test_compose_stack_processes_a_flight_through_its_scheduler_and_postgres():
-    """`docker compose up` on this file, then `aerocal simulate` and `aerocal process --dask` inside the
-    stack: the run completes on the stack's Dask workers and is stored in its PostgreSQL."""
-    reason = _docker_daemon()
-    if reason is not None:
-        pytest.skip(f"no Docker daemon ({reason}): the compose stack was checked statically only")
-    project = f"aerocal-test-{uuid.uuid4().hex[:8]}"
-    compose_cmd = ["docker", "compose", "-f", str(COMPOSE), "-p", project]
-
-    def compose_run(*args: str, timeout: float = 1800) -> subprocess.CompletedProcess:
-        return subprocess.run([*compose_cmd, *args], capture_output=True, text=True, timeout=timeout)
-
-    try:
-        up = compose_run("up", "--build", "--detach", "--wait", "postgres", "prefect-server", "dask-scheduler",
-                         "dask-worker")
-        assert up.returncode == 0, up.stderr[-3000:]
-        init = compose_run("run", "--rm", "aerocal-init")
-        assert init.returncode == 0, init.stdout[-2000:] + init.stderr[-2000:]
-        sim = compose_run("run", "--rm", "--no-deps", "aerocal-init", "simulate", "conte-calibration", "--out",
-                          "/data/flights/compose", "--seed", "5", "--max-images", "10")
-        assert sim.returncode == 0, sim.stdout[-2000:] + sim.stderr[-2000:]
-        run = compose_run("run", "--rm", "--no-deps", "aerocal-init", "process", "/data/flights/compose",
-                          "--dask", "tcp://dask-scheduler:8786", "--out", "/data/runs/compose")
-        assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
-        runs = compose_run("exec", "-T", "postgres", "psql", "-U", "aerocal", "-d", "aerocal", "-tAc",
-                           "select status from runs where kind = 'process_flight'")
-        assert runs.stdout.split() == ["completed"], runs.stdout + runs.stderr
-    finally:
-        compose_run("down", "--volumes", "--remove-orphans", timeout=300)
