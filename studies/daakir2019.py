@@ -44,9 +44,9 @@ sigmas of the flight) and as the paper's relative orientation (``use_flight_sigm
 attitude), also noise-free; the residuals of the 10 GCPs from ``adjustment.check_errors_m`` after the
 similarity, the certificates' slopes against the truth, and what the diagnosis step named.
 
-Run: ``python -m studies.daakir2019`` (five seeds and one product seed on the whole corridor: 761 s, 459 s of it
-the product runs, on 2 cores shared with another job; ``--quick``: one seed, a 24-image corridor, 159 s measured,
-139 s of it the product runs). Writes ``studies/output/daakir2019.md`` (``daakir2019_quick.md``) and a PNG.
+Run: ``python -m studies.daakir2019`` (five seeds and one product seed on the whole corridor; ``--quick``: one
+seed, a 24-image corridor). Writes ``studies/output/daakir2019.md`` (``daakir2019_quick.md``, whose header gives the
+run's time) and a PNG.
 """
 
 from __future__ import annotations
