@@ -305,3 +305,36 @@ def test_bad_frame_names_the_file(tmp_path):
     with pytest.raises(ValueError, match="frame_0002.tif"):
         write_thermal_tiff(tmp_path / "frame_0002.tif", np.zeros((4, 4), np.float32), META)
     assert not any(tmp_path.iterdir())
+
+
+def _upsample_numpy(grid: np.ndarray, ss: int) -> np.ndarray:
+    """Bilinear interpolation of pixel-centre values with a one-pixel border at the ``ss x ss`` sub-pixel
+    centres, as numpy did it before it was compiled: along the columns, then along the rows."""
+    h, w = grid.shape[0] - 2, grid.shape[1] - 2
+    cols = np.empty((grid.shape[0], w * ss) + grid.shape[2:], dtype=grid.dtype)
+    for k in range(ss):
+        x = (k + 0.5) / ss + 0.5
+        x0 = int(np.floor(x))
+        cols[:, k::ss] = grid[:, x0:x0 + w] * (1.0 - (x - x0)) + grid[:, x0 + 1:x0 + 1 + w] * (x - x0)
+    out = np.empty((h * ss,) + cols.shape[1:], dtype=grid.dtype)
+    for k in range(ss):
+        y = (k + 0.5) / ss + 0.5
+        y0 = int(np.floor(y))
+        out[k::ss] = cols[y0:y0 + h] * (1.0 - (y - y0)) + cols[y0 + 1:y0 + 1 + h] * (y - y0)
+    return out
+
+
+@pytest.mark.parametrize("ss", [1, 2, 3, 4])
+def test_compiled_sub_pixel_rays_are_the_bilinear_interpolation_to_the_bit(ss):
+    from aerocal.simulate.raycast_kernels import subpixel_rays
+
+    rng = np.random.default_rng(SEED + ss)
+    oa = rng.normal(0.0, 100.0, (7, 9, 3))
+    da = rng.normal(0.0, 1.0, (7, 9, 3))
+    da /= np.linalg.norm(da, axis=2, keepdims=True)
+    o, d = subpixel_rays(oa, da, ss)
+    expected_o = _upsample_numpy(oa, ss).reshape(-1, 3)
+    expected_d = _upsample_numpy(da, ss).reshape(-1, 3)
+    expected_d /= np.linalg.norm(expected_d, axis=1, keepdims=True)
+    assert o.shape == (5 * ss * 7 * ss, 3)
+    assert np.array_equal(o, expected_o) and np.array_equal(d, expected_d), f"seed {SEED + ss}"

@@ -120,3 +120,47 @@ def test_targets_are_painted(city):
     np.testing.assert_allclose(xyz[:, 2], city.height_at(pos[:, 0], pos[:, 1]))
     with pytest.raises(ValueError, match="overlap"):
         scene.place_targets(pos[:1] + 1.0, radius_m=1.0)
+
+
+def _hash_uniform_numpy(ix: np.ndarray, iy: np.ndarray, salt: int) -> np.ndarray:
+    """The lattice hash as numpy wrote it before it was compiled: numpy's uint32 wraps."""
+    with np.errstate(over="ignore"):
+        h = (ix.astype(np.uint32) * np.uint32(0x8DA6B343)) ^ (iy.astype(np.uint32) * np.uint32(0xD8163841))
+        h ^= np.uint32(salt & 0xFFFFFFFF) * np.uint32(0xCB1AB31F)
+        h ^= h >> np.uint32(16)
+        h *= np.uint32(0x85EBCA6B)
+        h ^= h >> np.uint32(13)
+        h *= np.uint32(0xC2B2AE35)
+        h ^= h >> np.uint32(16)
+    return h.astype(np.float64) * (2.0 / 4294967295.0) - 1.0
+
+
+def _value_noise_numpy(x: np.ndarray, y: np.ndarray, salt: int) -> np.ndarray:
+    fx, fy = np.floor(x), np.floor(y)
+    tx, ty = x - fx, y - fy
+    tx, ty = tx * tx * (3.0 - 2.0 * tx), ty * ty * (3.0 - 2.0 * ty)
+    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
+    v00, v10 = _hash_uniform_numpy(ix, iy, salt), _hash_uniform_numpy(ix + 1, iy, salt)
+    v01, v11 = _hash_uniform_numpy(ix, iy + 1, salt), _hash_uniform_numpy(ix + 1, iy + 1, salt)
+    a, b = v00 + tx * (v10 - v00), v01 + tx * (v11 - v01)
+    return a + ty * (b - a)
+
+
+def test_compiled_texture_detail_is_the_numpy_value_noise_to_the_bit():
+    """The texture's compiled value noise: the same lattice hash (negative lattice coordinates and salts past 32
+    bits included) and the same footprint weights as numpy arrays give it, every bit."""
+    from aerocal.simulate.noise_kernels import detail
+
+    rng = np.random.default_rng(SEED)
+    e = rng.uniform(-3000.0, 3000.0, 20000)
+    n = rng.uniform(-3000.0, 3000.0, 20000)
+    fp = rng.uniform(0.0, 3.0, 20000)
+    spacings = np.array([0.25, 0.5, 1.0, 2.0])
+    salts = np.array([7919 * 2**33 + k for k in range(4)], dtype=np.int64)
+    expected = np.zeros(len(e))
+    for spacing, salt in zip(spacings, salts, strict=True):
+        weight = np.clip(2.0 - 2.0 * fp / spacing, 0.0, 1.0)
+        expected += weight * _value_noise_numpy(e / spacing, n / spacing, int(salt))
+    got = detail(e, n, fp, spacings, salts)
+    assert np.array_equal(got, expected), f"seed {SEED}: max difference {np.abs(got - expected).max():.3g}"
+    assert np.abs(got).max() <= len(spacings) and got.std() > 0.3

@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 
 from aerocal.camera import Camera
-from aerocal.simulate.raycast_kernels import hits_near, march
+from aerocal.simulate.raycast_kernels import coherent_hits, march, subpixel_rays
 from aerocal.simulate.scene import SKY_KELVIN, SKY_RGB, Scene
 
 
@@ -199,19 +199,6 @@ def intersect_dsm(
     return _hits(o, d, t_hit)
 
 
-def _hits_near(scene: Scene, o: np.ndarray, d: np.ndarray, t_start: np.ndarray, max_patches: int = 3):
-    """Hit distances of rays known to be above the surface up to ``t_start`` and to hit soon after:
-    the patches from ``t_start`` on are tested, at most ``max_patches`` of them. inf where the ray is
-    not above the surface at ``t_start`` or no hit was found (trace those with :func:`intersect_dsm`)."""
-    cell = scene.config.cell_m
-    rows, cols = scene.shape
-    c0, r0 = scene.grid_coords(o[:, 0], o[:, 1])
-    dc = d[:, 0] / cell
-    dr = -d[:, 1] / cell
-    return hits_near(_padded_dsm(scene), rows, cols, c0, r0, o[:, 2], dc, dr, d[:, 2],
-                     np.asarray(t_start, dtype=float), max_patches)
-
-
 def _t_leave_grid(c0, r0, dc, dr, rows: int, cols: int) -> np.ndarray:
     """Ray parameter (metres) where a ray leaves the grid's extent (plus one cell) horizontally."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -224,26 +211,6 @@ def _hits(o: np.ndarray, d: np.ndarray, t: np.ndarray) -> RayHits:
     hit = np.isfinite(t)
     pts = o + np.where(hit, t, np.nan)[:, None] * d
     return RayHits(points=pts, t=t, hit=hit)
-
-
-def _upsample(grid: np.ndarray, ss: int) -> np.ndarray:
-    """Bilinear interpolation of a grid of pixel-centre values with a one-pixel border, (H + 2, W + 2,
-    ...), at the ``ss x ss`` sub-pixel centres of the inner pixels: (H ss, W ss, ...). Sub-pixel k of a
-    pixel sits (k + 0.5) / ss - 0.5 pixels from its centre; slices per phase, no gathers."""
-    h, w = grid.shape[0] - 2, grid.shape[1] - 2
-    cols = np.empty((grid.shape[0], w * ss) + grid.shape[2:], dtype=grid.dtype)
-    for k in range(ss):
-        x = (k + 0.5) / ss + 0.5  # position in border-grid units, relative to the pixel's left neighbour
-        x0 = int(np.floor(x))
-        fx = x - x0
-        cols[:, k::ss] = grid[:, x0:x0 + w] * (1.0 - fx) + grid[:, x0 + 1:x0 + 1 + w] * fx
-    out = np.empty((h * ss,) + cols.shape[1:], dtype=grid.dtype)
-    for k in range(ss):
-        y = (k + 0.5) / ss + 0.5
-        y0 = int(np.floor(y))
-        fy = y - y0
-        out[k::ss] = cols[y0:y0 + h] * (1.0 - fy) + cols[y0 + 1:y0 + 1 + h] * fy
-    return out
 
 
 def _trace_rows(
@@ -270,7 +237,6 @@ def _trace_rows(
         o, d = exposure.rays(uv)
         return o, d, intersect_dsm(scene, o, d).t
 
-    cell = scene.config.cell_m
     # pixel-centre rays on a grid with a one-pixel border: anchor (i, j) is pixel (row0 - 1 + i, j - 1)
     ua = np.arange(-1, width + 1) + 0.5
     va = np.arange(row0 - 1, row1 + 1) + 0.5
@@ -278,42 +244,20 @@ def _trace_rows(
     oa, da = exposure.rays(np.column_stack([ga.reshape(-1), gb.reshape(-1)]))
     anchors = intersect_dsm(scene, oa, da)
     shape_a = (len(va), len(ua))
-    ta = anchors.t.reshape(shape_a)
-    # sub-pixel rays interpolated from the anchors
-    o = _upsample(oa.reshape(shape_a + (3,)), ss).reshape(-1, 3)
-    d = _upsample(da.reshape(shape_a + (3,)), ss).reshape(-1, 3)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    # sub-pixel rays interpolated from the anchors, checked against the exposure's own on a sample
+    o, d = subpixel_rays(oa.reshape(shape_a + (3,)), da.reshape(shape_a + (3,)), ss)
     check = np.linspace(0, len(uv) - 1, 64).astype(np.int64)
     oc, dc = exposure.rays(uv[check])
     angle_px = np.linalg.norm(dc - d[check], axis=1).max() * float(cam.f)
     if angle_px > 1e-4 or np.abs(oc - o[check]).max() > 1e-4:
         o, d = exposure.rays(uv)
-
-    # coherent pixels: all 9 anchors hit, no step in distance, hits horizontally within a cell of the
-    # centre's (so no DSM feature, at least a cell wide, fits between the rays unseen)
-    pa = anchors.points.reshape(shape_a + (3,))[..., :2]
-    centre = (slice(1, -1), slice(1, -1))
-    ok = np.isfinite(ta[centre])
-    tol = 0.5 * cell
-    with np.errstate(invalid="ignore"):
-        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
-            a = ta[1 - dy:shape_a[0] - 1 - dy, 1 - dx:shape_a[1] - 1 - dx]
-            b = ta[1 + dy:shape_a[0] - 1 + dy, 1 + dx:shape_a[1] - 1 + dx]
-            ok &= np.isfinite(a) & np.isfinite(b) & (np.abs(a + b - 2.0 * ta[centre]) < tol)
-            for sgn in (-1, 1):
-                q = pa[1 + sgn * dy:shape_a[0] - 1 + sgn * dy, 1 + sgn * dx:shape_a[1] - 1 + sgn * dx]
-                ok &= np.linalg.norm(q - pa[centre], axis=2) < cell
-    coherent = np.repeat(np.repeat(ok, ss, axis=0), ss, axis=1).reshape(-1)
-    t = np.full(len(uv), np.inf)
-    idx = np.nonzero(coherent)[0]
-    if len(idx):
-        ta_fill = np.where(np.isfinite(ta), ta, 0.0)
-        t_guess = _upsample(ta_fill, ss).reshape(-1)[idx]
-        t_near = _hits_near(scene, o[idx], d[idx], np.maximum(t_guess - 0.3 * cell, 0.0))
-        good = np.isfinite(t_near)
-        t[idx[good]] = t_near[good]
-        coherent[idx[~good]] = False
-    rest = np.nonzero(~coherent)[0]
+    # coherent pixels' sub-pixel rays intersected near their interpolated distance, the rest from the top
+    cfg = scene.config
+    top_n = cfg.origin_n + scene.shape[0] * cfg.cell_m
+    t, todo = coherent_hits(_padded_dsm(scene), scene.shape[0], scene.shape[1], float(cfg.origin_e), float(top_n),
+                            float(cfg.cell_m), o, d, anchors.t.reshape(shape_a),
+                            np.ascontiguousarray(anchors.points.reshape(shape_a + (3,))[..., :2]), ss)
+    rest = np.nonzero(todo)[0]
     if len(rest):
         t[rest] = intersect_dsm(scene, o[rest], d[rest]).t
     return o, d, t

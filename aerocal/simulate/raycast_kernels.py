@@ -1,5 +1,6 @@
 """Compiled ray marching over a bilinear DSM, one ray at a time: the inner loops of
-:func:`aerocal.simulate.raycast.intersect_dsm` and its near-hit refinement.
+:func:`aerocal.simulate.raycast.intersect_dsm`, and the sub-pixel rays of a rendered frame and their hits near
+those of the pixel centres.
 
 The vectorised numpy marcher these replace kept every active ray in arrays and stepped them together, which
 spent most of a frame's time gathering and scattering the shrinking set of active rays (1.9 s of a 640 x 480
@@ -133,25 +134,121 @@ def march(dsm, rows, cols, c0, r0, z0, dc, dr, dz, down, t_first, t_end, h_len, 
 
 
 @njit(cache=True, error_model="numpy")
-def hits_near(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t_start, max_patches):  # pragma: no cover - compiled
-    """Hit distances of rays known to be above the surface up to ``t_start`` and to hit within ``max_patches``
-    patches after it; inf where the ray is not above the surface at ``t_start`` or no hit was found there."""
-    n = len(c0)
-    out = np.full(n, _INF)
-    for i in range(n):
-        t0 = t_start[i]
-        pc = int(math.floor(c0[i] + t0 * dc[i]))
-        pr = int(math.floor(r0[i] + t0 * dr[i]))
-        t_root, t, pc, pr = _patch_step(dsm, rows, cols, c0[i], r0[i], z0[i], dc[i], dr[i], dz[i], t0, pc, pr,
-                                        _INF)
-        res = _INF if t_root <= t0 else t_root
-        if not math.isfinite(t_root) and t > t0:
-            for _ in range(max_patches - 1):
-                t_root, t_out, pc, pr = _patch_step(dsm, rows, cols, c0[i], r0[i], z0[i], dc[i], dr[i], dz[i], t,
-                                                    pc, pr, _INF)
-                t = t_out
-                if math.isfinite(t_root):
-                    res = t_root
-                    break
-        out[i] = res
-    return out
+def _near_one(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t0, max_patches):  # pragma: no cover - compiled
+    """The hit distance of a ray known to be above the surface up to ``t0`` and to hit within ``max_patches``
+    patches after it; inf where the ray is not above the surface at ``t0`` or no hit was found there."""
+    pc = int(math.floor(c0 + t0 * dc))
+    pr = int(math.floor(r0 + t0 * dr))
+    t_root, t, pc, pr = _patch_step(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t0, pc, pr, _INF)
+    res = _INF if t_root <= t0 else t_root
+    if not math.isfinite(t_root) and t > t0:
+        for _ in range(max_patches - 1):
+            t_root, t_out, pc, pr = _patch_step(dsm, rows, cols, c0, r0, z0, dc, dr, dz, t, pc, pr, _INF)
+            t = t_out
+            if math.isfinite(t_root):
+                res = t_root
+                break
+    return res
+
+
+@njit(cache=True, error_model="numpy")
+def subpixel_rays(oa, da, ss):  # pragma: no cover - compiled
+    """The ``ss x ss`` sub-pixel rays of the inner pixels of a grid of pixel-centre rays with a one-pixel border
+    (``oa``, ``da``: (H + 2, W + 2, 3) origins and unit directions), interpolated bilinearly and the directions
+    normalised: (origins, directions), each (H ss W ss, 3) ordered (row, sub-row, col, sub-col). Sub-pixel k of a
+    pixel sits (k + 0.5) / ss - 0.5 pixels from its centre; the arithmetic is that of interpolating along the
+    columns, then along the rows, as numpy did it before (the same rays to the last bit)."""
+    h = oa.shape[0] - 2
+    w = oa.shape[1] - 2
+    n_cols = w * ss
+    o = np.empty((h * ss * n_cols, 3))
+    d = np.empty((h * ss * n_cols, 3))
+    for i in range(h):
+        for k in range(ss):
+            y = (k + 0.5) / ss + 0.5
+            y0 = int(math.floor(y))
+            fy = y - y0
+            base = (i * ss + k) * n_cols
+            for j in range(w):
+                for m in range(ss):
+                    x = (m + 0.5) / ss + 0.5
+                    x0 = int(math.floor(x))
+                    fx = x - x0
+                    at = base + j * ss + m
+                    r_top = i + y0
+                    c_left = j + x0
+                    for a in range(3):
+                        top = oa[r_top, c_left, a] * (1.0 - fx) + oa[r_top, c_left + 1, a] * fx
+                        bottom = oa[r_top + 1, c_left, a] * (1.0 - fx) + oa[r_top + 1, c_left + 1, a] * fx
+                        o[at, a] = top * (1.0 - fy) + bottom * fy
+                        top = da[r_top, c_left, a] * (1.0 - fx) + da[r_top, c_left + 1, a] * fx
+                        bottom = da[r_top + 1, c_left, a] * (1.0 - fx) + da[r_top + 1, c_left + 1, a] * fx
+                        d[at, a] = top * (1.0 - fy) + bottom * fy
+                    norm = math.sqrt(d[at, 0] * d[at, 0] + d[at, 1] * d[at, 1] + d[at, 2] * d[at, 2])
+                    for a in range(3):
+                        d[at, a] = d[at, a] / norm
+    return o, d
+
+
+@njit(cache=True, error_model="numpy")
+def coherent_hits(dsm, rows, cols, origin_e, top_n, cell, o, d, ta, pa, ss):  # pragma: no cover - compiled
+    """Hit distances of sub-pixel rays (``o``, ``d`` as :func:`subpixel_rays` orders them) from the pixel-centre
+    hits around them (``ta`` (H + 2, W + 2) distances, inf for the sky; ``pa`` (H + 2, W + 2, 2) their E, N).
+
+    A pixel is coherent where its 9 pixel-centre rays all hit, the distance has no step along any of the four lines
+    through the centre (second difference under half a cell) and every neighbour's hit lies within a cell of the
+    centre's horizontally: no DSM feature a cell wide fits between the rays unseen. Its sub-pixel rays are
+    intersected from 0.3 cell before their interpolated distance (:func:`_near_one`, 3 patches). Returns (t, todo):
+    the distances (inf where none was found) and the rays to trace from the top (incoherent pixels, and coherent
+    ones whose near search found nothing). ``origin_e`` and ``top_n`` are the DSM grid's west and north edges
+    (metres), ``cell`` its cell size."""
+    h = ta.shape[0] - 2
+    w = ta.shape[1] - 2
+    n_cols = w * ss
+    n = h * ss * n_cols
+    t = np.full(n, _INF)
+    todo = np.ones(n, dtype=np.bool_)
+    tol = 0.5 * cell
+    for i in range(h):
+        for j in range(w):
+            ci = i + 1
+            cj = j + 1
+            tc = ta[ci, cj]
+            ok = math.isfinite(tc)
+            if ok:
+                for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+                    a = ta[ci - dy, cj - dx]
+                    b = ta[ci + dy, cj + dx]
+                    if not (math.isfinite(a) and math.isfinite(b) and abs(a + b - 2.0 * tc) < tol):
+                        ok = False
+                        break
+                    for sgn in (-1, 1):
+                        qe = pa[ci + sgn * dy, cj + sgn * dx, 0] - pa[ci, cj, 0]
+                        qn = pa[ci + sgn * dy, cj + sgn * dx, 1] - pa[ci, cj, 1]
+                        if not math.sqrt(qe * qe + qn * qn) < cell:
+                            ok = False
+                    if not ok:
+                        break
+            if not ok:
+                continue
+            for k in range(ss):
+                y = (k + 0.5) / ss + 0.5
+                y0 = int(math.floor(y))
+                fy = y - y0
+                for m in range(ss):
+                    x = (m + 0.5) / ss + 0.5
+                    x0 = int(math.floor(x))
+                    fx = x - x0
+                    top = ta[i + y0, j + x0] * (1.0 - fx) + ta[i + y0, j + x0 + 1] * fx
+                    bottom = ta[i + y0 + 1, j + x0] * (1.0 - fx) + ta[i + y0 + 1, j + x0 + 1] * fx
+                    guess = top * (1.0 - fy) + bottom * fy
+                    at = (i * ss + k) * n_cols + j * ss + m
+                    c0 = (o[at, 0] - origin_e) / cell - 0.5
+                    r0 = (top_n - o[at, 1]) / cell - 0.5
+                    start = guess - 0.3 * cell
+                    hit = _near_one(dsm, rows, cols, c0, r0, o[at, 2], d[at, 0] / cell, -d[at, 1] / cell, d[at, 2],
+                                    start if start > 0.0 else 0.0, 3)
+                    if math.isfinite(hit):
+                        t[at] = hit
+                        todo[at] = False
+    return t, todo

@@ -37,6 +37,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from aerocal.simulate.noise_kernels import detail
+
 #: Surface classes stored in :attr:`Scene.classes` (uint8).
 CLASS_GROUND = 0  # open ground, fields and streets
 CLASS_ROOF = 1
@@ -235,15 +237,12 @@ class Scene:
         c = self.config
         e = np.asarray(e, dtype=float) - c.origin_e
         n = np.asarray(n, dtype=float) - c.origin_n
-        out = np.zeros(np.broadcast_shapes(e.shape, n.shape))
-        fp = np.asarray(footprint_m, dtype=float)
-        for k, octave in enumerate(c.detail_octaves):
-            spacing = octave * c.cell_m
-            weight = np.clip(2.0 - 2.0 * fp / spacing, 0.0, 1.0)  # 1 for footprint <= spacing / 2, 0 beyond
-            if not np.any(weight > 0):
-                continue
-            out += weight * _value_noise(e / spacing, n / spacing, self.seed * 7919 + k)
-        return out
+        e, n, fp = np.broadcast_arrays(e, n, np.asarray(footprint_m, dtype=float))
+        spacings = np.array([octave * c.cell_m for octave in c.detail_octaves], dtype=float)
+        salts = np.array([self.seed * 7919 + k for k in range(len(spacings))], dtype=np.int64)
+        # each octave weighted 1 for footprints up to half its spacing, faded out by a whole spacing
+        out = detail(np.ravel(e), np.ravel(n), np.ravel(fp), spacings, salts)
+        return out.reshape(e.shape)
 
     def _paint_targets(self, e, n, col, row, values, disc_value, square_value, footprint_m):
         if self.target_index is None or len(self.targets_radius) == 0:
@@ -355,39 +354,6 @@ def _nearest_index(shape: tuple[int, int], col: np.ndarray, row: np.ndarray) -> 
     r = np.clip(np.rint(np.asarray(row, dtype=float)), 0, rows - 1).astype(np.int64)
     c = np.clip(np.rint(np.asarray(col, dtype=float)), 0, cols - 1).astype(np.int64)
     return r, c
-
-
-def _hash_uniform(ix: np.ndarray, iy: np.ndarray, salt: int) -> np.ndarray:
-    """Integer lattice coordinates -> reproducible uniform values in [-1, 1] (a 32-bit integer hash,
-    the finaliser of MurmurHash3 applied to a mix of the coordinates and the salt)."""
-    with np.errstate(over="ignore"):
-        h = (ix.astype(np.uint32) * np.uint32(0x8DA6B343)) ^ (iy.astype(np.uint32) * np.uint32(0xD8163841))
-        h ^= np.uint32(salt & 0xFFFFFFFF) * np.uint32(0xCB1AB31F)
-        h ^= h >> np.uint32(16)
-        h *= np.uint32(0x85EBCA6B)
-        h ^= h >> np.uint32(13)
-        h *= np.uint32(0xC2B2AE35)
-        h ^= h >> np.uint32(16)
-    return h.astype(np.float64) * (2.0 / 4294967295.0) - 1.0
-
-
-def _value_noise(x: np.ndarray, y: np.ndarray, salt: int) -> np.ndarray:
-    """Value noise in [-1, 1] on the unit integer lattice, smoothstep-interpolated (C1), at points x, y."""
-    fx = np.floor(x)
-    fy = np.floor(y)
-    tx = x - fx
-    ty = y - fy
-    tx = tx * tx * (3.0 - 2.0 * tx)
-    ty = ty * ty * (3.0 - 2.0 * ty)
-    ix = fx.astype(np.int64)
-    iy = fy.astype(np.int64)
-    v00 = _hash_uniform(ix, iy, salt)
-    v10 = _hash_uniform(ix + 1, iy, salt)
-    v01 = _hash_uniform(ix, iy + 1, salt)
-    v11 = _hash_uniform(ix + 1, iy + 1, salt)
-    a = v00 + tx * (v10 - v00)
-    b = v01 + tx * (v11 - v01)
-    return a + ty * (b - a)
 
 
 # ============================================================================================ generation
