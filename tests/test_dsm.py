@@ -268,3 +268,18 @@ def test_a_grids_heights_in_one_pass_are_its_bilinear_heights_to_the_bit():
     a, b = compare_dems(dem, ref, mask=mask), compare_dems(dem, ref.height_at, mask=mask)
     assert (a.n, a.mean, a.median, a.nmad) == (b.n, b.mean, b.median, b.nmad) and a.n > 1000
     assert np.array_equal(a.difference, b.difference, equal_nan=True)
+
+
+def test_the_bulk_extent_of_a_large_cloud_comes_from_a_sample_within_its_quantiles():
+    """A cloud of millions of points: the extent from every k-th point is the whole cloud's to a fraction of a
+    cell, and a few points far off do not stretch it."""
+    from aerocal.products.dsm import bulk_extent
+
+    seed = 29
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform([1000.0, 2000.0], [3000.0, 3000.0], (3_000_000, 2))
+    xy[:100] = 1e6  # a handful far off
+    lo, hi = bulk_extent(xy)
+    full_lo, full_hi = bulk_extent(xy, max_points=len(xy))
+    assert np.abs(lo - full_lo).max() < 0.5 and np.abs(hi - full_hi).max() < 0.5, (seed, lo, hi, full_lo, full_hi)
+    assert np.allclose(lo, [1000.0, 2000.0], atol=2.0) and np.allclose(hi, [3000.0, 3000.0], atol=2.0), (seed, lo, hi)
