@@ -43,6 +43,7 @@ convention (centre of the first pixel at (0, 0)).
 
 from __future__ import annotations
 
+import ctypes
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -468,23 +469,56 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
     ref = left.astype(np.float32)
     var = cv2.boxFilter(ref * ref, -1, win) - np.square(cv2.boxFilter(ref, -1, win))
     disp[var < config.min_texture ** 2] = np.nan
-    at = rect.rect_pixels(rays, left=True).astype(np.float32)
-    col, row = np.nan_to_num(at[..., 0], nan=-10.0), np.nan_to_num(at[..., 1], nan=-10.0)
-    d = cv2.remap(disp, col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=np.nan)
-    # covered: the rectified left(x) inside the reference and right(x - d) inside the other frame, d the middle of
-    # the search (the pair could have measured the pixel, whether it did or not)
+    # back at the reference's pixels, in one compiled pass over them (the numpy passes and OpenCV's nearest-pixel
+    # remaps it replaces were a quarter of a pair's time); covered: the rectified left(x) inside the reference and
+    # right(x - d) inside the other frame, d the middle of the search (the pair could have measured the pixel,
+    # whether it did or not)
     middle = np.float32(plan.min_disparity + 0.5 * plan.num_disparities)
-    covered = ((cv2.remap(inside.astype(np.uint8), col, row, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT,
-                          borderValue=0) > 0)
-               & (cv2.remap(inside_right.astype(np.uint8), col - middle, row, cv2.INTER_NEAREST,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=0) > 0))
-    d_true = d - (rect.cx_left - rect.cx_right)
-    rz = rays @ rect.R[2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        z_rect = np.where(d_true > 0, rect.f * rect.baseline_m / d_true, np.nan)
-        depth = z_rect / rz
-        tol = config.agreement_px * z_rect * z_rect / (rect.f * rect.baseline_m * rz)
-    return depth.astype(np.float32), tol.astype(np.float32), covered
+    return _depth_at_reference(disp, inside, inside_right, rays, np.ascontiguousarray(rect.R, dtype=np.float64),
+                               float(rect.f), float(rect.cx_left), float(rect.cy), middle,
+                               np.float32(rect.cx_left - rect.cx_right), float(rect.f * rect.baseline_m),
+                               np.float32(config.agreement_px))
+
+
+@numba.njit(cache=True)
+def _depth_at_reference(disp: np.ndarray, inside: np.ndarray, inside_right: np.ndarray, rays: np.ndarray,
+                        R: np.ndarray, f: float, cx: float, cy: float, middle: np.float32, shift: np.float32,
+                        f_base: float, agreement: np.float32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`pair_depth` at the reference's pixels: each reference ray (``rays`` (h, w, 3), unit length along the
+    optical axis) into the rectified left frame (``R``, ``f``, ``cx``, ``cy``; float32 pixels, the nearest rectified
+    pixel as OpenCV's nearest-pixel remap takes it, round half to even), its disparity there (``disp``, NaN: none)
+    less ``shift`` (the rectified frames' principal columns apart) to a depth along the reference's axis and the
+    depth tolerance of ``agreement`` disparity pixels (``f_base``: the rectified focal length times the baseline);
+    covered where the rectified pixel is ``inside`` the reference and the pixel ``middle`` columns left of it is
+    ``inside_right`` the other frame. Returns (depth, tolerance) float32, NaN where no depth, and covered (bool)."""
+    h, w = rays.shape[0], rays.shape[1]
+    rh, rw = disp.shape[0], disp.shape[1]
+    depth = np.full((h, w), np.nan, dtype=np.float32)
+    tol = np.full((h, w), np.nan, dtype=np.float32)
+    covered = np.zeros((h, w), dtype=np.bool_)
+    nan32 = np.float32(np.nan)
+    for i in range(h):
+        for j in range(w):
+            x0, x1, x2 = np.float64(rays[i, j, 0]), np.float64(rays[i, j, 1]), np.float64(rays[i, j, 2])
+            r2 = R[2, 0] * x0 + R[2, 1] * x1 + R[2, 2] * x2
+            if not r2 > 1e-9:
+                continue
+            col = np.float32(cx + f * (R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2) / r2)
+            row = np.float32(cy + f * (R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2) / r2)
+            c, r = int(np.rint(col)), int(np.rint(row))
+            if r < 0 or r >= rh:
+                continue
+            if 0 <= c < rw:
+                cr = int(np.rint(col - middle))
+                covered[i, j] = inside[r, c] and 0 <= cr < rw and inside_right[r, cr]
+                d = disp[r, c] - shift
+                if d > 0:  # False for NaN
+                    z_rect = np.float32(f_base) / d
+                    depth[i, j] = np.float32(np.float64(z_rect) / r2)
+                    tol[i, j] = np.float32(np.float64(agreement * z_rect * z_rect) / (f_base * r2))
+                else:
+                    depth[i, j] = nan32
+    return depth, tol, covered
 
 
 def fuse_depths(depths: np.ndarray, tols: np.ndarray, min_agreeing: int,
@@ -835,7 +869,8 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     results.sort(key=lambda t: t[0])
     if not results:
         results = [(0, ReferencePoints.empty())]
-    image_id = np.concatenate([np.full(len(r.xyz), i, np.int32) for i, r in results])
+    image_id = np.repeat(np.array([i for i, _ in results], dtype=np.int32),
+                         np.array([len(r.xyz) for _, r in results], dtype=np.int64))
     # one field at a time, each reference's part released as it is copied: the parts and the whole cloud are
     # never all held at once (benchmarks/RESULTS.md, "Dense surface: the cloud's memory")
     fields = {name: [getattr(r, name) for _, r in results] for name in ("xyz", "value", "views", "rank")}
@@ -857,16 +892,45 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
 
 def _gathered(parts: list[np.ndarray]) -> np.ndarray:
     """The ``parts`` (arrays of one dtype and trailing shape) concatenated, each part dropped from the list as it
-    is copied (the caller holds no other reference): the whole and all the parts are never held at once."""
+    is copied (the caller holds no other reference): the whole and all the parts are never held at once.
+
+    The parts a Dask client received are a few megabytes each, which the C allocator keeps in its heap once freed
+    rather than giving back: every 64 MB copied, the freed pages are handed back (:func:`_release_freed_memory`),
+    or the process would hold the parts' pages and the whole at once (a city's 178 million points: 4 GB more at
+    the peak; ``benchmarks/RESULTS.md``, "City scale with the dense surface: the flow's memory")."""
     total = sum(len(p) for p in parts)
     out = np.empty((total, *parts[0].shape[1:]), dtype=parts[0].dtype)
     parts.reverse()
-    at = 0
+    at, since = 0, 0
     while parts:
         part = parts.pop()
         out[at:at + len(part)] = part
         at += len(part)
+        since += part.nbytes
+        del part
+        if since >= 64 << 20:
+            _release_freed_memory()
+            since = 0
+    _release_freed_memory()
     return out
+
+
+def _release_freed_memory() -> None:
+    """Hand the C heap's free pages back to the system (glibc's ``malloc_trim``; nothing where there is none)."""
+    if _LIBC is not None:
+        _LIBC.malloc_trim(0)
+
+
+def _libc() -> ctypes.CDLL | None:
+    try:
+        lib = ctypes.CDLL("libc.so.6")
+        lib.malloc_trim.argtypes = [ctypes.c_size_t]
+        return lib
+    except (OSError, AttributeError):  # not glibc (macOS, musl): freed memory is the allocator's business
+        return None
+
+
+_LIBC = _libc()
 
 
 def _kept(values: np.ndarray, keep: np.ndarray) -> np.ndarray:

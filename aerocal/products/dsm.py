@@ -459,24 +459,47 @@ PINHOLE_PASSES = 3
 
 def _fill_pinholes(heights: np.ndarray, has: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(heights, has) with the cells whose 8 neighbours hold at least 4 heights set to their mean, in
-    :data:`PINHOLE_PASSES` passes."""
+    :data:`PINHOLE_PASSES` passes (each pass reads the heights the one before left)."""
     heights, has = heights.copy(), has.copy()
-    ring = np.ones((3, 3), dtype=np.float32)
-    ring[1, 1] = 0.0
-    # the sums of the 8 neighbours, zero beyond the grid: OpenCV's filter rather than ndimage.convolve, the same
-    # sums to float32 rounding in a fraction of the time on a dense DSM's grid (benchmarks/RESULTS.md, "Dense
-    # surface: the filling's grid passes")
+    # one compiled pass over the hole cells per round: scipy's and OpenCV's neighbour sums over the whole grid took
+    # 9 s on a city's 79-million-cell DSM (benchmarks/RESULTS.md, "City scale with the dense surface: the flow's
+    # memory"); the same cells and means (tests/test_dsm.py compares them with scipy's convolution)
+    after = has.copy()
     for _ in range(PINHOLE_PASSES):
-        known = has.astype(np.float32)
-        count = cv2.filter2D(known, -1, ring, borderType=cv2.BORDER_CONSTANT)
-        pin = ~has & (count >= 4)
-        if not pin.any():
+        if not _pinhole_pass(heights, has, after):
             break
-        values = np.where(has, heights, 0.0).astype(np.float32)
-        total = cv2.filter2D(values, -1, ring, borderType=cv2.BORDER_CONSTANT)
-        heights[pin] = total[pin] / count[pin]
-        has |= pin
+        has[:] = after
     return heights, has
+
+
+@numba.njit(cache=True)
+def _pinhole_pass(heights: np.ndarray, has: np.ndarray, after: np.ndarray) -> int:
+    """One round of :func:`_fill_pinholes`: each cell not in ``has`` with at least 4 of its 8 neighbours in it takes
+    their mean height (zero neighbours beyond the grid) and is set in ``after``; returns how many were. Only cells
+    outside ``has`` are written, and only cells in it read, so the round reads the heights of the round before."""
+    rows, cols = has.shape
+    filled = 0
+    for r in range(rows):
+        for c in range(cols):
+            if has[r, c]:
+                continue
+            count = 0
+            total = 0.0
+            for dr in range(-1, 2):
+                rr = r + dr
+                if rr < 0 or rr >= rows:
+                    continue
+                for dc in range(-1, 2):
+                    cc = c + dc
+                    if (dr == 0 and dc == 0) or cc < 0 or cc >= cols or not has[rr, cc]:
+                        continue
+                    count += 1
+                    total += heights[rr, cc]
+            if count >= 4:
+                heights[r, c] = total / count
+                after[r, c] = True
+                filled += 1
+    return filled
 
 
 def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> np.ndarray:
@@ -511,9 +534,12 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
         corners = np.stack([rr[tri.simplices], cc[tri.simplices]], axis=2).astype(np.int64)
         _raster_triangles(corners, heights[rr, cc][tri.simplices].astype(np.float64), out, filled)
     if not filled.all():
-        near = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
+        # outside the hull, the nearest data cell: always a rim cell (the cell before it on the line from a hole cell
+        # is a hole cell, and touches it), so the rim's k-d tree answers; the exact transform's indices over the
+        # whole grid took 8 s of a city's filling
         hr, hc = np.nonzero(~filled)
-        out[hr, hc] = heights[near[0, hr, hc], near[1, hr, hc]]
+        _, near = cKDTree(np.column_stack([rr, cc])).query(np.column_stack([hr, hc]))
+        out[hr, hc] = heights[rr[near], cc[near]]
     return out
 
 
@@ -545,6 +571,12 @@ def _raster_triangles(rows: np.ndarray, values: np.ndarray, out: np.ndarray, fil
                 if (det > 0 and a0 >= 0 and a1 >= 0 and a2 >= 0) or (det < 0 and a0 <= 0 and a1 <= 0 and a2 <= 0):
                     out[r, c] = (a0 * v0 + a1 * v1 + a2 * v2) * inv
                     filled[r, c] = True
+
+
+#: the DSM's deflate level (GDAL's default is 6): on a city's 79-million-cell dense DSM level 1 wrote the file in
+#: 55 % of the time for 4 % more bytes (benchmarks/RESULTS.md, "City scale with the dense surface: the flow's
+#: memory")
+DEFLATE_LEVEL = 1
 
 
 def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None,
@@ -585,8 +617,9 @@ def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None,
                 if views is not None:
                     dst.set_band_description(3, "views")
                 dst.update_tags(AREA_OR_POINT="Area", units="metre")
-            rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", PREDICTOR="YES", BLOCKSIZE=256,
-                                 OVERVIEW_RESAMPLING="AVERAGE", BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
+            rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", LEVEL=DEFLATE_LEVEL, PREDICTOR="YES",
+                                 BLOCKSIZE=256, OVERVIEW_RESAMPLING="AVERAGE", BIGTIFF="IF_SAFER",
+                                 NUM_THREADS="ALL_CPUS")
         finally:
             work.unlink(missing_ok=True)
     return path
