@@ -470,7 +470,8 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
     var = cv2.boxFilter(ref * ref, -1, win) - np.square(cv2.boxFilter(ref, -1, win))
     disp[var < config.min_texture ** 2] = np.nan
     # back at the reference's pixels, in one compiled pass over them (the numpy passes and OpenCV's nearest-pixel
-    # remaps it replaces were a quarter of a pair's time); covered: the rectified left(x) inside the reference and
+    # remaps it replaces were about a third of a reference's time: benchmarks/RESULTS.md, "City scale with the
+    # dense surface: the flow's memory"); covered: the rectified left(x) inside the reference and
     # right(x - d) inside the other frame, d the middle of the search (the pair could have measured the pixel,
     # whether it did or not)
     middle = np.float32(plan.min_disparity + 0.5 * plan.num_disparities)
@@ -496,7 +497,6 @@ def _depth_at_reference(disp: np.ndarray, inside: np.ndarray, inside_right: np.n
     depth = np.full((h, w), np.nan, dtype=np.float32)
     tol = np.full((h, w), np.nan, dtype=np.float32)
     covered = np.zeros((h, w), dtype=np.bool_)
-    nan32 = np.float32(np.nan)
     for i in range(h):
         for j in range(w):
             x0, x1, x2 = np.float64(rays[i, j, 0]), np.float64(rays[i, j, 1]), np.float64(rays[i, j, 2])
@@ -505,19 +505,18 @@ def _depth_at_reference(disp: np.ndarray, inside: np.ndarray, inside_right: np.n
                 continue
             col = np.float32(cx + f * (R[0, 0] * x0 + R[0, 1] * x1 + R[0, 2] * x2) / r2)
             row = np.float32(cy + f * (R[1, 0] * x0 + R[1, 1] * x1 + R[1, 2] * x2) / r2)
-            c, r = int(np.rint(col)), int(np.rint(row))
-            if r < 0 or r >= rh:
+            if not (-1.0 < col < rw and -1.0 < row < rh):  # outside (and no integer conversion of a huge value)
                 continue
-            if 0 <= c < rw:
-                cr = int(np.rint(col - middle))
-                covered[i, j] = inside[r, c] and 0 <= cr < rw and inside_right[r, cr]
-                d = disp[r, c] - shift
-                if d > 0:  # False for NaN
-                    z_rect = np.float32(f_base) / d
-                    depth[i, j] = np.float32(np.float64(z_rect) / r2)
-                    tol[i, j] = np.float32(np.float64(agreement * z_rect * z_rect) / (f_base * r2))
-                else:
-                    depth[i, j] = nan32
+            c, r = int(np.rint(col)), int(np.rint(row))
+            if not (0 <= c < rw and 0 <= r < rh):
+                continue
+            cr = int(np.rint(col - middle))
+            covered[i, j] = inside[r, c] and 0 <= cr < rw and inside_right[r, cr]
+            d = disp[r, c] - shift
+            if d > 0:  # False for NaN: no depth
+                z_rect = np.float32(f_base) / d
+                depth[i, j] = np.float32(np.float64(z_rect) / r2)
+                tol[i, j] = np.float32(np.float64(agreement * z_rect * z_rect) / (f_base * r2))
     return depth, tol, covered
 
 
