@@ -283,3 +283,28 @@ def test_the_bulk_extent_of_a_large_cloud_comes_from_a_sample_within_its_quantil
     full_lo, full_hi = bulk_extent(xy, max_points=len(xy))
     assert np.abs(lo - full_lo).max() < 0.5 and np.abs(hi - full_hi).max() < 0.5, (seed, lo, hi, full_lo, full_hi)
     assert np.allclose(lo, [1000.0, 2000.0], atol=2.0) and np.allclose(hi, [3000.0, 3000.0], atol=2.0), (seed, lo, hi)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_few_cells_outside_the_hull_take_the_same_nearest_height_from_the_rims_tree(seed, monkeypatch):
+    """Where few cells lie outside the data's hull, the nearest data cell comes from a k-d tree of the holes' rims:
+    the height the exact transform gives, but where two data cells are equally near."""
+    from scipy.spatial import cKDTree
+
+    import aerocal.products.dsm as dsm_module
+
+    rng = np.random.default_rng(seed)
+    heights = 100.0 + rng.normal(0.0, 2.0, (160, 140))
+    has = rng.random(heights.shape) < 0.8
+    for r, c in ((0, 0), (0, -4), (-4, 0), (-4, -4)):  # the corners cut off: cells outside the hull
+        has[r:r + 4 if r >= 0 else None, c:c + 4 if c >= 0 else None] = False
+    hull_outside = 4 * 6  # about: the triangles cut each 4 x 4 corner along its diagonal
+    assert hull_outside * dsm_module.NEAREST_QUERY_CELLS < has.size, "the case is the k-d tree's"
+    tree = dsm_module.fill_holes(heights.copy(), has)
+    monkeypatch.setattr(dsm_module, "NEAREST_QUERY_CELLS", has.size)  # every query too dear: the transform
+    exact = dsm_module.fill_holes(heights.copy(), has)
+    assert np.isfinite(tree).all(), f"seed {seed}"
+    differ = np.argwhere(tree != exact)
+    known = np.argwhere(has)
+    d, _ = cKDTree(known).query(differ, k=2)
+    assert np.allclose(d[:, 0], d[:, 1]), f"seed {seed}: a cell took a data cell that is not nearest"
