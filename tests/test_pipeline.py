@@ -80,6 +80,14 @@ def test_a_dataset_in_memory_gives_the_folder_answer_and_a_store_is_reused(simul
     assert in_memory.summary.certificate_reason.startswith("newest applicable certificate"), \
         in_memory.summary.certificate_reason
     assert "calibrate" not in in_memory.steps and in_memory.steps["match"].skipped
+    # each step's figures are those its type declares (aerocal.pipeline.figures), here as a reader finds them
+    from aerocal.pipeline.figures import FIGURES
+
+    for name, step in from_folder.steps.items():
+        if name in FIGURES and not step.skipped:
+            declared = FIGURES[name]
+            assert declared.__required_keys__ <= set(step.extra) <= set(declared.__annotations__), (name, step.extra)
+    assert from_folder.steps["orient"].extra["method"] == "priors" and from_folder.steps["control"].extra["datum"]
     a, b = from_folder.table("poses"), in_memory.table("poses")
     for col in ("X", "Y", "Z"):
         np.testing.assert_allclose(a.column(col).to_numpy(), b.column(col).to_numpy(), atol=1e-6)

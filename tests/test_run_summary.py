@@ -59,3 +59,23 @@ def test_a_run_json_of_an_earlier_version_still_reads():
 def test_a_summary_that_could_not_be_right_is_refused_where_it_is_made(bad, message):
     with pytest.raises((ValueError, TypeError), match=message):
         bad()
+
+
+def test_a_step_makes_only_the_figures_its_type_declares():
+    """A step's small figures (``run.json``'s ``steps.<name>.extra``) are checked against the step's type when the
+    step makes them: an undeclared name, a missing one or a value of another type is refused there, not found
+    missing by a reader later."""
+    from aerocal.pipeline.figures import step_figures
+
+    made = step_figures("match", pairs=3, observations=120, pairs_from="footprints")
+    assert made.value == {"pairs": 3, "observations": 120, "pairs_from": "footprints"}
+    assert step_figures("orient", method="priors", images=2, observations=9, tracks=4,
+                        images_without_observations=0).value["method"] == "priors"
+    with pytest.raises(TypeError, match="undeclared \\['pair'\\]"):
+        step_figures("match", pair=3, pairs=3, observations=120, pairs_from="footprints")
+    with pytest.raises(TypeError, match="missing \\['review'\\]"):
+        step_figures("calibrate", certificate_id="c1")
+    with pytest.raises(TypeError, match="pairs must be int"):
+        step_figures("match", pairs=True, observations=1, pairs_from="footprints")
+    with pytest.raises(TypeError, match="datum must be str"):
+        step_figures("control", datum=None, demoted=[], lines=[])

@@ -9,8 +9,9 @@ store (the database).
 Modules: :mod:`~aerocal.pipeline.dataset` (where a flight's inputs come from), :mod:`~aerocal.pipeline.config`
 (typed settings per step), :mod:`~aerocal.pipeline.runner` (outputs, results, the in-memory runner),
 :mod:`~aerocal.pipeline.certificates` (the certificate store interface and the choice), one module per step
-(``*_step``), :mod:`~aerocal.pipeline.process` and what a run hands on, :mod:`~aerocal.pipeline.summary`
-(:class:`RunSummary`, read by the CLI, written as ``run.json``).
+(``*_step``), :mod:`~aerocal.pipeline.figures` (each step's small figures, typed), :mod:`~aerocal.pipeline.process`
+and what a run hands on, :mod:`~aerocal.pipeline.summary` (:class:`RunSummary`, read by the CLI, written as
+``run.json``).
 
 Tests: tests/test_pipeline.py, tests/test_run_summary.py, tests/test_run_failures.py, tests/test_config_validation.py,
 tests/test_model_loop.py.

@@ -9,7 +9,8 @@ from aerocal.adjust import AdjustConfig
 from aerocal.calibrate.self_calibration import CalibrationConfig, certificate_from_calibration, self_calibrate
 from aerocal.camera import Camera
 from aerocal.pipeline.certificates import identity_of
-from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult
+from aerocal.pipeline.figures import step_figures
+from aerocal.pipeline.runner import EXTRA, JsonOutput, Runner, StepInputs, StepResult
 
 
 def calibrate_step(runner: Runner, ingest: StepResult, observations: str, config: CalibrationConfig | None = None,
@@ -41,7 +42,7 @@ def calibrate_step(runner: Runner, ingest: StepResult, observations: str, config
             "certificate": JsonOutput(cert.to_dict(), "certificate"),
             "calibration": JsonOutput(
                 {**cal.summary(), "high_correlations": cert.correlation.high_pairs(0.9)}, "calibration"),
-            "_extra": JsonOutput({"certificate_id": cert.id, "review": cal.review.status}, "extra"),
+            EXTRA: step_figures(name, certificate_id=cert.id, review=str(cal.review.status)),
         }
 
     return runner.run(name, inputs, {"config": config, "adjust": acfg}, compute)

@@ -7,12 +7,15 @@ says why it is not.
 
 from __future__ import annotations
 
+from typing import cast
+
 from aerocal.adjust import AdjustConfig, AdjustmentError
 from aerocal.adjust.control import reference_poses, screen_control
 from aerocal.camera import Camera
 from aerocal.pipeline.config import ControlStepConfig
+from aerocal.pipeline.figures import OrientFigures, step_figures
 from aerocal.pipeline.orient_step import INCREMENTAL
-from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
+from aerocal.pipeline.runner import EXTRA, JsonOutput, Runner, StepInputs, StepResult, TableOutput
 
 
 def control_step(runner: Runner, ingest: StepResult, observations: str, orient: StepResult,
@@ -21,7 +24,7 @@ def control_step(runner: Runner, ingest: StepResult, observations: str, orient: 
     screened tables) and ``screening`` (the verdict per point, the datum, notes); ``extra``: the datum, the
     demoted points and one line per point."""
     config = config or ControlStepConfig()
-    oriented_by_sfm = orient.extra.get("method") == INCREMENTAL
+    oriented_by_sfm = cast(OrientFigures, orient.extra)["method"] == INCREMENTAL
     inputs = {
         "images": ingest["images"],
         "observations": observations,
@@ -41,7 +44,7 @@ def control_step(runner: Runner, ingest: StepResult, observations: str, orient: 
             doc = {"datum": datum, "verdicts": [], "notes": [why], "demoted": [], "lines": []}
             return {"gcps": TableOutput(gcps, "gcps"), "gcp_observations": TableOutput(gobs, "gcp_observations"),
                     "screening": JsonOutput(doc, "screening"),
-                    "_extra": JsonOutput({"datum": datum, "demoted": [], "lines": []}, "extra")}
+                    EXTRA: step_figures("control", datum=datum, demoted=[], lines=[])}
         if oriented_by_sfm or adjust_config.gnss_sigma_m is None:
             datum = "control"
             reference = ("the orientation georeferenced on the control it kept" if oriented_by_sfm else
@@ -59,8 +62,8 @@ def control_step(runner: Runner, ingest: StepResult, observations: str, orient: 
             "gcps": TableOutput(result.gcps, "gcps"),
             "gcp_observations": TableOutput(result.gcp_observations, "gcp_observations"),
             "screening": JsonOutput(result.to_dict(), "screening"),
-            "_extra": JsonOutput({"datum": datum, "demoted": [v.gcp_id for v in result.demoted],
-                                  "lines": result.lines()}, "extra"),
+            EXTRA: step_figures("control", datum=datum, demoted=[v.gcp_id for v in result.demoted],
+                                lines=result.lines()),
         }
 
     params = {"config": config, "adjust": adjust_config, "sfm": oriented_by_sfm}

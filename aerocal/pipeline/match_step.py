@@ -24,8 +24,9 @@ from aerocal.matching.cluster import ExecutionConfig, Progress
 from aerocal.matching.retrieval import retrieve_pairs
 from aerocal.pipeline.config import MatchStepConfig
 from aerocal.pipeline.dataset import FlightInputError
+from aerocal.pipeline.figures import step_figures
 from aerocal.pipeline.progress import step_progress
-from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
+from aerocal.pipeline.runner import EXTRA, Runner, StepInputs, StepResult, TableOutput
 from aerocal.poses import has_priors
 
 
@@ -159,8 +160,8 @@ def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | Non
             "keypoints": TableOutput(kp, "keypoints"),
             "matches": TableOutput(matches, "matches"),
             "observations": TableOutput(obs, "observations"),
-            "_extra": JsonOutput({"pairs": n_pairs, "observations": obs.num_rows,
-                                  "pairs_from": pairs_from(inp.table("images"))}, "extra"),
+            EXTRA: step_figures("match", pairs=n_pairs, observations=obs.num_rows,
+                                pairs_from=pairs_from(inp.table("images"))),
         }
 
     return runner.run("match", inputs, config, compute)

@@ -15,7 +15,8 @@ from aerocal.orient import (
 )
 from aerocal.pipeline.config import OrientStepConfig
 from aerocal.pipeline.dataset import FlightInputError
-from aerocal.pipeline.runner import JsonOutput, Runner, StepInputs, StepResult, TableOutput
+from aerocal.pipeline.figures import step_figures
+from aerocal.pipeline.runner import EXTRA, Runner, StepInputs, StepResult, TableOutput
 
 #: ``extra["method"]`` of a block oriented by SfM
 INCREMENTAL = "incremental"
@@ -73,13 +74,11 @@ def orient_step(runner: Runner, ingest: StepResult, observations: str, config: O
         ids = images.column("image_id").to_numpy().astype(int)
         per_image = np.bincount(obs.column("image_id").to_numpy().astype(int), minlength=ids.max() + 1)
         out["initial_poses"] = TableOutput(poses, "poses")
-        out["_extra"] = JsonOutput({
-            **info,
-            "images": images.num_rows,
-            "observations": obs.num_rows,
-            "tracks": len(set(obs.column("track_id").to_pylist())),
-            "images_without_observations": int(np.sum(per_image[ids] == 0)),
-        }, "extra")
+        out[EXTRA] = step_figures(
+            "orient", **info, images=images.num_rows, observations=obs.num_rows,
+            tracks=len(set(obs.column("track_id").to_pylist())),
+            images_without_observations=int(np.sum(per_image[ids] == 0)),
+        )
         return out
 
     return runner.run("orient", inputs, config, compute)

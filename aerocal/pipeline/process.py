@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 from aerocal.certificates.identity import CameraIdentity
 from aerocal.matching.cluster import ExecutionConfig
@@ -49,6 +49,7 @@ from aerocal.pipeline.control_step import control_step
 from aerocal.pipeline.dataset import FlightDataset, FlightInputError, dataset_of
 from aerocal.pipeline.diagnose_step import diagnose_step
 from aerocal.pipeline.extend_step import extend_step, extension_record, model_terms
+from aerocal.pipeline.figures import ControlFigures, OrientFigures
 from aerocal.pipeline.findings import run_findings
 from aerocal.pipeline.ingest_step import ingest_step
 from aerocal.pipeline.match_step import match_step
@@ -199,13 +200,14 @@ def process(
         steps["match"] = runner.skip("match", "observations mode")
         observations = ing["observations"]
     ori = steps["orient"] = orient_step(runner, ing, observations, config.orient, matched)
-    if ori.extra.get("method") == INCREMENTAL:
+    if cast(OrientFigures, ori.extra)["method"] == INCREMENTAL:
         # oriented by SfM: later steps read the registered images with the oriented poses, which are starting
         # values, not GNSS/IMU measurements; the datum comes from the control GCPs
         ing = ing.with_outputs(images=ori["images"])
         adjustments = without_recorded_eo(adjustments)
         record.configuration(adjustments)
     ctl = steps["control"] = control_step(runner, ing, observations, ori, adjustments.block, config.control)
+    control = cast(ControlFigures, ctl.extra)
     # every later step sees the screened ground control: a demoted point is neither control nor check
     ing = ing.with_outputs(gcps=ctl["gcps"], gcp_observations=ctl["gcp_observations"],
                            control_screening=ctl["screening"])
@@ -336,8 +338,7 @@ def process(
         images_skipped_at_ingest=tuple(flight_doc.get("skipped_images") or ()),
         ingest_problems=tuple(flight_doc.get("problems") or ()),
         flight_facts=dict(flight_doc.get("facts") or {}),
-        ground_control=GroundControlSummary(ctl.extra.get("datum"), tuple(ctl.extra.get("demoted", ())),
-                                            tuple(ctl.extra.get("lines", ()))),
+        ground_control=GroundControlSummary(control["datum"], tuple(control["demoted"]), tuple(control["lines"])),
         out_dir=None if out_dir is None else str(out_dir),
         outputs=outputs,
         files=files,

@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import pyarrow as pa
@@ -38,6 +38,9 @@ import pyarrow.parquet as pq
 from aerocal.io import atomic_path, file_sha256, plain_json
 from aerocal.pipeline.interrupts import check_interrupted
 from aerocal.pipeline.summary import StepRecord, StepStatus
+
+if TYPE_CHECKING:  # the figures' module makes its outputs with this one's JsonOutput
+    from aerocal.pipeline.figures import StepFigures
 
 #: version of the cache-key recipe; changing it invalidates every stored step
 STEP_FORMAT = "aerocal.step/1"
@@ -87,7 +90,8 @@ EXTRA = "_extra"
 @dataclass
 class StepResult:
     """What a step produced: output name -> reference, whether it was reused, which run computed it, how long
-    it took (seconds) and its small figures (``extra``: counts, the method used, ``skipped`` and why)."""
+    it took (seconds) and its small figures (``extra``: counts, the method used, ``skipped`` and why; the step's
+    type of :mod:`aerocal.pipeline.figures`)."""
 
     step: str
     key: str
@@ -95,7 +99,7 @@ class StepResult:
     reused: bool
     computed_by: str
     seconds: float
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: StepFigures | dict = field(default_factory=dict)  # {} for a step without figures
 
     def __getitem__(self, name: str) -> str:
         return self.outputs[name]

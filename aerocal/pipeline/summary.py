@@ -13,9 +13,12 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from aerocal.pipeline.findings import Finding
+
+if TYPE_CHECKING:
+    from aerocal.pipeline.figures import StepFigures
 
 
 class FlightMode(StrEnum):
@@ -37,14 +40,14 @@ class StepStatus(StrEnum):
 class StepRecord:
     """One step of a run: its ``status``, wall time in ``seconds``, the run that ``computed_by`` it, its cache
     ``key``, its ``outputs`` (output name -> artifact reference), its small figures (``extra``: counts, the method
-    used; JSON values whose names are the step's own) and, when skipped, the ``reason``."""
+    used; the step's type of :mod:`aerocal.pipeline.figures`) and, when skipped, the ``reason``."""
 
     status: StepStatus
     seconds: float = 0.0
     computed_by: str | None = None
     key: str | None = None
     outputs: dict[str, str] = field(default_factory=dict)
-    extra: dict[str, Any] = field(default_factory=dict)
+    extra: StepFigures | dict = field(default_factory=dict)
     reason: str | None = None
 
     def __post_init__(self) -> None:
