@@ -114,6 +114,30 @@ def test_a_flight_folder_as_it_comes_off_the_drone_passes_the_checks(tmp_path):
     assert "f 764.7 px" in text and "flying height" in text and "60.0 m" in text
 
 
+def test_ground_control_from_files_outside_the_folder_is_read_as_process_reads_it(tmp_path):
+    """`aerocal ingest FOLDER --gcp A --gcp B`: the control's coordinates in one file and its image measurements in
+    another, neither in the folder, read by the reader `aerocal process` uses (both files are ingested: two GCPs,
+    their three measurements); the folder alone has no control."""
+    from aerocal.geometry import lonlat_to_projected
+
+    flight = _flight(tmp_path / "flight")
+    e, n = (float(v) for v in lonlat_to_projected(8.0, 47.0001, "EPSG:32632"))
+    control = tmp_path / "control"
+    control.mkdir()
+    (control / "gcps.csv").write_text(
+        f"# crs: EPSG:32632\nid,X,Y,Z,role\nG1,{e},{n},560.0,control\nG2,{e + 5},{n + 5},561.0,check\n")
+    (control / "gcp_list.txt").write_text(
+        f"EPSG:32632\n{e} {n} 560.0 320.5 256.5 DJI_0001_R.jpg G1\n{e} {n} 560.0 322.5 180.5 DJI_0002_R.jpg G1\n"
+        f"{e + 5} {n + 5} 561.0 300.5 200.5 DJI_0001_R.jpg G2\n")
+    alone = " ".join(CliRunner().invoke(app, ["ingest", str(flight)], env={"COLUMNS": "250"}).output.split())
+    assert "GCPs" not in alone, alone
+    res = CliRunner().invoke(app, ["ingest", str(flight), "--gcp", str(control / "gcps.csv"), "--gcp",
+                                   str(control / "gcp_list.txt")], env={"COLUMNS": "250"})
+    text = " ".join(res.output.split())
+    assert res.exit_code == 0, res.output
+    assert "2 GCPs (1 control, 1 check), 3 image measurements of 2" in text, res.output
+
+
 def test_ground_control_1000_m_off_in_one_file_stops_process(tmp_path, store):
     """gcps.csv and gcp_list.txt disagree about G1 by 1000 m: one of them is wrong and only the user knows
     which, so the point is never used as control (it once put check points 87 m off, exit 0)."""

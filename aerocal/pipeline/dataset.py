@@ -31,7 +31,7 @@ from aerocal import tables
 from aerocal.camera import Camera
 from aerocal.certificates.document import validate_camera
 from aerocal.certificates.identity import CameraIdentity
-from aerocal.ingest import ingest_folder
+from aerocal.ingest import IngestResult, ingest_folder
 from aerocal.ingest.inferred import certificate_identity
 from aerocal.ingest.problems import Problem, ProblemLog
 from aerocal.ingest.sidecars import sidecar_problems
@@ -58,20 +58,29 @@ class FlightInputError(ValueError):
 
 @dataclass(frozen=True)
 class IngestStepConfig:
-    """The ingest step's settings (the configuration a dataset is read with): ``gcp_file`` / ``eo_file``
-    override the folder's own files, ``crs`` the automatic UTM zone (image mode only); ``flight_name`` defaults
+    """The ingest step's settings (the configuration a dataset is read with): ``gcp_file`` (a path, or a tuple of
+    them when the coordinates and the image measurements are in separate files) / ``eo_file`` override the
+    folder's own files, ``crs`` the automatic UTM zone (image mode only); ``flight_name`` defaults
     to the folder's (or dataset's) name. ``None`` everywhere: the folder decides. A value given is a non-empty
     string (a path may be a :class:`~pathlib.Path`); whether the files exist and the CRS is a projected one is
     ingest's to judge, which reports them as problems of the flight (:func:`aerocal.ingest.ingest_folder`)."""
 
-    gcp_file: str | None = None
+    gcp_file: str | tuple[str, ...] | None = None
     eo_file: str | None = None
     crs: str | None = None
     flight_name: str | None = None
 
     def __post_init__(self) -> None:
+        if isinstance(self.gcp_file, list | tuple):  # several GCP files (``aerocal ingest --gcp A --gcp B``)
+            files = tuple(self.gcp_file)
+            if not files or not all(isinstance(f, str | PurePath) and str(f).strip() for f in files):
+                raise ValueError(f"IngestStepConfig.gcp_file must be None, a non-empty path or a non-empty tuple "
+                                 f"of them, got {self.gcp_file!r}")
+            object.__setattr__(self, "gcp_file", files if len(files) > 1 else files[0])
         for name in ("gcp_file", "eo_file", "crs", "flight_name"):
             value = getattr(self, name)
+            if name == "gcp_file" and isinstance(value, tuple):
+                continue
             paths = (str, PurePath) if name.endswith("_file") else (str,)
             if value is not None and not (isinstance(value, paths) and str(value).strip()):
                 what = "a non-empty path" if name.endswith("_file") else "a non-empty string"
@@ -269,6 +278,13 @@ class FolderDataset:
             raise FlightInputError("\n".join(lines))
         return IngestedFlight(tabs, cam_doc, meta, crs, FlightMode.OBSERVATIONS, [str(p) for p in found])
 
+    def ingest(self, settings: IngestStepConfig) -> IngestResult:
+        """Ingest's whole report of the folder's images (:func:`aerocal.ingest.ingest_folder` with the files and
+        CRS of ``settings``): the tables and every problem, those that stop processing included, raising none of
+        them. ``aerocal ingest`` prints it; :meth:`read_images` stops on its blocking problems."""
+        gcp = list(settings.gcp_file) if isinstance(settings.gcp_file, tuple) else settings.gcp_file
+        return ingest_folder(self.folder, gcp_file=gcp, eo_file=settings.eo_file, crs=settings.crs)
+
     def read_images(self, settings: IngestStepConfig) -> IngestedFlight:
         """The folder's images as image mode reads them (also where it holds observation tables: ``aerocal
         match`` makes them again), the tables, camera and flight metadata ingest gives the pipeline.
@@ -277,7 +293,7 @@ class FolderDataset:
             FlightInputError: ingest finds problems that stop processing (the message is their report), or the flying
                 height is needed and cannot be measured (:func:`measured_flying_height`).
         """
-        res = ingest_folder(self.folder, gcp_file=settings.gcp_file, eo_file=settings.eo_file, crs=settings.crs)
+        res = self.ingest(settings)
         if res.blocking:
             raise FlightInputError(blocking_report(res))
         cam_doc = {"identity": CameraIdentity.coerce(res.camera_identity).as_dict(),

@@ -209,8 +209,8 @@ def print_ingest_report(folder: Path, rows: list[tuple[str, str]], problems: lis
 def stop_if_not_processable(flight_dir: Path) -> None:
     """Run ingest's checks on a flight (those of ``aerocal ingest``) before any server starts; on a blocking
     problem print them and exit 2 (bad input)."""
-    # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
-    from aerocal.ingest import ingest_folder
+    # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
+    from aerocal.pipeline.dataset import FolderDataset, IngestStepConfig
 
     if (flight_dir / "observations" / "observations.parquet").is_file():
         # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
@@ -228,7 +228,7 @@ def stop_if_not_processable(flight_dir: Path) -> None:
         return
     with user_errors():
         with console.status(f"checking {flight_dir} ..."):
-            result = ingest_folder(flight_dir)
+            result = FolderDataset(flight_dir).ingest(IngestStepConfig())
     if result.blocking:
         err_console.print(
             f"[red]error:[/red] {flight_dir} cannot be processed: {len(result.blocking)} problem(s) stop "
@@ -255,8 +255,9 @@ def ingest(
 
     Example: aerocal ingest flights/2016-03-14 --gcp flights/2016-03-14/gcp_list.txt --out ingested
     """
-    # lazy: aerocal.ingest costs ~1.3 s CPU at start-up (OpenCV, Pillow, SciPy); --help must not pay it
-    from aerocal.ingest import ingest_folder, summary_rows, write_ingest
+    # lazy: aerocal.ingest and aerocal.pipeline cost ~1.4 s CPU at start-up; --help must not pay it
+    from aerocal.ingest import summary_rows, write_ingest
+    from aerocal.pipeline.dataset import FolderDataset, IngestStepConfig
 
     if not folder.exists():
         fail(f"{folder}: no such folder; give a flight folder or a folder of images", BAD_INPUT)
@@ -265,7 +266,9 @@ def ingest(
         return
     with user_errors():
         with console.status(f"ingesting {folder} ..."):
-            result = ingest_folder(folder, gcp_file=list(gcp) or None, eo_file=eo, crs=crs)
+            # the reader `aerocal process` uses, with the files given here
+            result = FolderDataset(folder).ingest(IngestStepConfig(gcp_file=tuple(gcp) or None, eo_file=eo,
+                                                                   crs=crs))
         if out is not None:
             write_ingest(result, out)
     print_ingest_report(folder, summary_rows(result), result.problems, out)
