@@ -985,8 +985,17 @@ def levenberg_marquardt(
     ``cost``: at the start, already linearised there; ``step(lam)``: solve the normal equations damped by
     ``lam``, form the candidate state and return ``(its cost, dc . rhs)``; ``accept()``: move to the candidate,
     linearise there and return the cost; ``reject()``: drop it. Returns ``(cost, iterations, converged,
-    history)``."""
+    history)``.
+
+    The damping follows Nielsen's rule (as Ceres's Levenberg-Marquardt strategy does): an accepted step divides
+    ``lam`` by at most 3, less where the cost fell by less than the linear model predicted (half the step's
+    ``dc . rhs``); a rejected one multiplies it by 2, 4, 8, ... A fixed factor of 10 both ways leaves a block
+    whose full step overshoots alternating between two dampings a decade apart, one short step in two iterations,
+    and a capped robust pass then ends short of the optimum (a real block where it did, and what it cost the
+    certificate: ``benchmarks/RESULTS.md``, "copr: the damping rule").
+    """
     lam = 1e-4
+    grow = 2.0  # the factor of the next rejection
     history = [cost]
     converged = False
     it = 0
@@ -996,7 +1005,10 @@ def levenberg_marquardt(
         if np.isfinite(new_cost) and new_cost <= cost:
             rel = (cost - new_cost) / max(cost, 1e-300)
             history.append(new_cost)
-            lam = max(lam / 10.0, 1e-12)
+            # gain ratio: the decrease against the linear model's (dc . rhs / 2, the points' share left out)
+            gain = (cost - new_cost) / max(0.5 * abs(step_metric), 1e-300)
+            lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3), 1e-12)
+            grow = 2.0
             cost = accept()
             # camera-side step in its own metric (dc' S dc = dc' rhs): below step_tolerance^2 the cameras
             # and IO moved by less than step_tolerance of their standard deviation; what still moves then
@@ -1013,7 +1025,8 @@ def levenberg_marquardt(
                 break
         else:
             reject()
-            lam *= 10.0
+            lam *= grow
+            grow *= 2.0
             if lam > 1e8:
                 converged = True  # no further decrease possible: at the minimum to machine precision
                 break
