@@ -57,10 +57,12 @@ class AdjustConfig:
     * ``robust_loss``: :class:`RobustLoss` ("none", default; "huber" or "cauchy"; its string value is accepted
       and held as the member), on tie-point observations only, with ``robust_scale`` in units of the
       observation's sigma (default 3). With a robust loss and ``reject_chi2`` (default 13.8, the 99.9 % point
-      of chi-square with 2 degrees of freedom) the robust pass (at most ``robust_iterations``, default 15) only
-      screens: observations whose squared normalised residual exceeds ``reject_chi2`` times the robust
-      variance factor are removed and the block is adjusted again by least squares, so sigma0 and the
-      covariances describe clean data; ``reject_chi2=None`` keeps the robust solution itself.
+      of chi-square with 2 degrees of freedom) the robust pass (at most ``robust_iterations``, default 100) only
+      screens, and runs to its optimum: which observations it removes must not depend on where an iteration cap
+      stopped it (``benchmarks/RESULTS.md``, "copr: the damping rule"); observations whose squared normalised
+      residual exceeds ``reject_chi2`` times the robust variance factor are removed and the block is adjusted
+      again by least squares, so sigma0 and the covariances describe clean data; ``reject_chi2=None`` keeps the
+      robust solution itself.
     * ``estimate_tie_sigma``: with that screening, the tie observations' sigma is estimated from the block
       (default True): scaled by the square root of their variance factor (mean normalised squared
       residual over the mean redundancy), first from the robust pass, then from the least-squares
@@ -107,7 +109,7 @@ class AdjustConfig:
     robust_loss: RobustLoss = RobustLoss.NONE
     robust_scale: float = 3.0
     reject_chi2: float | None = 13.8
-    robust_iterations: int = 15
+    robust_iterations: int = 100
     estimate_tie_sigma: bool = True
     tie_thinning: ThinningConfig | None = None
     max_iterations: int = 50
