@@ -30,7 +30,7 @@ from aerocal.effects import CATALOGUE
 SENECA = Path(__file__).resolve().parents[2] / "shared" / "data" / "seneca" / "images"
 #: the quick block's certificate when it was judged right: parameter -> (value, calibrated sigma, cap on the
 #: tolerance), in pixels or the Brown coefficient's units; pinned again when the blunder screening's robust pass
-#: ran to its optimum (it had stopped at an iteration cap: cx was 902.4, 4.1 formal sigmas off the converged
+#: ran to its optimum (it had stopped at an iteration cap: cx came out at 903.0, 4.1 formal sigmas off the converged
 #: answer; benchmarks/RESULTS.md, "copr: the damping rule")
 PINNED = {"cx": (897.2, 3.9, 12.0), "cy": (660.5, 4.2, 12.0), "k1": (-0.0381, 0.0018, 0.006)}
 #: the dense surface's flying height over the DTM against the recorded one, relative, when it was first measured
