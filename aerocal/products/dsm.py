@@ -536,8 +536,7 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
     if not filled.all():
         # outside the hull, the nearest data cell. It is always a rim cell (the cell before it on the line from a hole
         # cell is a hole cell, and touches it), so where those cells are few the rim's k-d tree answers; a query
-        # costs about as much as 45 cells of the exact transform over the whole grid (a city's DSM: the transform
-        # 7.8 s; seneca's: 7 million cells outside the hull, the tree 31.6 s against the transform's 1.7 s)
+        # costs about as much as NEAREST_QUERY_CELLS cells of the exact transform over the whole grid
         hr, hc = np.nonzero(~filled)
         if len(hr) * NEAREST_QUERY_CELLS < heights.size:
             _, near = cKDTree(np.column_stack([rr, cc])).query(np.column_stack([hr, hc]))
@@ -548,8 +547,8 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
     return out
 
 
-#: cells of the exact distance transform one k-d tree query costs (:func:`fill_holes`; measured on a city's and
-#: seneca's dense DSMs, ``benchmarks/RESULTS.md``, "City scale with the dense surface: the flow's memory")
+#: cells of the exact distance transform one k-d tree query costs (:func:`fill_holes`; from seneca's dense DSM, the
+#: one both were timed on; ``benchmarks/RESULTS.md``, "City scale with the dense surface: the flow's memory")
 NEAREST_QUERY_CELLS = 45
 
 

@@ -210,12 +210,9 @@ def stop_if_not_processable(flight_dir: Path) -> None:
     """Run ingest's checks on a flight (those of ``aerocal ingest``) before any server starts; on a blocking
     problem print them and exit 2 (bad input)."""
     # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
-    from aerocal.pipeline.dataset import FolderDataset, IngestStepConfig
+    from aerocal.pipeline.dataset import FolderDataset, IngestStepConfig, sidecar_blockers
 
     if (flight_dir / "observations" / "observations.parquet").is_file():
-        # lazy: aerocal.pipeline costs ~1.4 s CPU at start-up; --help must not pay it
-        from aerocal.pipeline.dataset import sidecar_blockers
-
         with user_errors():
             # the files beside the tables; a missing table or camera.json is the flow's own one-line error
             blocking = sidecar_blockers(flight_dir)
