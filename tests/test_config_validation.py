@@ -40,6 +40,7 @@ BAD = [
     (lambda: ControlScreeningConfig(camera_tolerance=0.0), "ControlScreeningConfig.camera_tolerance"),
     (lambda: ControlScreeningConfig(min_points_for_scatter=1), "ControlScreeningConfig.min_points_for_scatter"),
     (lambda: MatchStepConfig(min_overlap=1.0), "MatchStepConfig.min_overlap"),
+    (lambda: MatchStepConfig(max_pairs_per_image=0), "MatchStepConfig.max_pairs_per_image"),
     (lambda: BlockStepConfig(partition_max_images=0), "BlockStepConfig.partition_max_images"),
     (lambda: MosaicStepConfig(serial_max_megapixels=-1.0), "MosaicStepConfig.serial_max_megapixels"),
     (lambda: ReportStepConfig(measured_within_m=0.0), "ReportStepConfig.measured_within_m"),

@@ -291,6 +291,25 @@ def test_footprint_candidates_include_every_overlapping_pair_and_no_far_pair(see
     assert np.all(frac >= 0.05) and np.all(frac <= 1.0)
 
 
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_cap_on_pairs_keeps_each_images_most_overlapping_ones(seed):
+    """A pair stays where it is among the k largest overlaps of either of its images, and only then."""
+    cam, R, C, terrain, _ = _grid_block(seed)
+    cols = {"R_cw": R, "C": C, "image_id": np.arange(100, 100 + len(C))}
+    every, frac = candidate_pairs_from_footprints(cols, cam, terrain, min_overlap=0.05, return_overlap=True)
+    k = 3
+    kept = {tuple(p) for p in candidate_pairs_from_footprints(cols, cam, terrain, min_overlap=0.05,
+                                                              max_pairs_per_image=k).tolist()}
+    top = set()
+    for image in np.unique(every):
+        mine = np.nonzero((every == image).any(axis=1))[0]
+        top |= {tuple(every[m]) for m in mine[np.argsort(-frac[mine], kind="stable")[:k]]}
+    # ties in overlap would let either of two equal pairs be the k-th: the grid's overlaps are distinct
+    assert len(np.unique(np.round(frac, 12))) == len(frac), f"seed={seed}"
+    assert kept == top, f"seed={seed}: kept {sorted(kept - top)[:3]} beyond, left out {sorted(top - kept)[:3]}"
+    assert len(kept) < len(every), f"seed={seed}: the cap of {k} kept every one of {len(every)} pairs"
+
+
 def test_overlap_area_agrees_with_convex_hull_of_the_intersection():
     """Independent check of the vectorised clipping: hull of (vertices inside the other + edge crossings)."""
     seed = 4

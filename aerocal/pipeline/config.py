@@ -47,12 +47,16 @@ NOMINAL = CertificateMode.NOMINAL
 class MatchStepConfig:
     """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
     :class:`aerocal.matching.FeatureConfig`, :class:`aerocal.matching.MatchConfig`); ``min_overlap`` of
-    candidate footprints (0.1); flights without a recorded position and attitude for every image score all
-    pairs by a coarse match of their strongest keypoints and match in full those it retrieves (``retrieval``,
-    default :class:`aerocal.matching.retrieval.RetrievalConfig`), up to ``exhaustive_max_images`` (150, ~11,000
-    pairs scored). Flights of at most
-    ``serial_max_megapixels`` (10) in all are matched in this process without a local cluster: a fresh
-    cluster's start and worker imports cost more than the work for small flights
+    candidate footprints (0.1); ``max_pairs_per_image`` (12): each image keeps its candidates of largest footprint
+    overlap, a pair staying where either image keeps it (None: every candidate). The presets' strip blocks give a
+    frame 8-13 candidates (their median), so the cap binds where every frame overlaps most others, as two opposite
+    strips over a forest (23), where a pair beyond the 12 adds matches that tracks through the nearer pairs hold
+    already, at the full cost of matching it (``benchmarks/RESULTS.md``, "Candidate pairs: a cap by overlap").
+    Flights without a recorded position and attitude for every image score all pairs by a coarse match of their
+    strongest keypoints and match in full those it retrieves (``retrieval``, default
+    :class:`aerocal.matching.retrieval.RetrievalConfig`), up to ``exhaustive_max_images`` (150, ~11,000 pairs
+    scored). Flights of at most ``serial_max_megapixels`` (10) in all are matched in this process without a local
+    cluster: a fresh cluster's start and worker imports cost more than the work for small flights
     (``benchmarks/history/engine_measurements.md``)."""
 
     enhance: EnhanceConfig | None = None
@@ -60,12 +64,16 @@ class MatchStepConfig:
     match: MatchConfig | None = None
     retrieval: RetrievalConfig | None = None
     min_overlap: float = 0.1
+    max_pairs_per_image: int | None = 12  #: None: every candidate pair
     exhaustive_max_images: int = 150
     serial_max_megapixels: float = 10.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.min_overlap < 1.0:
             raise ValueError(f"MatchStepConfig.min_overlap must be a fraction in [0, 1), got {self.min_overlap}")
+        if self.max_pairs_per_image is not None and self.max_pairs_per_image < 1:
+            raise ValueError(f"MatchStepConfig.max_pairs_per_image must be at least 1 (or None: every pair), got "
+                             f"{self.max_pairs_per_image}")
         if self.exhaustive_max_images < 2:
             raise ValueError(f"MatchStepConfig.exhaustive_max_images must be 2 or more, got "
                              f"{self.exhaustive_max_images}")

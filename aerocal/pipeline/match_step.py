@@ -100,7 +100,8 @@ def match_images(
     pairs = None  # without records: retrieved from the images' strongest keypoints once they are detected
     if has_priors(images):
         pairs = candidate_pairs_from_footprints(images, camera, terrain_height(images, gcps, flight),
-                                                min_overlap=config.min_overlap)
+                                                min_overlap=config.min_overlap,
+                                                max_pairs_per_image=config.max_pairs_per_image)
     elif images.num_rows > config.exhaustive_max_images:
         raise FlightInputError(
             f"{flight.get('folder') or flight.get('name')}: {images.num_rows} images without a recorded position "
