@@ -127,10 +127,12 @@ def match_images(
     return kp, matches, build_tracks(matches, kp, mcfg), int(len(pairs))
 
 
-def pairs_from(images: pa.Table) -> str:
-    """In words, where :func:`match_images` takes the candidate pairs of ``images`` from."""
+def pairs_from(images: pa.Table, config: MatchStepConfig | None = None) -> str:
+    """In words, where :func:`match_images` takes the candidate pairs of ``images`` from with ``config``."""
     if has_priors(images):
-        return "footprints of the recorded positions and attitudes"
+        cap = (config or MatchStepConfig()).max_pairs_per_image
+        return "footprints of the recorded positions and attitudes" + (
+            f", each image's {cap} of largest overlap" if cap is not None else "")
     n = images.num_rows
     return f"a coarse match of all {n * (n - 1) // 2} pairs' strongest keypoints (no recorded positions)"
 
@@ -162,7 +164,7 @@ def match_step(runner: Runner, ingest: StepResult, config: MatchStepConfig | Non
             "matches": TableOutput(matches, "matches"),
             "observations": TableOutput(obs, "observations"),
             EXTRA: step_figures("match", pairs=n_pairs, observations=obs.num_rows,
-                                pairs_from=pairs_from(inp.table("images"))),
+                                pairs_from=pairs_from(inp.table("images"), config)),
         }
 
     return runner.run("match", inputs, config, compute)

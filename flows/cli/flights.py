@@ -340,8 +340,8 @@ def match(
             write_json_atomic(camera_json, read.camera)
             console.print(f"camera.json written ({read.camera.get('source')}): check it before processing")
     console.print(
-        f"{images.num_rows} images, {n_pairs} candidate pairs (from {pairs_from(images)}), {matches.num_rows} "
-        "verified matches, "
+        f"{images.num_rows} images, {n_pairs} candidate pairs (from {pairs_from(images, MatchStepConfig())}), "
+        f"{matches.num_rows} verified matches, "
         f"{obs.num_rows} observations of {len(set(obs.column('track_id').to_pylist()))} tracks"
     )
     console.print(f"tables written to {target}")
