@@ -72,7 +72,7 @@ def main() -> None:
     t_grid = time.perf_counter() - t0
     grid_peak_mb = peak_rss_mb()  # the product's part: the dense step and its gridding, before the comparison
     print(f"dense {t_dense:.1f} s, {len(cloud.xyz)} points; gridding {t_grid:.1f} s", flush=True)
-    measured = dsm.distance_m <= 1.5 * dsm.cell_m
+    measured = dsm.measured()
     t0 = time.perf_counter()
     terrain = dtm_from_dsm(dsm, measured)
     t_dtm = time.perf_counter() - t0

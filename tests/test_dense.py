@@ -57,7 +57,7 @@ def _loader(raws):
 def _dense(block, raws):
     cloud = dense_cloud(block["frames"], _loader(raws), block["tie"], block["ground"], DenseConfig())
     dsm = dsm_from_points(cloud.xyz, block["sim"].crs, gsd_m=cloud.gsd_m, config=MosaicStepConfig().dense_dsm)
-    return cloud, dsm, dsm.distance_m <= 1.5 * dsm.cell_m
+    return cloud, dsm, dsm.measured()
 
 
 @pytest.fixture(scope="module")
@@ -92,15 +92,16 @@ def test_the_dense_dsm_is_close_to_the_true_surface_and_covers_what_the_frames_s
           f"views or more checked, {one_pair.nmad / gsd:.2f} on the {one_pair.n} of one pair), completeness "
           f"{completeness:.1%} of the cells two frames see, {completeness3:.1%} of those three see; tie-point DSM: "
           f"median {sparse.median:.3f} m, NMAD {sparse.nmad:.3f} m ({sparse.nmad / gsd:.2f} GSD)")
-    # the figures of this seed and two others: benchmarks/RESULTS.md, "Dense surface" (seed 3: NMAD 1.11 GSD,
-    # median +0.05 GSD, 93 % of the cells two frames see and 96 % of those three see). The median was +0.29 GSD
-    # while SGBM's sub-pixel rounding stayed in the disparities; the cells two frames see were 89 % measured
-    # before a pixel that one pair alone covers kept its depth.
-    assert diff.nmad < 1.2 * gsd, f"seed {SEED}: NMAD {diff.nmad:.3f} m"
-    assert checked.nmad < 1.2 * gsd and checked.n > 0.8 * diff.n, (checked.nmad, checked.n, diff.n)
+    # the figures of this seed and two others: benchmarks/RESULTS.md, "Dense surface: where its error lives" (seed
+    # 3: NMAD 1.02 GSD, median +0.05 GSD, 86.5 % of the cells two frames see and 89.6 % of those three see, on the
+    # cells that hold points). Measured cells were those within 1.5 cells of a point before: 93 % and 96 %, NMAD
+    # 1.11 GSD, the rims of the holes 6 GSD off. The median was +0.29 GSD while SGBM's sub-pixel rounding stayed in
+    # the disparities.
+    assert diff.nmad < 1.1 * gsd, f"seed {SEED}: NMAD {diff.nmad:.3f} m"
+    assert checked.nmad < 1.1 * gsd and checked.n > 0.8 * diff.n, (checked.nmad, checked.n, diff.n)
     assert abs(diff.median) < 0.15 * gsd, f"seed {SEED}: median {diff.median:.3f} m"
     assert diff.nmad < 0.25 * sparse.nmad, f"seed {SEED}: dense {diff.nmad:.3f} m, sparse {sparse.nmad:.3f} m"
-    assert completeness3 > 0.93 and completeness > 0.9, f"seed {SEED}: completeness {completeness:.1%}"
+    assert completeness3 > 0.87 and completeness > 0.84, f"seed {SEED}: completeness {completeness:.1%}"
     assert cloud.views.min() >= 2 and cloud.stats["two_view_points"] == np.count_nonzero(cloud.views == 2)
     # a point of one pair only where no point that three views checked lies in its cell
     cell = np.floor(cloud.xyz[:, :2] / cloud.gsd_m).astype(np.int64)

@@ -151,8 +151,8 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
                   execution: ExecutionConfig | None, work: Path, info: dict[str, Any]
                   ) -> tuple[Dsm, np.ndarray, np.ndarray, dict[str, FileOutput]] | None:
     """The dense cloud of the adjusted frames (:func:`aerocal.products.dense.dense_cloud`), its DSM at about one
-    ground sample per cell, where that DSM is measured (cells within 1.5 cells of a point; the rest is
-    filled), the views that agree on each measured cell (:func:`aerocal.products.dense.cell_views`), and the
+    ground sample per cell, where that DSM is measured (:meth:`Dsm.measured`: the cells holding points; the rest
+    is filled), the views that agree on each measured cell (:func:`aerocal.products.dense.cell_views`), and the
     cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched. ``None`` when no point
     survives the fusion (frames without texture): the products then stand on the tie points, and
     ``info["surface"]`` says why.
@@ -196,7 +196,7 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
     del cloud
     dsm = filled(cells, config.dense_dsm)
     del cells
-    measured = dsm.distance_m <= 1.5 * dsm.cell_m
+    measured = dsm.measured()
     views = views_of_cells(own, measured)
     info["surface"] = "dense"
     info["dense"] = {**stats, "seconds": round(seconds, 1), "gsd_m": gsd, "dsm_cell_m": dsm.cell_m,

@@ -969,8 +969,9 @@ def own_views(cloud: DenseCloud, dsm: Dsm) -> np.ndarray:
 
 
 def views_of_cells(own: np.ndarray, measured: np.ndarray) -> np.ndarray:
-    """:func:`cell_views` from the cells' own views (:func:`own_views`): a DSM cell is measured within 1.5 cells of
-    a point, and a measured cell without a point of its own takes the most of its 3 x 3 neighbourhood's."""
+    """:func:`cell_views` from the cells' own views (:func:`own_views`) on the ``measured`` cells (0 elsewhere); a
+    measured cell without a point of its own (a mask wider than :meth:`Dsm.measured`) takes the most of its 3 x 3
+    neighbourhood's."""
     return np.where(measured, np.where(own > 0, own, maximum_filter(own, size=3)), 0).astype(np.uint8)
 
 

@@ -132,6 +132,21 @@ class Dsm:
     def shape(self) -> tuple[int, int]:
         return self.heights.shape  # type: ignore[return-value]
 
+    def measured(self) -> np.ndarray:
+        """bool (rows, cols): the cells that hold a height of their own (``distance_m`` 0); every other cell's
+        height, where it has one, is interpolated across a hole.
+
+        A hole of a dense DSM is where the views disagreed or none could match (an occlusion beside a wall, a tree's
+        crown): the cells beside it that hold no point were 10-12 GSD off the true surface (NMAD) however many of
+        their 8 neighbours held points (``benchmarks/RESULTS.md``, "Dense surface: where its error lives"), so a
+        hole's rim is not called measured.
+
+        Raises:
+            ValueError: the grid carries no ``distance_m`` (made without :func:`filled`)."""
+        if self.distance_m is None:
+            raise ValueError("Dsm.measured: the grid carries no distance to data (made without filled())")
+        return self.distance_m == 0
+
     def bounds(self) -> tuple[float, float, float, float]:
         """(west, south, east, north), metres."""
         rows, cols = self.shape
