@@ -94,6 +94,15 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
         assert dsm.descriptions == ("height", "measured", "views") and 0.3 < measured.mean() < 1.0, measured.mean()
         cell_views = dsm.read(3, masked=True).compressed()
         assert set(np.unique(cell_views[measured == 1]).tolist()) <= set(range(2, 8))
+        # a cell flagged measured is one the cloud's points fall in; every other height is interpolated
+        col, row = ~dsm.transform * (np.asarray(las.x), np.asarray(las.y))
+        row, col = np.floor(row).astype(np.int64), np.floor(col).astype(np.int64)
+        inside = (row >= 0) & (row < dsm.height) & (col >= 0) & (col < dsm.width)
+        holds = np.zeros((dsm.height, dsm.width), dtype=bool)
+        holds[row[inside], col[inside]] = True
+        flagged = dsm.read(2) == 1
+        assert np.mean(flagged == holds) > 0.999, (int(np.count_nonzero(flagged & ~holds)),
+                                                   int(np.count_nonzero(holds & ~flagged)))
     with rasterio.open(summary.files["dsm"]) as dsm, rasterio.open(summary.files["dtm"]) as dtm:
         assert dtm.crs == dsm.crs and dtm.transform == dsm.transform
         above = (dsm.read(1, masked=True) - dtm.read(1, masked=True)).compressed()
