@@ -137,8 +137,8 @@ class Dsm:
         height, where it has one, is interpolated across a hole.
 
         A hole of a dense DSM is where the views disagreed or none could match (an occlusion beside a wall, a tree's
-        crown): the cells beside it that hold no point were 10-12 GSD off the true surface (NMAD) however many of
-        their 8 neighbours held points (``benchmarks/RESULTS.md``, "Dense surface: where its error lives"), so a
+        crown): the cells beside it that hold no point lay several ground samples off the true surface, however many
+        of their 8 neighbours held points (``benchmarks/RESULTS.md``, "Dense surface: where its error lives"), so a
         hole's rim is not called measured.
 
         Raises:
