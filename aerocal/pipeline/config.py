@@ -48,11 +48,11 @@ class MatchStepConfig:
     """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
     :class:`aerocal.matching.FeatureConfig`, :class:`aerocal.matching.MatchConfig`); ``min_overlap`` of
     candidate footprints (0.1); ``max_pairs_per_image`` (12): each image keeps its candidates of largest footprint
-    overlap, a pair staying where either image keeps it (None: every candidate). Blocks of many strips give a frame
-    8-13 candidates (the median of conte-city, conte-calibration, daakir-uav), so the cap binds where every frame
-    overlaps most others (xt2-survey's 24 frames, two opposite strips over a forest: 23 each), where a pair beyond
-    the 12 adds matches that tracks through the nearer pairs hold already, at the full cost of matching it
-    (``benchmarks/RESULTS.md``, "Candidate pairs: a cap by overlap").
+    overlap, a pair staying where either image keeps it (None: every candidate). A block of many strips gives most
+    frames fewer candidates than that, so the cap binds where every frame overlaps most others (a short block of a
+    narrow camera, two opposite strips over a forest), where a pair beyond the 12 adds matches that tracks through
+    the nearer pairs hold already, at the full cost of matching it (``benchmarks/RESULTS.md``, "Candidate pairs: a
+    cap by overlap").
     Flights without a recorded position and attitude for every image score all pairs by a coarse match of their
     strongest keypoints and match in full those it retrieves (``retrieval``, default
     :class:`aerocal.matching.retrieval.RetrievalConfig`), up to ``exhaustive_max_images`` (150, ~11,000 pairs
