@@ -247,6 +247,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--work", type=Path, default=None,
                     help="keep the flight folder, store and run output here (default: a temporary folder, "
                     "removed at the end); given again, the measured run found there is reported again")
+    ap.add_argument("--max-pairs-per-image", default="none",
+                    help="the match step's cap on each image's candidate pairs (MatchStepConfig; 'none': every pair)")
     ap.add_argument("--rediagnose", action="store_true",
                     help="time the diagnosis again on the run kept in --work (see the module docstring)")
     args = ap.parse_args(argv)
@@ -267,7 +269,9 @@ def main(argv: list[str] | None = None) -> None:
         else:
             folder, built = build_flight(work, args.quick)
             t0 = time.perf_counter()
-            config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES)))
+            cap = None if args.max_pairs_per_image.lower() == "none" else int(args.max_pairs_per_image)
+            config = ProcessConfig(match=MatchStepConfig(features=FeatureConfig(max_features=MAX_FEATURES),
+                                                         max_pairs_per_image=cap))
             run = process(folder, config, certificate="none", out_dir=work / "run")
             summary = run.summary.to_json()
             keep(run, work)
@@ -323,7 +327,8 @@ def main(argv: list[str] | None = None) -> None:
             f"flying height {built['height_agl_m']:.1f} m ({built['height_source']}); GNSS sigma "
             f"{built['gnss_sigma_m']} m, attitude not used",
             f"- `aerocal.pipeline.process`, default configuration but SIFT capped at {MAX_FEATURES} keypoints per "
-            "image, certificate `none` (self-calibration), local Dask cluster of 2 workers, full-size images",
+            f"image, candidate pairs per image {args.max_pairs_per_image}, certificate `none` (self-calibration), "
+            "local Dask cluster of 2 workers, full-size images",
             "",
             "| step | status | time |",
             "|---|---|---|",

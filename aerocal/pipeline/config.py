@@ -47,12 +47,10 @@ NOMINAL = CertificateMode.NOMINAL
 class MatchStepConfig:
     """Enhance and match settings (defaults: :class:`aerocal.enhance.EnhanceConfig`,
     :class:`aerocal.matching.FeatureConfig`, :class:`aerocal.matching.MatchConfig`); ``min_overlap`` of
-    candidate footprints (0.1); ``max_pairs_per_image`` (12): each image keeps its candidates of largest footprint
-    overlap, a pair staying where either image keeps it (None: every candidate). A block of many strips gives most
-    frames fewer candidates than that, so the cap binds where every frame overlaps most others (a short block of a
-    narrow camera, two opposite strips over a forest), where a pair beyond the 12 adds matches that tracks through
-    the nearer pairs hold already, at the full cost of matching it (``benchmarks/RESULTS.md``, "Candidate pairs: a
-    cap by overlap").
+    candidate footprints (0.1); ``max_pairs_per_image`` (None: every candidate; N: each image keeps its N
+    candidates of largest footprint overlap, a pair staying where either image keeps it). No cap by default: ranked
+    by overlap, a frame's best pairs are its own strip's, and a cap cuts the pairs across strips first, which
+    determine the focal length (``benchmarks/RESULTS.md``, "Candidate pairs: a cap by overlap").
     Flights without a recorded position and attitude for every image score all pairs by a coarse match of their
     strongest keypoints and match in full those it retrieves (``retrieval``, default
     :class:`aerocal.matching.retrieval.RetrievalConfig`), up to ``exhaustive_max_images`` (150, ~11,000 pairs
@@ -65,7 +63,7 @@ class MatchStepConfig:
     match: MatchConfig | None = None
     retrieval: RetrievalConfig | None = None
     min_overlap: float = 0.1
-    max_pairs_per_image: int | None = 12  #: None: every candidate pair
+    max_pairs_per_image: int | None = None  #: None: every candidate pair
     exhaustive_max_images: int = 150
     serial_max_megapixels: float = 10.0
 
