@@ -122,16 +122,33 @@ def intersect_rays(origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
-def view_counts(frames: Sequence, X: np.ndarray) -> np.ndarray:
+def view_counts(frames: Sequence, X: np.ndarray,
+                first_hit: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+                tolerance_m: float = 0.0) -> np.ndarray:
     """How many of ``frames`` (:class:`aerocal.products.mosaic.FrameGeometry`) see each world point ``X`` (..., 3)
-    (metres): in front of the camera and inside its image. Occlusions are not tested: on a surface, the count of
-    frames that could see it, the denominator of a dense surface's completeness."""
+    (metres): in front of the camera and inside its image, the denominator of a dense surface's completeness.
+
+    Without ``first_hit``, occlusions are not tested: the count of frames whose image holds the point, hidden or not.
+    With it, a frame counts only where the point is not hidden from it: ``first_hit(origins, directions)`` (both
+    (M, 3), unit directions, world metres) gives the distance from each origin to the first surface along its ray
+    (``inf`` where none; the reference surface's, as :func:`aerocal.simulate.raycast.intersect_dsm` gives the
+    simulator's), and a frame sees the point unless its ray from the projection centre meets that surface more
+    than ``tolerance_m`` short of it (a wall, a roof's edge in between)."""
     X = np.asarray(X, dtype=float)
-    count = np.zeros(X.shape[:-1], dtype=int)
+    flat = X.reshape(-1, 3)
+    count = np.zeros(len(flat), dtype=int)
     for f in frames:
-        uv = f.project(X)
-        count += np.all(np.isfinite(uv), axis=-1) & f.camera.in_image(uv)
-    return count
+        uv = f.project(flat)
+        seen = np.all(np.isfinite(uv), axis=-1) & f.camera.in_image(uv)
+        if first_hit is not None and seen.any():
+            idx = np.flatnonzero(seen)
+            C = np.asarray(f.C, dtype=float)
+            ray = flat[idx] - C
+            dist = np.linalg.norm(ray, axis=1)
+            hit = np.asarray(first_hit(np.broadcast_to(C, ray.shape).copy(), ray / dist[:, None]), dtype=float)
+            seen[idx[hit < dist - tolerance_m]] = False
+        count += seen
+    return count.reshape(X.shape[:-1])
 
 
 def _frame_rays(frame, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

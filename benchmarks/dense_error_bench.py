@@ -6,8 +6,10 @@ Relief classes, from the true surface sampled at the cell centre and at 8 points
 varies by less than 0.05 GSD, *sloped* up to 0.5 GSD, *edges* beyond (a roof's or a tree's rim crosses the cell).
 The figures are the test's (NMAD of the measured cells two frames see, in GSD; the DSM gridded as the products
 step grids it), per class, and what the same cells give against the true surface's median over 5 x 5 points of
-each cell (the reference gridded as the DSM is); beside them, the cells without a point within 1.5 cells of one,
-which the DSM's mask called measured before :meth:`aerocal.products.dsm.Dsm.measured`.
+each cell (the reference gridded as the DSM is); completeness of the cells two frames see, and of those two frames
+see with the point hidden from neither (the simulator's surface ray-cast from each projection centre); beside them,
+the cells without a point within 1.5 cells of one, which the DSM's mask called measured before
+:meth:`aerocal.products.dsm.Dsm.measured`.
 
 Run: ``python -m benchmarks.dense_error_bench`` (``--seeds 3 4 5``; ``--vary block_size=5 keep_frames=6 ...``:
 each a :class:`aerocal.products.dense.DenseConfig` field and value, run beside the defaults).
@@ -30,7 +32,7 @@ from aerocal.products.dense import DenseConfig, dense_cloud
 from aerocal.products.dsm import dsm_from_points
 from aerocal.products.mosaic import frames_from_poses, read_frame
 from aerocal.simulate import simulate_flight
-from aerocal.simulate.raycast import RenderConfig
+from aerocal.simulate.raycast import RenderConfig, intersect_dsm
 from aerocal.simulate.rendered_frames import render_flight_images
 from aerocal.simulate.simulator import true_poses
 from benchmarks.common import record
@@ -75,6 +77,8 @@ def _row(seed: int, label: str, sim, frames, load, config: DenseConfig) -> str:
     E, N = dsm.cell_centres()
     truth = sim.scene.height_at(E, N)
     seen = view_counts(frames, np.stack([E, N, truth], axis=-1)) >= 2
+    visible = view_counts(frames, np.stack([E, N, truth], axis=-1), lambda o, d: intersect_dsm(sim.scene, o, d).t,
+                          tolerance_m=0.25 * dsm.cell_m) >= 2
     measured = dsm.measured() & seen
     # the cells a hole's rim adds when a cell within 1.5 cells of a point counts as measured (the mask before)
     rim = (dsm.distance_m <= 1.5 * dsm.cell_m) & ~dsm.measured() & seen & np.isfinite(dsm.heights)
@@ -90,6 +94,7 @@ def _row(seed: int, label: str, sim, frames, load, config: DenseConfig) -> str:
             f"{np.mean(edge & (diff > 2)):.1%} / {np.mean(edge & (diff < -2)):.1%} | "
             f"{np.mean(flat & (np.abs(diff) > 2)) / max(np.mean(flat), 1e-12):.1%} | {_nmad(gridded):.2f} | "
             f"{np.count_nonzero(measured) / max(np.count_nonzero(seen), 1):.1%} | "
+            f"{np.count_nonzero(dsm.measured() & visible) / max(np.count_nonzero(visible), 1):.1%} | "
             f"{_nmad((dsm.heights - truth)[rim] / gsd):.1f} "
             f"({np.count_nonzero(rim) / max(np.count_nonzero(seen), 1):.1%}) |")
 
@@ -108,9 +113,10 @@ def main() -> None:
     lines = [
         "| seed | settings | dense cloud | NMAD, all measured cells (median), GSD | NMAD flat / sloped / edges "
         "(share of the cells) | edge cells > +2 / < -2 GSD (of all) | flat cells beyond 2 GSD | NMAD against the "
-        "cell-median truth | completeness (cells two frames see) | the rim of the holes, within 1.5 cells of a "
+        "cell-median truth | completeness (cells two frames see) | completeness (cells two frames see, hidden "
+        "from neither) | the rim of the holes, within 1.5 cells of a "
         "point: NMAD, GSD (share of the cells two frames see) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for seed in args.seeds:
         with tempfile.TemporaryDirectory() as tmp:

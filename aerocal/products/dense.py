@@ -5,7 +5,8 @@ What :func:`dense_cloud` does, for every frame of the block (the *reference*), a
 1. **Neighbours** (:func:`select_neighbours`): the frames whose footprints on the ground plane cover at least
    ``min_overlap`` of the reference's, with a base-to-height ratio between ``min_base_to_height`` (depth too
    weak) and ``max_base_to_height`` (views too different for area matching); the ``neighbours`` of them with the
-   largest overlap times base-to-height ratio (a narrow thermal camera's consecutive frames are 0.06 apart).
+   largest overlap times base-to-height ratio (a narrow thermal camera's consecutive frames are 0.06 apart); then
+   any frame, whatever its overlap, that sees ground of the reference's footprint none of those sees.
 2. **Rectification** (:func:`rectify`): both frames are resampled (``cv2.remap``) onto a common plane whose x
    axis is the baseline, through the full model of each frame (the certificate's IO with its distortion and
    affinity, a rolling readout's row-by-row centres and the thermal corrections, taken at the frame's viewing
@@ -16,6 +17,8 @@ What :func:`dense_cloud` does, for every frame of the block (the *reference*), a
    8-bit frames, uniqueness and speckle filters; its ``disp12MaxDiff`` is the left-right consistency check).
    The disparity search spans the adjusted tie points seen in both frames, widened by ``disparity_margin_px``:
    the surface cannot be where no tie point suggests it, and a narrow search is both faster and harder to fool.
+   The frames are moved along their rows so that the search starts at 0 (:func:`matching_window`): SGBM matches
+   no column left of its search's end.
    Pixels whose neighbourhood holds less than ``min_texture`` grey levels of contrast get no disparity: SGBM
    carries its paths' values across a uniform area, and two pairs would carry them alike.
 4. **Depth in the reference**: each disparity map is read back at the reference's own pixels (its rays through
@@ -31,7 +34,8 @@ What :func:`dense_cloud` does, for every frame of the block (the *reference*), a
    ``keep_frames`` frames whose projection centres are nearest to it in plan (each ground point from the most
    nadir frames that measured it), so the cloud holds a few points per ground sample, not one per view, and the
    DSM takes the median of their heights. Where the nearest frame's pairs left a hole (an occlusion, pairs that
-   disagree), the farther frames fill it only where two of them agree (:func:`confirmed`).
+   disagree), the farther frames fill it only where two of them agree, in the cell or one next to it
+   (:func:`confirmed`).
 
 Frames larger than ``max_image_pixels`` are matched at a reduced scale (the same for all frames); the cloud's
 ground sampling distance is then that of the reduced frames.
@@ -63,9 +67,10 @@ FrameLoader = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
 #: the rectification maps are computed every MAP_STEP rectified pixels and interpolated between
 MAP_STEP = 8
-#: columns of a rectified pair a disparity search must leave to be matched (SGBM matches column x of the left
-#: frame with x - d of the right for every d searched)
+#: rectified columns two frames must share at every searched disparity for their pair to be matched
 MIN_SEARCH_COLUMNS = 32
+#: ground points per side of the grid over a frame's footprint on which neighbours' overlap and coverage are judged
+COVERAGE_SAMPLES = 12
 
 
 @dataclass(frozen=True)
@@ -189,19 +194,25 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
 
     Overlap is measured on the plane at ``ground_height_m`` (metres): the fraction of a grid of ground points
     in the reference's footprint that the other frame sees. Candidates are ranked by overlap times
-    base-to-height ratio: the area the pair measures times the precision it measures it with.
+    base-to-height ratio: the area the pair measures times the precision it measures it with; the first
+    ``config.neighbours`` of those covering ``config.min_overlap`` are matched. Then ground of the footprint that
+    none of them sees but another frame does (a block's side-lap under 30 %, a strip's end) gets that frame too,
+    best ranked first, whatever its overlap: without it, ground that two frames of different strips alone see is a
+    hole however well both frames match.
     """
     cam_xy = np.array([f.C[:2] for f in frames])
     heights = np.array([f.C[2] - ground_height_m for f in frames])
-    grid = np.stack(np.meshgrid(np.linspace(0.05, 0.95, 7), np.linspace(0.05, 0.95, 7)), -1).reshape(-1, 2)
+    side = np.linspace(0.02, 0.98, COVERAGE_SAMPLES)
+    grid = np.stack(np.meshgrid(side, side), -1).reshape(-1, 2)
     samples = []
     for f in frames:
         uv = grid * [f.camera.width, f.camera.height]
         d = _world_rays(f, uv)
         s = (ground_height_m - f.C[2]) / np.where(d[:, 2] < -1e-9, d[:, 2], np.nan)
-        samples.append(np.column_stack([f.C[:2] + s[:, None] * d[:, :2], np.full(len(s), ground_height_m)]))
-    # a frame that covers min_overlap of the reference's footprint has its centre within the two footprints' reach
-    radius = np.array([float(np.nanmax(np.linalg.norm(s[:, :2] - f.C[:2], axis=1), initial=0.0))
+        X = np.column_stack([f.C[:2] + s[:, None] * d[:, :2], np.full(len(s), ground_height_m)])
+        samples.append(X[np.all(np.isfinite(X), axis=1)])
+    # a frame that sees any of the reference's footprint has its centre within the two footprints' reach
+    radius = np.array([float(np.max(np.linalg.norm(s[:, :2] - f.C[:2], axis=1), initial=0.0))
                        for s, f in zip(samples, frames, strict=True)])
     reach = min(2.0 * np.max(heights) * max(1.0, config.max_base_to_height), 2.5 * float(np.max(radius)))
     tree = cKDTree(cam_xy)
@@ -209,19 +220,26 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
     for i, f in enumerate(frames):
         cand = []
         for j in tree.query_ball_point(cam_xy[i], reach):
-            if j == i:
+            if j == i or not len(samples[i]):
                 continue
             bh = float(np.linalg.norm(frames[j].C - f.C)) / max(heights[i], 1e-9)
             if not config.min_base_to_height <= bh <= config.max_base_to_height:
                 continue
-            X = samples[i][np.all(np.isfinite(samples[i]), axis=1)]
-            uv = frames[j].project(X)
+            uv = frames[j].project(samples[i])
             seen = np.all(np.isfinite(uv), axis=1) & frames[j].camera.in_image(uv)
-            overlap = float(np.mean(seen)) if len(X) else 0.0
-            if overlap >= config.min_overlap:
-                cand.append((overlap * bh, j))
+            if seen.any():
+                cand.append((float(np.mean(seen)) * bh, float(np.mean(seen)), j, seen))
         cand.sort(key=lambda t: -t[0])
-        out[f.image_id] = [frames[j].image_id for _, j in cand[:config.neighbours]]
+        chosen = [c for c in cand if c[1] >= config.min_overlap][:config.neighbours]
+        covered = np.zeros(len(samples[i]), dtype=bool)
+        for c in chosen:
+            covered |= c[3]
+        taken = {c[2] for c in chosen}
+        for c in cand:
+            if c[2] not in taken and (c[3] & ~covered).any():
+                chosen.append(c)
+                covered |= c[3]
+        out[f.image_id] = [frames[c[2]].image_id for c in chosen]
     return out
 
 
@@ -380,10 +398,9 @@ def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequenc
             num = int(min(config.max_disparities, 16 * np.ceil(max(hi - lo, 16) / 16)))
             if num < hi - lo:  # capped: centre the search on the median
                 lo = int(np.round(np.median(d))) - num // 2
-            # SGBM matches the columns x with x - d inside the right frame for every searched d: a search that
-            # leaves fewer than MIN_SEARCH_COLUMNS of them (frames that barely overlap once rectified) gives no
-            # depth, and OpenCV's 3-way SGBM fails on it with a negative allocation instead of an empty map
-            if rect.size[0] + min(lo, 0) - max(lo + num, 0) < MIN_SEARCH_COLUMNS:
+            # frames that overlap by fewer than MIN_SEARCH_COLUMNS rectified columns at every searched disparity
+            # give no depth (and OpenCV's 3-way SGBM fails on a window that narrow with a negative allocation)
+            if rect.size[0] - max(abs(lo), abs(lo + num)) < MIN_SEARCH_COLUMNS:
                 continue
             plans.append(PairPlan(other=o, min_disparity=lo, num_disparities=num))
         out[ref] = plans
@@ -410,6 +427,25 @@ def _reference_grid(frame: FrameGeometry, scale: float, depth: float) -> np.ndar
         g = frac * np.asarray(frame.motion, dtype=float) + depth * rays
         rays = g / (g @ np.asarray(frame.R_cw)[2])[..., None]
     return np.ascontiguousarray(_upsample(rays, MAP_STEP, h, w))  # each pair multiplies it: once in memory order
+
+
+def matching_window(rect: Rectification, plan: PairPlan) -> tuple[Rectification, PairPlan]:
+    """The pair's rectification with its frames moved along the rows so that SGBM matches every column of the
+    reference the other frame can see, and the search in the moved frames (from disparity 0).
+
+    OpenCV's SGBM gives no disparity to the reference's columns x < minDisparity + numDisparities (its cost volume
+    needs x - d inside the frame for every searched d) nor to x >= width + minDisparity. With each frame at its own
+    principal column, the disparities of a pair are its frames' offset, often most of a thermal frame's width (a
+    search of 221-253 px on a 493-px rectified pair): SGBM left half of such a reference unmatched, and the ground
+    that pair alone sees (a block's outer strips) a hole. Moving the reference ``a`` columns right and the other
+    frame ``a + minDisparity`` (both principal columns; the depth of a disparity is unchanged, as it is measured
+    from the principal columns' difference) starts the search at 0 and puts the first column that the other frame
+    can see (``max(minDisparity, 0)``) at ``numDisparities`` or beyond; the frame grows by ``a`` columns."""
+    lo, num = plan.min_disparity, plan.num_disparities
+    a = max(0, num - max(lo, 0))
+    moved = Rectification(R=rect.R, f=rect.f, cy=rect.cy, cx_left=rect.cx_left + a, cx_right=rect.cx_right + a + lo,
+                          size=(rect.size[0] + a, rect.size[1]), baseline_m=rect.baseline_m)
+    return moved, PairPlan(other=plan.other, min_disparity=0, num_disparities=num)
 
 
 def _resize(image: np.ndarray, scale: float) -> np.ndarray:
@@ -458,7 +494,7 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
 
     ``ref8`` / ``other8`` are the 8-bit frames at ``scale``; ``rays`` the reference's world rays
     (:func:`_reference_grid`); ``ground_height_m`` the plane at whose depth the frames are rectified."""
-    rect = rectify(ref, other, scale)
+    rect, plan = matching_window(rectify(ref, other, scale), plan)
     left, inside = _rectified(ref, rect, ref8, True, scale, viewing_depth(ref, ground_height_m))
     right, inside_right = _rectified(other, rect, other8, False, scale, viewing_depth(other, ground_height_m))
     disp = sgbm_disparity(_sgbm(config, plan).compute(left, right), plan.min_disparity)
@@ -699,7 +735,8 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     the nearest frames' points where the cell has some, and where it has none, within ``tol_m`` of the median of
     the farther frames' points when two frames or more have such points. With ``views`` (N,), the frames that
     agree on each point, a two-view point is left out of a cell that holds a point of three views or more: the
-    cell has a checked height, and the unchecked one would only add its noise.
+    cell has a checked height, and the unchecked one would only add its noise; its frame still counts among the
+    two that confirm the cell (the nearest frame's one pair agreeing with a farther frame's three views).
 
     A farther frame's three agreeing views are not enough on their own: a vehicle moving along a pair's
     baseline looks like a height to every pair along it, and the nearest frame left the cell out because its
@@ -707,23 +744,24 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     if not len(xyz):
         return np.zeros(0, dtype=bool)
     xyz = np.asarray(xyz, dtype=np.float64)
-    key = _cell_keys(xyz, float(cell_m))
+    key, cols = _cell_keys(xyz, float(cell_m))
     if int(key.max()) < 4 * len(key) + 1_000_000:
         order, bounds = _cells_in_order(key)
     else:  # the cloud's box holds far more cells than points (a few points far off): no array per cell
         order = np.argsort(key, kind="stable")
         bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
+    cell_keys = key[order[bounds[:-1]]]  # each occupied cell's key, ascending
     del key
     views = (np.full(len(xyz), 3, dtype=np.uint8) if views is None else np.asarray(views, dtype=np.uint8))
-    return _confirm_cells(order, bounds, xyz, np.asarray(rank, dtype=np.uint8), np.asarray(image_id), views,
-                          float(tol_m))
+    return _confirm_cells(order, bounds, cell_keys, int(cols), xyz, np.asarray(rank, dtype=np.uint8),
+                          np.asarray(image_id), views, float(tol_m))
 
 
 @numba.njit(cache=True)
-def _cell_keys(xyz: np.ndarray, cell_m: float) -> np.ndarray:
-    """Each point's cell (``cell_m`` metres, counted from the cloud's south-west cell) as one int64, row-major:
-    numpy's ``floor(xy / cell_m)`` per point without its (N, 2) temporaries (a city's cloud holds tens of millions
-    of points)."""
+def _cell_keys(xyz: np.ndarray, cell_m: float) -> tuple[np.ndarray, int]:
+    """Each point's cell (``cell_m`` metres, counted from the cloud's south-west cell) as one int64, row-major, and
+    the number of columns of that grid (a cell's key is row * columns + column): numpy's ``floor(xy / cell_m)`` per
+    point without its (N, 2) temporaries (a city's cloud holds tens of millions of points)."""
     n = xyz.shape[0]
     c_min, r_min, c_max = np.inf, np.inf, -np.inf
     for i in range(n):
@@ -735,7 +773,7 @@ def _cell_keys(xyz: np.ndarray, cell_m: float) -> np.ndarray:
     for i in range(n):
         key[i] = (np.int64(np.floor(xyz[i, 1] / cell_m)) - np.int64(r_min)) * cols + (
             np.int64(np.floor(xyz[i, 0] / cell_m)) - np.int64(c_min))
-    return key
+    return key, cols
 
 
 @numba.njit(cache=True)
@@ -771,15 +809,26 @@ def _cells_in_order(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(cache=True)
-def _confirm_cells(order: np.ndarray, bounds: np.ndarray, xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray,
-                   views: np.ndarray, tol: float) -> np.ndarray:
-    """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``."""
+def _confirm_cells(order: np.ndarray, bounds: np.ndarray, cell_keys: np.ndarray, cols: int, xyz: np.ndarray,
+                   rank: np.ndarray, image_id: np.ndarray, views: np.ndarray, tol: float) -> np.ndarray:
+    """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``, whose key
+    (row * ``cols`` + column) is ``cell_keys[c]`` (ascending).
+
+    A cell without the nearest frame's points is confirmed by a second frame's close point in the cell or in one of
+    its 8 neighbours whose height agrees with the cell's within ``tol``: a frame's points are about one per cell, so
+    where two frames alone see the ground (a block's edge, beside a wall) their points seldom share a cell, and asking
+    for both in the same one left a third of that ground a hole."""
+    n_cells = bounds.shape[0] - 1
     keep = np.zeros(xyz.shape[0], dtype=np.bool_)
+    height = np.full(n_cells, np.nan)  # the cell's reference height
+    frame_a = np.full(n_cells, -1, dtype=np.int64)  # up to two frames with a close point in the cell
+    frame_b = np.full(n_cells, -1, dtype=np.int64)
+    settled = np.zeros(n_cells, dtype=np.bool_)  # the nearest frame's points, or two frames in the cell
     largest = 0
-    for c in range(bounds.shape[0] - 1):
+    for c in range(n_cells):
         largest = max(largest, bounds[c + 1] - bounds[c])
     buf = np.empty(largest, dtype=np.float64)
-    for c in range(bounds.shape[0] - 1):
+    for c in range(n_cells):
         lo, hi = bounds[c], bounds[c + 1]
         fewest = 2  # the fewest views a point of the cell may have: 3 where some point has three or more
         for p in range(lo, hi):
@@ -801,21 +850,38 @@ def _confirm_cells(order: np.ndarray, bounds: np.ndarray, xyz: np.ndarray, rank:
             if n_all == 0:
                 continue
             reference = median_in_place(buf[:n_all])
-        first, second = -1, False  # the frames of the close points: a second one confirms the cell
+        height[c] = reference
+        settled[c] = n_near > 0
+        # the frames of the close points (a frame whose point one pair measured counts, though the point itself is
+        # not kept beside a checked one)
         for p in range(lo, hi):
             i = order[p]
-            if views[i] < fewest:
-                continue
-            if rank[i] == 0:
+            close = abs(xyz[i, 2] - reference) <= tol
+            if views[i] >= fewest and (rank[i] == 0 or close):
                 keep[i] = True
-            elif abs(xyz[i, 2] - reference) <= tol:
-                keep[i] = True
-                if first < 0:
-                    first = image_id[i]
-                elif image_id[i] != first:
-                    second = True
-        if n_near == 0 and not second:
-            for p in range(lo, hi):
+            if close:
+                if frame_a[c] < 0:
+                    frame_a[c] = image_id[i]
+                elif image_id[i] != frame_a[c] and frame_b[c] < 0:
+                    frame_b[c] = image_id[i]
+                    settled[c] = True
+    for c in range(n_cells):
+        if settled[c] or frame_a[c] < 0:
+            continue
+        row, col = cell_keys[c] // cols, cell_keys[c] % cols
+        second = False
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                if second or (dr == 0 and dc == 0) or not 0 <= col + dc < cols:
+                    continue
+                near = (row + dr) * cols + col + dc
+                j = np.searchsorted(cell_keys, near)
+                if j >= n_cells or cell_keys[j] != near or not abs(height[j] - height[c]) <= tol:
+                    continue
+                second = ((frame_a[j] >= 0 and frame_a[j] != frame_a[c])
+                          or (frame_b[j] >= 0 and frame_b[j] != frame_a[c]))
+        if not second:
+            for p in range(bounds[c], bounds[c + 1]):
                 keep[order[p]] = False
     return keep
 
