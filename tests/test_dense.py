@@ -359,6 +359,35 @@ def test_sgbm_matches_every_column_of_the_reference_that_the_other_frame_sees(bl
     assert np.median(np.abs(err)) < 1.0, np.median(np.abs(err))
 
 
+def test_the_neighbours_see_all_of_a_frames_footprint_that_any_other_frame_sees(block):
+    """The block's cross strip overlaps the others by less than ``min_overlap``: its frames are still paired with
+    theirs where nothing else sees the ground (a 9,724-cell hole on this block before), and every ground point of a
+    frame's footprint that another frame sees at a usable base-to-height ratio is seen by one of its neighbours."""
+    from aerocal.products.dense import select_neighbours
+
+    frames, ground, config = block["frames"], block["ground"], DenseConfig()
+    neighbours = select_neighbours(frames, ground, config)
+    by_id = {f.image_id: f for f in frames}
+    side = np.linspace(0.03, 0.97, 9)
+    low_overlap = 0
+    for f in frames:
+        uv = np.stack(np.meshgrid(side * f.camera.width, side * f.camera.height), -1).reshape(-1, 2)
+        rays = np.column_stack([f.camera.unproject(uv), np.ones(len(uv))]) @ np.asarray(f.R_cw)
+        X = f.C + ((ground - f.C[2]) / rays[:, 2])[:, None] * rays
+
+        def sees(g, X=X):
+            p = g.project(X)
+            return np.all(np.isfinite(p), axis=1) & g.camera.in_image(p)
+
+        usable = [g for g in frames if g is not f and config.min_base_to_height
+                  <= np.linalg.norm(g.C - f.C) / (f.C[2] - ground) <= config.max_base_to_height]
+        anyone = np.any([sees(g) for g in usable], axis=0)
+        mine = np.any([sees(by_id[i]) for i in neighbours[f.image_id]], axis=0)
+        assert not np.any(anyone & ~mine), (f.image_id, int(np.sum(anyone & ~mine)))
+        low_overlap += sum(np.mean(sees(by_id[i])) < config.min_overlap for i in neighbours[f.image_id])
+    assert low_overlap > 0, "the cross strip's frames are paired with the others"
+
+
 def test_a_pair_whose_disparity_search_leaves_no_columns_to_match_is_left_out(block):
     """A neighbour whose search lies beyond the rectified frames' width (frames that barely overlap, or the tie
     points of one frame only, as on the real seneca block) is left out and counted; OpenCV's SGBM fails on such a
