@@ -106,6 +106,13 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
     with rasterio.open(summary.files["dsm"]) as dsm, rasterio.open(summary.files["dtm"]) as dtm:
         assert dtm.crs == dsm.crs and dtm.transform == dsm.transform
         above = (dsm.read(1, masked=True) - dtm.read(1, masked=True)).compressed()
+        # the DTM's band 2: the ground measured, a part of the DSM's measured cells on which the DTM is the surface
+        assert dtm.descriptions[:2] == ("height", "measured")
+        ground = dtm.read(2) == 1
+        assert 0.1 < ground.mean() < 0.9 and not np.any(ground & (dsm.read(2) != 1)), ground.mean()
+        on_ground = (dsm.read(1) - dtm.read(1))[ground]
+        assert abs(np.median(on_ground)) < 0.3 and np.percentile(np.abs(on_ground), 95) < 3.0, (
+            np.percentile(on_ground, [5, 50, 95]))
     # the ground under the city: the buildings (measured: 90th percentile 20.7 m) gone, the ground kept
     assert np.percentile(above, 90) > 5.0 and abs(np.median(above)) < 0.5, np.percentile(above, [5, 50, 90])
     report = json.loads((out / "run" / "summary.json").read_text())["summary"]

@@ -280,7 +280,10 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             terrain = dtm_from_dsm(dsm, measured, config.ground_filter)
             info["dtm"] = terrain.note
             if terrain.dtm is not None:
-                out["dtm"] = FileOutput(write_dsm(terrain.dtm, work / "dtm.tif"), "dsm", temporary=True)
+                # band 2: where the ground itself was measured (a measured cell the filter took for ground); the rest
+                # is interpolated, under buildings and trees and out to the grid's corners
+                out["dtm"] = FileOutput(write_dsm(terrain.dtm, work / "dtm.tif", terrain.ground), "dsm",
+                                        temporary=True)
             out["sparse_dsm"] = FileOutput(write_dsm(sparse, work / "sparse_dsm.tif"), "dsm", temporary=True)
             recorded = flight.get("height_agl_m")
             source = str((flight.get("facts") or {}).get("height_agl_m", ""))
