@@ -749,10 +749,11 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     """The points (bool mask) the cloud keeps (module docstring, step 5), cell by cell (``cell_m`` metres): every
     point of a frame nearest to it (rank 0); the farther frames' points within ``tol_m`` of the median height of
     the nearest frames' points where the cell has some, and where it has none, within ``tol_m`` of the median of
-    the farther frames' points when two frames or more have such points. With ``views`` (N,), the frames that
-    agree on each point, a two-view point is left out of a cell that holds a point of three views or more: the
-    cell has a checked height, and the unchecked one would only add its noise; its frame still counts among the
-    two that confirm the cell (the nearest frame's one pair agreeing with a farther frame's three views).
+    the farther frames' points when two frames or more have such points, in the cell or, for the second frame, in
+    one of the 8 cells around it at a height within ``tol_m`` (:func:`_confirm_cells`). With ``views`` (N,), the
+    frames that agree on each point, a two-view point is left out of a cell that holds a point of three views or
+    more: the cell has a checked height, and the unchecked one would only add its noise; its frame still counts
+    among the two that confirm the cell (the nearest frame's one pair agreeing with a farther frame's three views).
 
     A farther frame's three agreeing views are not enough on their own: a vehicle moving along a pair's
     baseline looks like a height to every pair along it, and the nearest frame left the cell out because its
