@@ -196,9 +196,9 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
     in the reference's footprint that the other frame sees. Candidates are ranked by overlap times
     base-to-height ratio: the area the pair measures times the precision it measures it with; the first
     ``config.neighbours`` of those covering ``config.min_overlap`` are matched. Then ground of the footprint that
-    another frame sees but no pair matches (neither this frame's nor any two frames that see it, one chosen by the
-    other: a block's side-lap under 30 %, a cross strip) gets that frame too, best ranked first, whatever its
-    overlap: without it, ground that two frames of different strips alone see is a hole however well both match.
+    none of them sees but another frame does (a block's side-lap under 30 %, a strip's end) gets that frame too,
+    best ranked first, whatever its overlap: without it, ground that two frames of different strips alone see is a
+    hole however well both frames match.
     """
     cam_xy = np.array([f.C[:2] for f in frames])
     heights = np.array([f.C[2] - ground_height_m for f in frames])
@@ -216,8 +216,7 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
                        for s, f in zip(samples, frames, strict=True)])
     reach = min(2.0 * np.max(heights) * max(1.0, config.max_base_to_height), 2.5 * float(np.max(radius)))
     tree = cKDTree(cam_xy)
-    candidates: list[list[tuple[float, float, int, np.ndarray]]] = []  # per frame: (score, overlap, j, seen)
-    chosen: list[list[int]] = []
+    out: dict[int, list[int]] = {}
     for i, f in enumerate(frames):
         cand = []
         for j in tree.query_ball_point(cam_xy[i], reach):
@@ -231,32 +230,17 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
             if seen.any():
                 cand.append((float(np.mean(seen)) * bh, float(np.mean(seen)), j, seen))
         cand.sort(key=lambda t: -t[0])
-        candidates.append(cand)
-        chosen.append([c[2] for c in cand if c[1] >= config.min_overlap][:config.neighbours])
-    paired = [set(c) for c in chosen]  # the pairs of the first choice, as (reference, neighbour)
-    for i, cand in enumerate(candidates):
+        chosen = [c for c in cand if c[1] >= config.min_overlap][:config.neighbours]
         covered = np.zeros(len(samples[i]), dtype=bool)
+        for c in chosen:
+            covered |= c[3]
+        taken = {c[2] for c in chosen}
         for c in cand:
-            if c[2] in paired[i]:
+            if c[2] not in taken and (c[3] & ~covered).any():
+                chosen.append(c)
                 covered |= c[3]
-        for c in cand:
-            new = c[3] & ~covered
-            if c[2] in paired[i] or not new.any():
-                continue
-            # ground another pair of the first choice measures (two frames that see it, one chosen by the other)
-            # needs no pair here: at 60/20 % overlap a frame's corners are most of what its own pairs miss
-            for s in np.flatnonzero(new):
-                seeing = {i} | {k[2] for k in cand if k[3][s]}
-                if any(paired[a] & seeing for a in seeing):
-                    new[s] = False
-            if new.any():  # both ways: each frame keeps the points nearest to it (module docstring, step 5)
-                chosen[i].append(c[2])
-                paired[i].add(c[2])
-                if i not in paired[c[2]]:
-                    chosen[c[2]].append(i)
-                    paired[c[2]].add(i)
-                covered |= c[3]
-    return {f.image_id: [frames[j].image_id for j in chosen[i]] for i, f in enumerate(frames)}
+        out[f.image_id] = [frames[c[2]].image_id for c in chosen]
+    return out
 
 
 @dataclass(frozen=True)
