@@ -431,18 +431,21 @@ def _reference_grid(frame: FrameGeometry, scale: float, depth: float) -> np.ndar
 
 def matching_window(rect: Rectification, plan: PairPlan) -> tuple[Rectification, PairPlan]:
     """The pair's rectification with its frames moved along the rows so that SGBM matches every column of the
-    reference the other frame can see, and the search in the moved frames (from disparity 0).
+    reference the other frame can see and no other, and the search in the moved frames (from disparity 0).
 
     OpenCV's SGBM gives no disparity to the reference's columns x < minDisparity + numDisparities (its cost volume
-    needs x - d inside the frame for every searched d) nor to x >= width + minDisparity. With each frame at its own
-    principal column, the disparities of a pair are its frames' offset, often most of a thermal frame's width (a
-    search of 221-253 px on a 493-px rectified pair): SGBM left half of such a reference unmatched, and the ground
-    that pair alone sees (a block's outer strips) a hole. Moving the reference ``a`` columns right and the other
-    frame ``a + minDisparity`` (both principal columns; the depth of a disparity is unchanged, as it is measured
-    from the principal columns' difference) starts the search at 0 and puts the first column that the other frame
-    can see (``max(minDisparity, 0)``) at ``numDisparities`` or beyond; the frame grows by ``a`` columns."""
+    needs x - d inside the frame for every searched d) nor to x >= width + minDisparity, and costs every column of
+    the frame. With each frame at its own principal column, the disparities of a pair are its frames' offset, often
+    most of a thermal frame's width (a search of 221-253 px on a 493-px rectified pair): SGBM left half of such a
+    reference unmatched, and the ground that pair alone sees (a block's outer strips) a hole, while it costed those
+    columns all the same. Moving the reference ``a = numDisparities - max(minDisparity, 0)`` columns right (left
+    where negative) and the other frame ``a + minDisparity`` (both principal columns; the depth of a disparity is
+    unchanged, as it is measured from the principal columns' difference) starts the search at 0 and puts the first
+    column that the other frame can see (``max(minDisparity, 0)``) at ``numDisparities``: the columns before it,
+    which no searched disparity pairs with the other frame, are cut off, and SGBM's frame is ``a`` columns wider
+    (narrower where negative)."""
     lo, num = plan.min_disparity, plan.num_disparities
-    a = max(0, num - max(lo, 0))
+    a = num - max(lo, 0)
     moved = Rectification(R=rect.R, f=rect.f, cy=rect.cy, cx_left=rect.cx_left + a, cx_right=rect.cx_right + a + lo,
                           size=(rect.size[0] + a, rect.size[1]), baseline_m=rect.baseline_m)
     return moved, PairPlan(other=plan.other, min_disparity=0, num_disparities=num)
