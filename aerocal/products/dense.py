@@ -824,9 +824,11 @@ def _confirm_cells(order: np.ndarray, bounds: np.ndarray, cell_keys: np.ndarray,
     for both in the same one left a third of that ground a hole."""
     n_cells = bounds.shape[0] - 1
     keep = np.zeros(xyz.shape[0], dtype=np.bool_)
-    height = np.full(n_cells, np.nan)  # the cell's reference height
-    frame_a = np.full(n_cells, -1, dtype=np.int64)  # up to two frames with a close point in the cell
-    frame_b = np.full(n_cells, -1, dtype=np.int64)
+    # per occupied cell (a city's 70 million: 4-byte fields): its reference height, up to two frames with a close
+    # point in it
+    height = np.full(n_cells, np.nan, dtype=np.float32)
+    frame_a = np.full(n_cells, -1, dtype=np.int32)
+    frame_b = np.full(n_cells, -1, dtype=np.int32)
     settled = np.zeros(n_cells, dtype=np.bool_)  # the nearest frame's points, or two frames in the cell
     largest = 0
     for c in range(n_cells):
