@@ -820,8 +820,9 @@ def _confirm_cells(order: np.ndarray, bounds: np.ndarray, cell_keys: np.ndarray,
 
     A cell without the nearest frame's points is confirmed by a second frame's close point in the cell or in one of
     its 8 neighbours whose height agrees with the cell's within ``tol``: a frame's points are about one per cell, so
-    where two frames alone see the ground (a block's edge, beside a wall) their points seldom share a cell, and asking
-    for both in the same one left a third of that ground a hole."""
+    where two frames alone see the ground (a block's edge, beside a wall) their points often miss each other's
+    cell, and asking for both in the same one left such ground a hole (``benchmarks/RESULTS.md``, "Dense surface: a
+    second frame confirms a cell from the next one")."""
     n_cells = bounds.shape[0] - 1
     keep = np.zeros(xyz.shape[0], dtype=np.bool_)
     # per occupied cell (a city's 70 million: 4-byte fields): its reference height, up to two frames with a close
