@@ -30,7 +30,8 @@ What :func:`dense_cloud` does, for every frame of the block (the *reference*), a
    alone covers (a ground point two frames see, as much of a block flown at 60 % forward overlap) keeps that
    pair's depth as a two-view point (``two_view``): nothing can check it, so the cloud's ``views`` say 2, it is
    left out of any cell where a point of three views lies, and the DSM's views band flags its cells. A pixel that
-   other pairs cover but could not match stays a hole. A point is kept by the
+   other pairs cover but could not match stays a hole. The fused map is smoothed where its neighbours lie at a
+   similar depth (:func:`smooth_depth`: an edge-preserving filter; a hole stays a hole). A point is kept by the
    ``keep_frames`` frames whose projection centres are nearest to it in plan (each ground point from the most
    nadir frames that measured it), so the cloud holds a few points per ground sample, not one per view, and the
    DSM takes the median of their heights. Where the nearest frame's pairs left a hole (an occlusion, pairs that
@@ -114,6 +115,13 @@ class DenseConfig:
     #: a farther frame's point is kept within this many ground samples of the nearest frames' median height in
     #: its cell or, where they measured none, of the farther frames' when two of them agree (:func:`confirmed`)
     fill_agreement_gsd: float = 3.0
+    #: the fused depth map is smoothed by an edge-preserving (bilateral) filter over a window of this radius
+    #: (pixels; 0: not smoothed) before its points are made (:func:`smooth_depth`): a pixel's depth becomes the
+    #: mean of its neighbours' weighted by nearness (a Gaussian of ``0.8 * smoothing_radius_px`` pixels) and by
+    #: depth (a Gaussian of ``smoothing_range_gsd`` ground samples), so noise averages out where the surface is
+    #: smooth and a step of several ground samples (a roof's rim) keeps both its sides
+    smoothing_radius_px: int = 5
+    smoothing_range_gsd: float = 1.5
 
     def __post_init__(self) -> None:
         if self.neighbours < 1:
@@ -141,6 +149,10 @@ class DenseConfig:
             raise ValueError(f"DenseConfig.keep_frames must be at least 1, got {self.keep_frames}")
         if not self.fill_agreement_gsd > 0:
             raise ValueError(f"DenseConfig.fill_agreement_gsd must be positive, got {self.fill_agreement_gsd}")
+        if self.smoothing_radius_px < 0:
+            raise ValueError(f"DenseConfig.smoothing_radius_px must be >= 0, got {self.smoothing_radius_px}")
+        if not self.smoothing_range_gsd > 0:
+            raise ValueError(f"DenseConfig.smoothing_range_gsd must be positive, got {self.smoothing_range_gsd}")
 
 
 @dataclass(frozen=True)
@@ -621,6 +633,33 @@ def _fuse_pixels(depths: np.ndarray, tols: np.ndarray, min_agreeing: int, covere
     return fused, agreeing
 
 
+def smooth_depth(depth: np.ndarray, f_px: float, config: DenseConfig) -> np.ndarray:
+    """``depth`` (h, w) float32 metres along the optical axis, NaN where none, smoothed by OpenCV's bilateral
+    filter (``config.smoothing_radius_px``, ``config.smoothing_range_gsd``; the ground sample is the map's median
+    depth over ``f_px``, the matched frame's focal length in pixels). A pixel without a depth stays without one and
+    lends nothing to its neighbours: it enters the filter at a depth a hundred range widths beyond the map's
+    deepest, where its weight underflows to zero. Returns a new float32 map (``depth`` itself when smoothing is off
+    or no pixel has a depth).
+
+    Why: a fused depth is each pixel's own; its noise (a fifth of a disparity pixel in SGBM's sub-pixel fit, 0.7
+    ground samples of height on a thermal block's flat ground) passes into the DSM, whose cells take the median
+    of the few frames' points that fall in them. Averaging over the neighbours at a similar depth takes most of it
+    out and leaves a roof's rim (several ground samples high) where it was; a weighted median with the frame's
+    grey levels as its guide did as well on the rendered blocks but took 0.4 s per thermal frame against a few
+    milliseconds (``benchmarks/RESULTS.md``, "Dense surface: the depth maps smoothed").
+    """
+    if config.smoothing_radius_px == 0:
+        return depth
+    ok = np.isfinite(depth)
+    if not ok.any():
+        return depth
+    width = float(config.smoothing_range_gsd * np.median(depth[ok]) / f_px)
+    far = float(depth[ok].max()) + 100.0 * width
+    x = np.where(ok, depth, np.float32(far)).astype(np.float32)
+    y = cv2.bilateralFilter(x, 2 * config.smoothing_radius_px + 1, width, 0.8 * config.smoothing_radius_px)
+    return np.where(ok, y, np.float32(np.nan)).astype(np.float32)
+
+
 @dataclass(frozen=True)
 class ReferencePoints:
     """What one reference frame hands on (module docstring, steps 2-5): the points it keeps. ``xyz`` (N, 3) world
@@ -719,6 +758,7 @@ def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans:
         covered.append(c)
     fused, n = fuse_depths(np.stack(depths), np.stack(tols), config.min_agreeing_pairs,
                            np.stack(covered) if config.two_view else None)
+    fused = smooth_depth(fused, float(ref.camera.f * scale), config)
     keep = np.isfinite(fused) & (fused > 0)
     C = np.asarray(ref.C)
     X = C + fused[keep][:, None] * rays[keep]
