@@ -103,6 +103,22 @@ def test_the_demo_as_a_user_runs_it_finds_the_hidden_readout_and_extends_the_mod
         flagged = dsm.read(2) == 1
         assert np.mean(flagged == holds) > 0.999, (int(np.count_nonzero(flagged & ~holds)),
                                                    int(np.count_nonzero(holds & ~flagged)))
+    # a height only where the frames see the ground: the DSM's cells with a height lie under the orthomosaic (the
+    # grid around the cloud has corners no frame saw, where the filling extrapolates). Measured: 93.5 % of the grid
+    # with a height, 99.15 % of those under the orthomosaic, the rest a band a few cells wide along its edge (the
+    # footprints are cast on a plane below the surface)
+    with rasterio.open(summary.files["dsm"]) as dsm, rasterio.open(summary.files["orthomosaic"]) as ortho:
+        has = dsm.read(1) != dsm.nodata
+        rows, cols = np.nonzero(has)
+        x, y = dsm.transform * (cols + 0.5, rows + 0.5)
+        ocol, orow = ~ortho.transform * (x, y)
+        orow, ocol = np.floor(orow).astype(np.int64), np.floor(ocol).astype(np.int64)
+        within = (orow >= 0) & (orow < ortho.height) & (ocol >= 0) & (ocol < ortho.width)
+        under = np.zeros(len(rows), dtype=bool)
+        under[within] = ortho.read(1)[orow[within], ocol[within]] != ortho.nodata
+        print(f"dsm.tif: {has.mean():.1%} of its grid with a height, {np.mean(under):.2%} of those under the "
+              "orthomosaic")
+        assert np.mean(under) > 0.985 and has.mean() < 0.98, (has.mean(), np.mean(under))
     with rasterio.open(summary.files["dsm"]) as dsm, rasterio.open(summary.files["dtm"]) as dtm:
         assert dtm.crs == dsm.crs and dtm.transform == dsm.transform
         above = (dsm.read(1, masked=True) - dtm.read(1, masked=True)).compressed()

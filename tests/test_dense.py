@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 from aerocal.assess import compare_dems, view_counts
 from aerocal.enhance import enhance, stretch_params
 from aerocal.pipeline.config import MosaicStepConfig
+from aerocal.products.coverage import seen_cells
 from aerocal.products.dense import (
     DenseConfig,
     _nearness_rank,
@@ -22,7 +23,7 @@ from aerocal.products.dense import (
     sgbm_disparity,
     smooth_depth,
 )
-from aerocal.products.dsm import dsm_from_points, read_views, write_dsm
+from aerocal.products.dsm import Dsm, dsm_from_points, read_views, write_dsm
 from aerocal.products.mosaic import frames_from_poses, read_frame
 from aerocal.products.pointcloud import write_laz
 
@@ -522,6 +523,28 @@ def test_the_fusion_keeps_the_mean_of_the_largest_agreeing_group_as_comparing_ev
     np.testing.assert_array_equal(agreeing, n)
     np.testing.assert_allclose(fused, expected, rtol=1e-6, equal_nan=True)
     assert 0.2 < np.mean(np.isfinite(fused)) < 1.0
+
+
+def test_the_cells_the_frames_see_are_those_a_frame_holds_in_its_image_and_no_other(block, dense):
+    """The block's grid widened by 300 m on every side: the cells whose centre on the plane of the surface's lowest
+    height a frame holds in its image are the seen cells (to within the cells its border crosses), the grid's
+    corners are not, and every cell that holds a point of the cloud is."""
+    cloud, dsm, measured = dense
+    w, s, e, n = dsm.bounds()
+    margin = int(300.0 / dsm.cell_m)
+    wide = Dsm(heights=np.zeros((dsm.shape[0] + 2 * margin, dsm.shape[1] + 2 * margin), np.float32),
+               west=w - margin * dsm.cell_m, north=n + margin * dsm.cell_m, cell_m=dsm.cell_m, crs=dsm.crs)
+    low = float(np.min(dsm.heights[measured]))
+    seen = seen_cells(block["frames"], wide, low)
+    E, N = wide.cell_centres()
+    held = view_counts(block["frames"], np.stack([E, N, np.full_like(E, low)], axis=-1)) >= 1
+    print(f"seed {SEED}: {seen.mean():.1%} of the widened grid seen; {np.count_nonzero(seen != held)} of "
+          f"{held.size} cells differ from those a frame holds in its image")
+    assert 0.2 < seen.mean() < 0.9, seen.mean()
+    assert np.mean(seen == held) > 0.995, (int(np.count_nonzero(seen & ~held)), int(np.count_nonzero(held & ~seen)))
+    assert not seen[0, 0] and not seen[-1, -1] and not seen[0, -1] and not seen[-1, 0]
+    col, row = wide.grid_coords(cloud.xyz[:, 0], cloud.xyz[:, 1])
+    assert seen[np.rint(row).astype(int), np.rint(col).astype(int)].mean() > 0.999
 
 
 def test_smoothing_a_depth_map_takes_out_noise_and_keeps_a_roofs_rim_and_every_hole():
