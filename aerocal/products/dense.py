@@ -379,27 +379,40 @@ def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequenc
     2nd to 98th percentile disparity, widened by a quarter of that span and ``disparity_margin_px``; with fewer
     than 10 shared tie points, those the reference sees. Pairs without any are left out, and pairs whose search
     leaves fewer than :data:`MIN_SEARCH_COLUMNS` columns of the rectified frame to match."""
-    by_id = {f.image_id: f for f in frames}
-    tie_xyz = np.asarray(tie_xyz, dtype=float)
-    tree = cKDTree(tie_xyz[:, :2])
-    seen = {}
-    for f in frames:  # the tie points near the frame's footprint only: a city block holds 10^5 of them
-        reach = 1.5 * float(np.max(np.linalg.norm(f.ground_footprint([float(np.median(tie_xyz[:, 2]))])
-                                                  - f.C[:2], axis=1), initial=0.0))
-        near = np.asarray(tree.query_ball_point(f.C[:2], max(reach, 1.0)), dtype=np.int64)
-        uv = f.project(tie_xyz[near])
-        mask = np.zeros(len(tie_xyz), dtype=bool)
-        mask[near[np.all(np.isfinite(uv), axis=1) & f.camera.in_image(uv)]] = True
-        seen[f.image_id] = mask
-    out: dict[int, list[PairPlan]] = {}
-    for ref, others in neighbours.items():
+    planner = _PairPlanner(frames, tie_xyz, scale, config)
+    return {ref: planner.plans(ref, others) for ref, others in neighbours.items()}
+
+
+class _PairPlanner:
+    """:func:`plan_pairs` one reference at a time (a Dask client is handed each reference's pairs as they are
+    planned): which tie points each frame sees is settled once, on construction."""
+
+    def __init__(self, frames: Sequence[FrameGeometry], tie_xyz: np.ndarray, scale: float,
+                 config: DenseConfig) -> None:
+        self.by_id = {f.image_id: f for f in frames}
+        self.tie_xyz = np.asarray(tie_xyz, dtype=float)
+        self.scale, self.config = scale, config
+        tree = cKDTree(self.tie_xyz[:, :2])
+        self.seen = {}
+        typical = float(np.median(self.tie_xyz[:, 2]))
+        for f in frames:  # the tie points near the frame's footprint only: a city block holds 10^5 of them
+            reach = 1.5 * float(np.max(np.linalg.norm(f.ground_footprint([typical]) - f.C[:2], axis=1), initial=0.0))
+            near = np.asarray(tree.query_ball_point(f.C[:2], max(reach, 1.0)), dtype=np.int64)
+            uv = f.project(self.tie_xyz[near])
+            mask = np.zeros(len(self.tie_xyz), dtype=bool)
+            mask[near[np.all(np.isfinite(uv), axis=1) & f.camera.in_image(uv)]] = True
+            self.seen[f.image_id] = mask
+
+    def plans(self, ref: int, others: Sequence[int]) -> list[PairPlan]:
+        """The pairs of ``ref`` with ``others`` that can be matched, with their disparity search."""
+        config, by_id = self.config, self.by_id
         plans = []
         for o in others:
-            both = seen[ref] & seen[o]
-            pts = tie_xyz[both] if both.sum() >= 10 else tie_xyz[seen[ref]]
+            both = self.seen[ref] & self.seen[o]
+            pts = self.tie_xyz[both] if both.sum() >= 10 else self.tie_xyz[self.seen[ref]]
             if len(pts) < 3:
                 continue
-            rect = rectify(by_id[ref], by_id[o], scale)
+            rect = rectify(by_id[ref], by_id[o], self.scale)
             d = rect.disparity_of(pts, by_id[ref].C)
             d = d[np.isfinite(d)]
             if len(d) < 3:
@@ -415,8 +428,7 @@ def plan_pairs(frames: Sequence[FrameGeometry], neighbours: Mapping[int, Sequenc
             if rect.size[0] - max(abs(lo), abs(lo + num)) < MIN_SEARCH_COLUMNS:
                 continue
             plans.append(PairPlan(other=o, min_disparity=lo, num_disparities=num))
-        out[ref] = plans
-    return out
+        return plans
 
 
 def _reference_grid(frame: FrameGeometry, scale: float, depth: float) -> np.ndarray:
@@ -480,6 +492,18 @@ def _sgbm(config: DenseConfig, plan: PairPlan) -> cv2.StereoSGBM:
         speckleRange=config.speckle_range, mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY)
 
 
+@numba.njit(cache=True)
+def _disparity_px(raw: np.int16) -> np.float32:
+    """One of SGBM's disparities (int16 sixteenths, a found one) in pixels, as :func:`sgbm_disparity` reads it."""
+    d = np.float32(raw)
+    sixteenth = raw & 15
+    if sixteenth >= 9:
+        d -= np.float32(1.0)
+    elif sixteenth == 0:
+        d -= np.float32(0.5)
+    return d / np.float32(16.0)
+
+
 def sgbm_disparity(raw: np.ndarray, min_disparity: int) -> np.ndarray:
     """OpenCV SGBM's disparities (int16, sixteenths of a rectified pixel) as pixels (float32), NaN where SGBM found
     none (below ``min_disparity``), with SGBM's sub-pixel rounding taken out.
@@ -490,12 +514,16 @@ def sgbm_disparity(raw: np.ndarray, min_disparity: int) -> np.ndarray:
     too large on average, and every height is biased upwards by that much disparity (a test of sub-pixel shifts
     measures the 1/32 and its removal). Here the sixteenths 9-15 (the negative offsets) lose one sixteenth and a
     whole pixel half of one, the centre of what it stands for."""
-    disp = raw.astype(np.float32)
-    sixteenth = raw & 15  # the sub-pixel part: 1-8 for offsets up to +1/2 px, 9-15 for offsets below -1/32 px
-    disp[sixteenth >= 9] -= 1.0
-    disp[sixteenth == 0] -= 0.5
-    disp /= np.float32(16.0)
-    disp[raw < min_disparity * 16] = np.nan
+    return _disparities(np.ascontiguousarray(raw, dtype=np.int16), np.int32(16 * min_disparity))
+
+
+@numba.njit(cache=True)
+def _disparities(raw: np.ndarray, min16: np.int32) -> np.ndarray:
+    disp = np.full(raw.shape, np.nan, dtype=np.float32)
+    for i in range(raw.shape[0]):
+        for j in range(raw.shape[1]):
+            if raw[i, j] >= min16:
+                disp[i, j] = _disparity_px(raw[i, j])
     return disp
 
 
@@ -512,39 +540,41 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
     rect, plan = matching_window(rectify(ref, other, scale), plan)
     left, inside = _rectified(ref, rect, ref8, True, scale, viewing_depth(ref, ground_height_m))
     right, inside_right = _rectified(other, rect, other8, False, scale, viewing_depth(other, ground_height_m))
-    disp = sgbm_disparity(_sgbm(config, plan).compute(left, right), plan.min_disparity)
-    disp[~inside] = np.nan
+    raw = _sgbm(config, plan).compute(left, right)
     # semi-global matching carries disparities across a region without texture along its paths, and two pairs
     # interpolate it alike, so the fusion would keep it: a pixel whose block holds no texture gets no depth
     win = (2 * config.block_size + 1,) * 2
     ref = left.astype(np.float32)
     var = cv2.boxFilter(ref * ref, -1, win) - np.square(cv2.boxFilter(ref, -1, win))
-    disp[var < config.min_texture ** 2] = np.nan
-    # back at the reference's pixels, in one compiled pass over them (the numpy passes and OpenCV's nearest-pixel
-    # remaps it replaces were about a third of a reference's time: benchmarks/RESULTS.md, "City scale with the
-    # dense surface: the flow's memory"); covered: the rectified left(x) inside the reference and
-    # right(x - d) inside the other frame, d the middle of the search (the pair could have measured the pixel,
-    # whether it did or not)
+    usable = inside & (var >= config.min_texture ** 2)
+    # back at the reference's pixels, in one compiled pass over them that reads SGBM's sixteenths as
+    # sgbm_disparity does (the numpy passes and OpenCV's nearest-pixel remaps it replaces were about a third of a
+    # reference's time: benchmarks/RESULTS.md, "City scale with the dense surface: the flow's memory"); covered:
+    # the rectified left(x) inside the reference and right(x - d) inside the other frame, d the middle of the
+    # search (the pair could have measured the pixel, whether it did or not)
     middle = np.float32(plan.min_disparity + 0.5 * plan.num_disparities)
-    return _depth_at_reference(disp, inside, inside_right, rays, np.ascontiguousarray(rect.R, dtype=np.float64),
+    return _depth_at_reference(raw, np.int32(16 * plan.min_disparity), usable, inside, inside_right, rays,
+                               np.ascontiguousarray(rect.R, dtype=np.float64),
                                float(rect.f), float(rect.cx_left), float(rect.cy), middle,
                                np.float32(rect.cx_left - rect.cx_right), float(rect.f * rect.baseline_m),
                                np.float32(config.agreement_px))
 
 
 @numba.njit(cache=True)
-def _depth_at_reference(disp: np.ndarray, inside: np.ndarray, inside_right: np.ndarray, rays: np.ndarray,
+def _depth_at_reference(raw: np.ndarray, min16: np.int32, usable: np.ndarray, inside: np.ndarray,
+                        inside_right: np.ndarray, rays: np.ndarray,
                         R: np.ndarray, f: float, cx: float, cy: float, middle: np.float32, shift: np.float32,
                         f_base: float, agreement: np.float32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`pair_depth` at the reference's pixels: each reference ray (``rays`` (h, w, 3), unit length along the
     optical axis) into the rectified left frame (``R``, ``f``, ``cx``, ``cy``; float32 pixels, the nearest rectified
-    pixel as OpenCV's nearest-pixel remap takes it, round half to even), its disparity there (``disp``, NaN: none)
-    less ``shift`` (the rectified frames' principal columns apart) to a depth along the reference's axis and the
+    pixel as OpenCV's nearest-pixel remap takes it, round half to even), its disparity there (``raw``: SGBM's
+    sixteenths, none below ``min16`` or where not ``usable``; read as :func:`sgbm_disparity` reads them) less
+    ``shift`` (the rectified frames' principal columns apart) to a depth along the reference's axis and the
     depth tolerance of ``agreement`` disparity pixels (``f_base``: the rectified focal length times the baseline);
     covered where the rectified pixel is ``inside`` the reference and the pixel ``middle`` columns left of it is
     ``inside_right`` the other frame. Returns (depth, tolerance) float32, NaN where no depth, and covered (bool)."""
     h, w = rays.shape[0], rays.shape[1]
-    rh, rw = disp.shape[0], disp.shape[1]
+    rh, rw = raw.shape[0], raw.shape[1]
     depth = np.full((h, w), np.nan, dtype=np.float32)
     tol = np.full((h, w), np.nan, dtype=np.float32)
     covered = np.zeros((h, w), dtype=np.bool_)
@@ -563,8 +593,11 @@ def _depth_at_reference(disp: np.ndarray, inside: np.ndarray, inside_right: np.n
                 continue
             cr = int(np.rint(col - middle))
             covered[i, j] = inside[r, c] and 0 <= cr < rw and inside_right[r, cr]
-            d = disp[r, c] - shift
-            if d > 0:  # False for NaN: no depth
+            r16 = raw[r, c]
+            if r16 < min16 or not usable[r, c]:
+                continue
+            d = _disparity_px(r16) - shift
+            if d > 0:
                 z_rect = np.float32(f_base) / d
                 depth[i, j] = np.float32(np.float64(z_rect) / r2)
                 tol[i, j] = np.float32(np.float64(agreement * z_rect * z_rect) / (f_base * r2))
@@ -662,18 +695,22 @@ def smooth_depth(depth: np.ndarray, f_px: float, config: DenseConfig) -> np.ndar
 
 @dataclass(frozen=True)
 class ReferencePoints:
-    """What one reference frame hands on (module docstring, steps 2-5): the points it keeps. ``xyz`` (N, 3) world
-    metres, ``value`` (N,) float32, ``views`` (N,) uint8 and ``rank`` (N,) uint8 (0 where the reference is the
-    frame nearest the point in plan, 1 the next, ...)."""
+    """What one reference frame hands on (module docstring, steps 2-5): the points it keeps, ``origin + offset``
+    world metres (``origin`` (3,) float64, the reference's projection centre; ``offset`` (N, 3) float32, each point's
+    depth times its ray, as it is computed: float32 holds a kilometre to a tenth of a millimetre, and a city's
+    workers send 40 % fewer bytes than with float64 points), ``value`` (N,) float32, ``views`` (N,) uint8 and
+    ``rank`` (N,) uint8 (0 where the reference is the frame nearest the point in plan, 1 the next, ...)."""
 
-    xyz: np.ndarray
+    origin: np.ndarray
+    offset: np.ndarray
     value: np.ndarray
     views: np.ndarray
     rank: np.ndarray
 
     @classmethod
     def empty(cls) -> ReferencePoints:
-        return cls(np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros(0, np.uint8), np.zeros(0, np.uint8))
+        return cls(np.zeros(3), np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8),
+                   np.zeros(0, np.uint8))
 
 
 def _nearness_rank(xy: np.ndarray, centre_xy: np.ndarray, centres_xy: np.ndarray, k: int) -> np.ndarray:
@@ -692,12 +729,47 @@ def _nearness_rank(xy: np.ndarray, centre_xy: np.ndarray, centres_xy: np.ndarray
     dist2 = np.einsum("ij,ij->i", others, others)
     near = (dist2 > 0) & (dist2 <= reach * reach)
     tile = max(reach / 64.0, 1e-6)
-    cells = np.floor(rel / tile).astype(np.int64)
-    cells -= cells.min(axis=0)
-    key = cells[:, 0] * (int(cells[:, 1].max()) + 1) + cells[:, 1]
-    order = np.argsort(key, kind="stable")
-    bounds = np.flatnonzero(np.r_[True, key[order][1:] != key[order][:-1], True])
+    order, bounds = _tile_order(rel, tile)
     return _count_nearer(rel, order, bounds, np.ascontiguousarray(others[near]), dist2[near], k, tile)
+
+
+@numba.njit(cache=True)
+def _tile_order(rel: np.ndarray, tile: float) -> tuple[np.ndarray, np.ndarray]:
+    """The points ``rel`` (N, 2) grouped by square tile of side ``tile``: (order, bounds), the points of the t-th
+    occupied tile ``order[bounds[t]:bounds[t + 1]]`` in their original order; tiles in row-major order of their
+    (x, y) index. A counting sort: the stable argsort of the tiles' keys, in one pass over the points where numpy's
+    argsort took a sixth of the ranking's time."""
+    n = rel.shape[0]
+    cx = np.empty(n, dtype=np.int64)
+    cy = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        cx[i] = np.int64(np.floor(rel[i, 0] / tile))
+        cy[i] = np.int64(np.floor(rel[i, 1] / tile))
+    x0, y0 = cx.min(), cy.min()
+    ny = cy.max() - y0 + 1
+    n_keys = (cx.max() - x0 + 1) * ny
+    start = np.zeros(n_keys + 1, dtype=np.int64)
+    key = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        key[i] = (cx[i] - x0) * ny + (cy[i] - y0)
+        start[key[i] + 1] += 1
+    occupied = 0
+    for t in range(n_keys):
+        if start[t + 1] > 0:
+            occupied += 1
+        start[t + 1] += start[t]
+    bounds = np.empty(occupied + 1, dtype=np.int64)
+    b = 0
+    for t in range(n_keys):
+        if start[t + 1] > start[t]:
+            bounds[b] = start[t]
+            b += 1
+    bounds[occupied] = n
+    order = np.empty(n, dtype=np.int64)
+    for i in range(n):
+        order[start[key[i]]] = i
+        start[key[i]] += 1
+    return order, bounds
 
 
 @numba.njit(cache=True)
@@ -760,14 +832,14 @@ def reference_points(ref: FrameGeometry, others: Sequence[FrameGeometry], plans:
                            np.stack(covered) if config.two_view else None)
     fused = smooth_depth(fused, float(ref.camera.f * scale), config)
     keep = np.isfinite(fused) & (fused > 0)
-    C = np.asarray(ref.C)
-    X = C + fused[keep][:, None] * rays[keep]
-    rank = _nearness_rank(X[:, :2], C[:2], centres_xy, config.keep_frames)
+    C = np.asarray(ref.C, dtype=np.float64)
+    offset = fused[keep][:, None] * rays[keep]  # float32, as both are
+    rank = _nearness_rank(C[:2] + offset[:, :2], C[:2], centres_xy, config.keep_frames)
     mine = rank < config.keep_frames
     value = _resize(np.asarray(ref_value, dtype=np.float32), scale)
     if value.ndim == 3:
         value = value.mean(axis=2)
-    return ReferencePoints(xyz=X[mine], value=value[keep][mine].astype(np.float32),
+    return ReferencePoints(origin=C, offset=offset[mine], value=value[keep][mine].astype(np.float32),
                            views=(1 + n[keep][mine]).astype(np.uint8), rank=rank[mine])
 
 
@@ -955,45 +1027,51 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     frames = list(frames)
     scale = matching_scale(frames, config.max_image_pixels)
     neighbours = select_neighbours(frames, ground_height_m, config)
-    plans = plan_pairs(frames, neighbours, tie_xyz, scale, config)
+    planner = _PairPlanner(frames, tie_xyz, scale, config)
     by_id = {f.image_id: f for f in frames}
     centres = np.array([f.C[:2] for f in frames], dtype=float)
-    jobs = [(by_id[r], [by_id[p.other] for p in ps], ps) for r, ps in plans.items()]
+    plans: dict[int, list[PairPlan]] = {}
     results: list[tuple[int, ReferencePoints]] = []
     if client is None:
-        for k, (ref, others, ps) in enumerate(jobs):
-            results.append((ref.image_id, reference_points(ref, others, ps, load, scale, centres, config,
-                                                             ground_height_m)))
+        for k, (r, others) in enumerate(neighbours.items()):
+            ps = plans[r] = planner.plans(r, others)
+            results.append((r, reference_points(by_id[r], [by_id[p.other] for p in ps], ps, load, scale, centres,
+                                                config, ground_height_m)))
             if progress:
-                progress(k + 1, len(jobs))
+                progress(k + 1, len(neighbours))
     else:
         # lazy: distributed is slow to import; only the Dask path needs it
         from distributed import as_completed
 
-        futures = {client.submit(reference_points, ref, others, ps, load, scale, centres, config,
-                                 ground_height_m, pure=False):
-                   ref.image_id for ref, others, ps in jobs}
+        # each reference is handed to the workers as soon as its pairs are planned: the planning of a city's
+        # 3,400 pairs (rectification and tie points' disparities) took seconds while the workers waited
+        futures = {}
+        for r, others in neighbours.items():
+            ps = plans[r] = planner.plans(r, others)
+            futures[client.submit(reference_points, by_id[r], [by_id[p.other] for p in ps], ps, load, scale,
+                                  centres, config, ground_height_m, pure=False)] = r
         for k, fut in enumerate(as_completed(futures)):
             results.append((futures[fut], fut.result()))
             fut.release()
             if progress:
-                progress(k + 1, len(jobs))
+                progress(k + 1, len(futures))
     results.sort(key=lambda t: t[0])
     if not results:
         results = [(0, ReferencePoints.empty())]
     image_id = np.repeat(np.array([i for i, _ in results], dtype=np.int32),
-                         np.array([len(r.xyz) for _, r in results], dtype=np.int64))
+                         np.array([len(r.offset) for _, r in results], dtype=np.int64))
     # one field at a time, each reference's part released as it is copied: the parts and the whole cloud are
     # never all held at once (benchmarks/RESULTS.md, "Dense surface: the cloud's memory")
-    fields = {name: [getattr(r, name) for _, r in results] for name in ("xyz", "value", "views", "rank")}
+    fields = {name: [getattr(r, name) for _, r in results] for name in ("offset", "value", "views", "rank")}
+    origins = [r.origin for _, r in results]
     del results
-    xyz = _gathered(fields.pop("xyz"))
+    xyz = _gathered(fields.pop("offset"), origins)
     rank = _gathered(fields.pop("rank"))
     views = _gathered(fields.pop("views"))
     gsd = float(np.median([(f.C[2] - ground_height_m) / (f.camera.f * scale) for f in frames]))
     keep = confirmed(xyz, rank, image_id, gsd, config.fill_agreement_gsd * gsd, views)
     n_pairs = sum(len(p) for p in plans.values())
-    stats = {"frames": len(frames), "references": len(jobs), "pairs": n_pairs,
+    stats = {"frames": len(frames), "references": len(plans), "pairs": n_pairs,
              "pairs_left_out": sum(len(v) for v in neighbours.values()) - n_pairs,
              "points": int(keep.sum()), "unconfirmed": int(len(keep) - keep.sum()), "scale": scale}
     xyz, rank, image_id, views = (_kept(a, keep) for a in (xyz, rank, image_id, views))
@@ -1002,21 +1080,28 @@ def dense_cloud(frames: Sequence[FrameGeometry], load: FrameLoader, tie_xyz: np.
     return DenseCloud(xyz=xyz, value=value, views=views, image_id=image_id, gsd_m=gsd, stats=stats, rank=rank)
 
 
-def _gathered(parts: list[np.ndarray]) -> np.ndarray:
+def _gathered(parts: list[np.ndarray], origins: list[np.ndarray] | None = None) -> np.ndarray:
     """The ``parts`` (arrays of one dtype and trailing shape) concatenated, each part dropped from the list as it
-    is copied (the caller holds no other reference): the whole and all the parts are never held at once.
+    is copied (the caller holds no other reference): the whole and all the parts are never held at once. With
+    ``origins`` (one (3,) float64 per part), the parts are float32 offsets from them and the whole is
+    ``origin + offset`` in float64.
 
     The parts a Dask client received are a few megabytes each, which the C allocator keeps in its heap once freed
     rather than giving back: every 64 MB copied, the freed pages are handed back (:func:`_release_freed_memory`),
     or the process would hold the parts' pages and the whole at once (a city's 178 million points: 4 GB more at
     the peak; ``benchmarks/RESULTS.md``, "City scale with the dense surface: the flow's memory")."""
     total = sum(len(p) for p in parts)
-    out = np.empty((total, *parts[0].shape[1:]), dtype=parts[0].dtype)
+    out = np.empty((total, *parts[0].shape[1:]), dtype=parts[0].dtype if origins is None else np.float64)
     parts.reverse()
+    if origins is not None:
+        origins = origins[::-1]
     at, since = 0, 0
     while parts:
         part = parts.pop()
-        out[at:at + len(part)] = part
+        if origins is None:
+            out[at:at + len(part)] = part
+        else:
+            np.add(origins.pop(), part, out=out[at:at + len(part)])
         at += len(part)
         since += part.nbytes
         del part
