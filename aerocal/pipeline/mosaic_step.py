@@ -209,7 +209,6 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
     info["surface"] = "dense"
     info["dense"] = {**stats, "seconds": round(seconds, 1), "gsd_m": gsd, "dsm_cell_m": dsm.cell_m,
                      "measured_fraction": float(np.count_nonzero(measured) / np.count_nonzero(seen)),
-                     "unseen_fraction": float(1.0 - np.mean(seen)),
                      "two_view_fraction": float(np.count_nonzero(views == 2) / max(np.count_nonzero(measured), 1)),
                      "median_views": median_views, "temperature": flir is not None}
     return dsm, measured, views, {"cloud": FileOutput(laz, "cloud", temporary=True)}

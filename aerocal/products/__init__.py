@@ -9,5 +9,5 @@ radiometric, temperature) as cloud-optimised GeoTIFFs, in tiles that run on a Da
 holds its numeric inner loops; :mod:`range_check` compares the surface with the frames' laser ranges. Inputs are
 the pipeline's tables (poses, points, cameras); nothing here estimates geometry.
 
-Tests: tests/test_dense.py (coverage too), tests/test_dsm.py, tests/test_mosaic.py, tests/test_range_check.py.
+Tests: tests/test_dense.py, tests/test_dsm.py, tests/test_mosaic.py, tests/test_range_check.py.
 """
