@@ -737,8 +737,8 @@ def _nearness_rank(xy: np.ndarray, centre_xy: np.ndarray, centres_xy: np.ndarray
 def _tile_order(rel: np.ndarray, tile: float) -> tuple[np.ndarray, np.ndarray]:
     """The points ``rel`` (N, 2) grouped by square tile of side ``tile``: (order, bounds), the points of the t-th
     occupied tile ``order[bounds[t]:bounds[t + 1]]`` in their original order; tiles in row-major order of their
-    (x, y) index. A counting sort: the stable argsort of the tiles' keys, in one pass over the points where numpy's
-    argsort took a sixth of the ranking's time."""
+    (x, y) index. The tiles' keys in one pass and :func:`_cells_in_order`'s counting sort, where numpy's argsort
+    took a sixth of the ranking's time."""
     n = rel.shape[0]
     cx = np.empty(n, dtype=np.int64)
     cy = np.empty(n, dtype=np.int64)
@@ -747,29 +747,10 @@ def _tile_order(rel: np.ndarray, tile: float) -> tuple[np.ndarray, np.ndarray]:
         cy[i] = np.int64(np.floor(rel[i, 1] / tile))
     x0, y0 = cx.min(), cy.min()
     ny = cy.max() - y0 + 1
-    n_keys = (cx.max() - x0 + 1) * ny
-    start = np.zeros(n_keys + 1, dtype=np.int64)
     key = np.empty(n, dtype=np.int64)
     for i in range(n):
         key[i] = (cx[i] - x0) * ny + (cy[i] - y0)
-        start[key[i] + 1] += 1
-    occupied = 0
-    for t in range(n_keys):
-        if start[t + 1] > 0:
-            occupied += 1
-        start[t + 1] += start[t]
-    bounds = np.empty(occupied + 1, dtype=np.int64)
-    b = 0
-    for t in range(n_keys):
-        if start[t + 1] > start[t]:
-            bounds[b] = start[t]
-            b += 1
-    bounds[occupied] = n
-    order = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        order[start[key[i]]] = i
-        start[key[i]] += 1
-    return order, bounds
+    return _cells_in_order(key)
 
 
 @numba.njit(cache=True)
