@@ -549,8 +549,9 @@ def test_the_cells_the_frames_see_are_those_a_frame_holds_in_its_image_and_no_ot
 
 def test_smoothing_a_depth_map_takes_out_noise_and_keeps_a_roofs_rim_and_every_hole():
     """A flat ground at 850 m with a roof 6 m high (12 ground samples at f 1000 px) on its right half, 0.3 m of
-    noise, a tenth of the pixels without a depth: the smoothed map is nearer the truth away from the rim, the rim
-    stays within two pixels of where it was, and a hole stays a hole without moving its neighbours."""
+    noise, a tenth of the pixels without a depth: the smoothed map is nearer the truth away from the rim, the pixels
+    within two of the rim stay on their own side of it (median error under 0.5 m of the 6 m step), and a hole stays
+    a hole without moving its neighbours."""
     rng = np.random.default_rng(11)
     truth = np.full((60, 80), 850.0, dtype=np.float32)
     truth[:, 40:] = 844.0
