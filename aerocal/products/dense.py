@@ -690,7 +690,7 @@ def smooth_depth(depth: np.ndarray, f_px: float, config: DenseConfig) -> np.ndar
     far = float(depth[ok].max()) + 100.0 * width
     x = np.where(ok, depth, np.float32(far)).astype(np.float32)
     y = cv2.bilateralFilter(x, 2 * config.smoothing_radius_px + 1, width, 0.8 * config.smoothing_radius_px)
-    return np.where(ok, y, np.float32(np.nan)).astype(np.float32)
+    return np.where(ok, y, np.float32(np.nan))
 
 
 @dataclass(frozen=True)
@@ -698,7 +698,7 @@ class ReferencePoints:
     """What one reference frame hands on (module docstring, steps 2-5): the points it keeps, ``origin + offset``
     world metres (``origin`` (3,) float64, the reference's projection centre; ``offset`` (N, 3) float32, each point's
     depth times its ray, as it is computed: float32 holds a kilometre to a tenth of a millimetre, and a city's
-    workers send 40 % fewer bytes than with float64 points), ``value`` (N,) float32, ``views`` (N,) uint8 and
+    workers send 18 bytes a point rather than 30 with float64 points), ``value`` (N,) float32, ``views`` (N,) uint8 and
     ``rank`` (N,) uint8 (0 where the reference is the frame nearest the point in plan, 1 the next, ...)."""
 
     origin: np.ndarray
@@ -729,28 +729,9 @@ def _nearness_rank(xy: np.ndarray, centre_xy: np.ndarray, centres_xy: np.ndarray
     dist2 = np.einsum("ij,ij->i", others, others)
     near = (dist2 > 0) & (dist2 <= reach * reach)
     tile = max(reach / 64.0, 1e-6)
-    order, bounds = _tile_order(rel, tile)
+    # the points grouped by tile (the tiles' order is immaterial: each is settled on its own)
+    order, bounds = _cells_in_order(_cell_keys(rel, tile)[0])
     return _count_nearer(rel, order, bounds, np.ascontiguousarray(others[near]), dist2[near], k, tile)
-
-
-@numba.njit(cache=True)
-def _tile_order(rel: np.ndarray, tile: float) -> tuple[np.ndarray, np.ndarray]:
-    """The points ``rel`` (N, 2) grouped by square tile of side ``tile``: (order, bounds), the points of the t-th
-    occupied tile ``order[bounds[t]:bounds[t + 1]]`` in their original order; tiles in row-major order of their
-    (x, y) index. The tiles' keys in one pass and :func:`_cells_in_order`'s counting sort, where numpy's argsort
-    took a sixth of the ranking's time."""
-    n = rel.shape[0]
-    cx = np.empty(n, dtype=np.int64)
-    cy = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        cx[i] = np.int64(np.floor(rel[i, 0] / tile))
-        cy[i] = np.int64(np.floor(rel[i, 1] / tile))
-    x0, y0 = cx.min(), cy.min()
-    ny = cy.max() - y0 + 1
-    key = np.empty(n, dtype=np.int64)
-    for i in range(n):
-        key[i] = (cx[i] - x0) * ny + (cy[i] - y0)
-    return _cells_in_order(key)
 
 
 @numba.njit(cache=True)
