@@ -503,6 +503,29 @@ def test_a_second_frame_confirms_a_cell_from_the_next_cell_and_a_point_of_one_pa
                                             tol_m=1.5), [True, False, True])
 
 
+def test_the_confirmation_keeps_the_same_points_in_one_run_of_cells_as_in_many_on_threads():
+    """A random cloud of 8 frames over 30 x 30 cells (ranks, two- and three-view points, heights that agree and some
+    that do not): the cells taken in 1, 7 and 640 runs on numba's threads keep the same points (each cell writes only
+    its own fields and points; the second pass reads what the first finished)."""
+    from aerocal.products.dense import _cell_keys, _cells_in_order, _confirm_cells
+
+    rng = np.random.default_rng(SEED)
+    n = 6_000
+    xyz = np.column_stack([rng.uniform(0, 30, n), rng.uniform(0, 30, n), 20.0 + rng.normal(0, 1.0, n)])
+    xyz[rng.random(n) < 0.1, 2] += 8.0  # a tenth far off the others
+    rank = rng.integers(0, 3, n).astype(np.uint8)
+    frame = rng.integers(0, 8, n).astype(np.int64)
+    views = rng.choice(np.array([2, 3, 4], np.uint8), n)
+    key, cols = _cell_keys(xyz, 1.0)
+    order, bounds = _cells_in_order(key)
+    cell_keys = key[order[bounds[:-1]]]
+    kept = [_confirm_cells(order, bounds, cell_keys, int(cols), xyz, rank, frame, views, 1.5, runs)
+            for runs in (1, 7, 640)]
+    assert 0.2 < kept[0].mean() < 0.95, kept[0].mean()
+    for k in kept[1:]:
+        np.testing.assert_array_equal(k, kept[0])
+
+
 def test_the_fusion_keeps_the_mean_of_the_largest_agreeing_group_as_comparing_every_pair_of_maps_does():
     """The per-pixel fusion against its definition written with numpy over every pair of depth maps."""
     rng = np.random.default_rng(5)
@@ -593,19 +616,30 @@ def test_the_dense_frames_kept_are_released_when_the_surface_is_done(tmp_path):
 
 
 def test_the_cloud_is_ordered_by_cell_and_compacted_as_numpy_would():
-    """The confirmation's counting sort against numpy's stable argsort, and the in-place compaction of the kept
-    points against boolean indexing (a city's cloud is 10^8 points: neither may hold a second copy)."""
-    from aerocal.products.dense import _cells_in_order, _gathered, _kept
+    """The confirmation's counting sort against numpy's stable argsort, on one thread and split over several
+    (each its own range of cells), and the in-place compaction of the kept points against boolean indexing (a
+    city's cloud is 10^8 points: neither may hold a second copy); the gathering of the workers' float32 offsets
+    against numpy's sum with their origins."""
+    from aerocal.products.dense import _cells_in_order, _counting_order, _gathered, _kept
 
     rng = np.random.default_rng(SEED)
     key = rng.integers(0, 400, 20_000).astype(np.int64)
-    order, bounds = _cells_in_order(key)
     expected = np.argsort(key, kind="stable")
-    np.testing.assert_array_equal(order, expected)
-    np.testing.assert_array_equal(bounds, np.flatnonzero(np.r_[True, key[expected][1:] != key[expected][:-1], True]))
+    for order, bounds in (_cells_in_order(key), *(_counting_order(key, t) for t in (1, 2, 3))):
+        np.testing.assert_array_equal(order, expected)
+        np.testing.assert_array_equal(bounds,
+                                      np.flatnonzero(np.r_[True, key[expected][1:] != key[expected][:-1], True]))
+    for few in (np.zeros(0, np.int64), np.full(5, 7, np.int64)):  # no point; every point in one cell
+        order, bounds = _counting_order(few, 3)
+        np.testing.assert_array_equal(order, np.arange(len(few)))
+        np.testing.assert_array_equal(bounds, [0, len(few)] if len(few) else [0])
     keep = rng.random(20_000) < 0.3
     for values in (rng.normal(size=(20_000, 3)), rng.integers(0, 9, 20_000).astype(np.uint8)):
         np.testing.assert_array_equal(_kept(values.copy(), keep), values[keep])
     assert _kept(np.zeros((0, 3)), np.zeros(0, bool)).shape == (0, 3)  # a block with no point
     parts = [rng.normal(size=(n, 3)) for n in (5, 0, 7)]
     np.testing.assert_array_equal(_gathered(list(parts)), np.concatenate(parts))
+    offsets = [rng.normal(size=(n, 3)).astype(np.float32) for n in (5, 0, 7)]
+    origins = [rng.normal(size=3) * 1e5 for _ in offsets]
+    np.testing.assert_array_equal(_gathered(list(offsets), list(origins)),
+                                  np.concatenate([o + p for o, p in zip(origins, offsets, strict=True)]))

@@ -832,7 +832,7 @@ def confirmed(xyz: np.ndarray, rank: np.ndarray, image_id: np.ndarray, cell_m: f
     del key
     views = (np.full(len(xyz), 3, dtype=np.uint8) if views is None else np.asarray(views, dtype=np.uint8))
     return _confirm_cells(order, bounds, cell_keys, int(cols), xyz, np.asarray(rank, dtype=np.uint8),
-                          np.asarray(image_id), views, float(tol_m))
+                          np.asarray(image_id), views, float(tol_m), 64 * numba.get_num_threads())
 
 
 @numba.njit(cache=True)
@@ -854,19 +854,38 @@ def _cell_keys(xyz: np.ndarray, cell_m: float) -> tuple[np.ndarray, int]:
     return key, cols
 
 
-@numba.njit(cache=True)
 def _cells_in_order(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_counting_order` of ``key`` on numba's threads, one per million keys at most (a reference's points
+    on a worker: one)."""
+    return _counting_order(key, max(1, min(numba.get_num_threads(), len(key) // 1_000_000)))
+
+
+@numba.njit(cache=True, parallel=True)
+def _counting_order(key: np.ndarray, threads: int) -> tuple[np.ndarray, np.ndarray]:
     """The points ordered by cell, in their own order within a cell (``np.argsort(key, kind="stable")``), and
     where each occupied cell's run starts in that order, with the count at the end: a counting sort, linear in
     the points and the cells, without the sort's and the comparison's copies of the keys (a city's cloud holds
-    10^8 points)."""
+    10^8 points).
+
+    On ``threads`` threads, each counting and placing the points of its own range of cells (ranges of about equal
+    points, from a sample of the keys): every thread reads all the keys, but writes only its cells' counts and
+    places, so the threads never write the same element and the order is the serial one."""
     n = key.shape[0]
     n_cells = 0
     for i in range(n):
         n_cells = max(n_cells, key[i] + 1)
+    edges = np.empty(threads + 1, dtype=np.int64)
+    edges[0], edges[threads] = 0, n_cells
+    if threads > 1 and n > 0:
+        sample = np.sort(key[::max(1, n // 100_000)])
+        for t in range(1, threads):
+            edges[t] = max(edges[t - 1], sample[(t * sample.shape[0]) // threads])
     start = np.zeros(n_cells + 1, dtype=np.int64)
-    for i in range(n):
-        start[key[i] + 1] += 1
+    for t in numba.prange(threads):
+        lo, hi = edges[t], edges[t + 1]
+        for i in range(n):
+            if lo <= key[i] < hi:
+                start[key[i] + 1] += 1
     occupied = 0
     for c in range(n_cells):
         if start[c + 1] > 0:
@@ -880,36 +899,27 @@ def _cells_in_order(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             j += 1
     bounds[occupied] = n
     order = np.empty(n, dtype=np.int64)
-    for i in range(n):  # start[c] becomes the next free place of cell c
-        order[start[key[i]]] = i
-        start[key[i]] += 1
+    for t in numba.prange(threads):  # start[c] becomes the next free place of cell c
+        lo, hi = edges[t], edges[t + 1]
+        for i in range(n):
+            k = key[i]
+            if lo <= k < hi:
+                order[start[k]] = i
+                start[k] += 1
     return order, bounds
 
 
 @numba.njit(cache=True)
-def _confirm_cells(order: np.ndarray, bounds: np.ndarray, cell_keys: np.ndarray, cols: int, xyz: np.ndarray,
-                   rank: np.ndarray, image_id: np.ndarray, views: np.ndarray, tol: float) -> np.ndarray:
-    """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``, whose key
-    (row * ``cols`` + column) is ``cell_keys[c]`` (ascending).
-
-    A cell without the nearest frame's points is confirmed by a second frame's close point in the cell or in one of
-    its 8 neighbours whose height agrees with the cell's within ``tol``: a frame's points are about one per cell, so
-    where two frames alone see the ground (a block's edge, beside a wall) their points often miss each other's
-    cell, and asking for both in the same one left such ground a hole (``benchmarks/RESULTS.md``, "Dense surface: a
-    second frame confirms a cell from the next one")."""
-    n_cells = bounds.shape[0] - 1
-    keep = np.zeros(xyz.shape[0], dtype=np.bool_)
-    # per occupied cell (a city's 70 million: 4-byte fields): its reference height, up to two frames with a close
-    # point in it
-    height = np.full(n_cells, np.nan, dtype=np.float32)
-    frame_a = np.full(n_cells, -1, dtype=np.int32)
-    frame_b = np.full(n_cells, -1, dtype=np.int32)
-    settled = np.zeros(n_cells, dtype=np.bool_)  # the nearest frame's points, or two frames in the cell
+def _settle_cells(first: int, last: int, order: np.ndarray, bounds: np.ndarray, xyz: np.ndarray, rank: np.ndarray,
+                  image_id: np.ndarray, views: np.ndarray, tol: float, keep: np.ndarray, height: np.ndarray,
+                  frame_a: np.ndarray, frame_b: np.ndarray, settled: np.ndarray) -> None:
+    """The first pass of :func:`_confirm_cells` over the cells ``first`` to ``last`` (exclusive): each cell's
+    reference height, the frames of its close points, whether it is settled, and its points' ``keep``."""
     largest = 0
-    for c in range(n_cells):
+    for c in range(first, last):
         largest = max(largest, bounds[c + 1] - bounds[c])
     buf = np.empty(largest, dtype=np.float64)
-    for c in range(n_cells):
+    for c in range(first, last):
         lo, hi = bounds[c], bounds[c + 1]
         fewest = 2  # the fewest views a point of the cell may have: 3 where some point has three or more
         for p in range(lo, hi):
@@ -946,24 +956,53 @@ def _confirm_cells(order: np.ndarray, bounds: np.ndarray, cell_keys: np.ndarray,
                 elif image_id[i] != frame_a[c] and frame_b[c] < 0:
                     frame_b[c] = image_id[i]
                     settled[c] = True
-    for c in range(n_cells):
-        if settled[c] or frame_a[c] < 0:
-            continue
-        row, col = cell_keys[c] // cols, cell_keys[c] % cols
-        second = False
-        for dr in range(-1, 2):
-            for dc in range(-1, 2):
-                if second or (dr == 0 and dc == 0) or not 0 <= col + dc < cols:
-                    continue
-                near = (row + dr) * cols + col + dc
-                j = np.searchsorted(cell_keys, near)
-                if j >= n_cells or cell_keys[j] != near or not abs(height[j] - height[c]) <= tol:
-                    continue
-                second = ((frame_a[j] >= 0 and frame_a[j] != frame_a[c])
-                          or (frame_b[j] >= 0 and frame_b[j] != frame_a[c]))
-        if not second:
-            for p in range(bounds[c], bounds[c + 1]):
-                keep[order[p]] = False
+
+
+@numba.njit(cache=True, parallel=True)
+def _confirm_cells(order: np.ndarray, bounds: np.ndarray, cell_keys: np.ndarray, cols: int, xyz: np.ndarray,
+                   rank: np.ndarray, image_id: np.ndarray, views: np.ndarray, tol: float, runs: int) -> np.ndarray:
+    """:func:`confirmed` cell by cell: the points ``order[bounds[c]:bounds[c + 1]]`` share cell ``c``, whose key
+    (row * ``cols`` + column) is ``cell_keys[c]`` (ascending).
+
+    A cell without the nearest frame's points is confirmed by a second frame's close point in the cell or in one of
+    its 8 neighbours whose height agrees with the cell's within ``tol``: a frame's points are about one per cell, so
+    where two frames alone see the ground (a block's edge, beside a wall) their points often miss each other's
+    cell, and asking for both in the same one left such ground a hole (``benchmarks/RESULTS.md``, "Dense surface: a
+    second frame confirms a cell from the next one"). The cells are taken in ``runs`` runs on numba's threads."""
+    n_cells = bounds.shape[0] - 1
+    keep = np.zeros(xyz.shape[0], dtype=np.bool_)
+    # per occupied cell (a city's 70 million: 4-byte fields): its reference height, up to two frames with a close
+    # point in it
+    height = np.full(n_cells, np.nan, dtype=np.float32)
+    frame_a = np.full(n_cells, -1, dtype=np.int32)
+    frame_b = np.full(n_cells, -1, dtype=np.int32)
+    settled = np.zeros(n_cells, dtype=np.bool_)  # the nearest frame's points, or two frames in the cell
+    # a cell writes only its own fields and its own points' keep, and the second pass reads the fields the first
+    # has finished
+    step = (n_cells + runs - 1) // runs
+    for run in numba.prange(runs):
+        first, last = run * step, min((run + 1) * step, n_cells)
+        _settle_cells(first, last, order, bounds, xyz, rank, image_id, views, tol, keep, height, frame_a, frame_b,
+                      settled)
+    for run in numba.prange(runs):
+        for c in range(run * step, min((run + 1) * step, n_cells)):
+            if settled[c] or frame_a[c] < 0:
+                continue
+            row, col = cell_keys[c] // cols, cell_keys[c] % cols
+            second = False
+            for dr in range(-1, 2):
+                for dc in range(-1, 2):
+                    if second or (dr == 0 and dc == 0) or not 0 <= col + dc < cols:
+                        continue
+                    near = (row + dr) * cols + col + dc
+                    j = np.searchsorted(cell_keys, near)
+                    if j >= n_cells or cell_keys[j] != near or not abs(height[j] - height[c]) <= tol:
+                        continue
+                    second = ((frame_a[j] >= 0 and frame_a[j] != frame_a[c])
+                              or (frame_b[j] >= 0 and frame_b[j] != frame_a[c]))
+            if not second:
+                for p in range(bounds[c], bounds[c + 1]):
+                    keep[order[p]] = False
     return keep
 
 
@@ -1063,7 +1102,7 @@ def _gathered(parts: list[np.ndarray], origins: list[np.ndarray] | None = None) 
         if origins is None:
             out[at:at + len(part)] = part
         else:
-            np.add(origins.pop(), part, out=out[at:at + len(part)])
+            _add_origin(np.asarray(origins.pop(), dtype=np.float64), part, out[at:at + len(part)])
         at += len(part)
         since += part.nbytes
         del part
@@ -1072,6 +1111,15 @@ def _gathered(parts: list[np.ndarray], origins: list[np.ndarray] | None = None) 
             since = 0
     _release_freed_memory()
     return out
+
+
+@numba.njit(cache=True, parallel=True)
+def _add_origin(origin: np.ndarray, offset: np.ndarray, out: np.ndarray) -> None:
+    """``out = origin + offset`` (``np.add``'s values) on numba's threads: the flow's process gathers a city's
+    cloud while the workers are idle, and most of the time is the kernel's first touch of the new pages."""
+    for i in numba.prange(offset.shape[0]):
+        for k in range(3):
+            out[i, k] = origin[k] + np.float64(offset[i, k])
 
 
 def _release_freed_memory() -> None:
