@@ -131,6 +131,28 @@ def test_dask_and_serial_mosaics_are_identical(flight, client):
     assert sorted(calls) == list(range(1, res.tiles + 1))
 
 
+def test_a_mosaic_on_threads_is_the_serial_one_and_leaves_the_process_its_opencv_threads(flight):
+    """The tiles on three threads of this process (the product's path without a Dask scheduler): the same file
+    values as on one, every tile reported once, and OpenCV's thread count afterwards what it was before (each
+    tile runs OpenCV on one thread; a later step's semi-global matching must keep every core)."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        calls = []
+        res = build_mosaic(flight["frames"], flight["images"], flight["dsm"], flight["work"] / "ortho_threads.tif",
+                           MosaicConfig(gsd_m=flight["gsd"]), progress=lambda done, total: calls.append(done),
+                           threads=3)
+        assert cv2.getNumThreads() == 2
+    finally:
+        cv2.setNumThreads(before)
+    with rasterio.open(res.path) as a, rasterio.open(flight["serial"].path) as b:
+        assert a.transform == b.transform and a.shape == b.shape
+        assert np.array_equal(a.read(), b.read())
+    assert calls == list(range(1, res.tiles + 1))
+
+
 def test_a_frame_is_decoded_once_and_the_crop_it_is_resampled_from_changes_no_value(flight, monkeypatch):
     """Tiles touching a frame read it from the process's cache (a visible block's mosaic was decode-bound), and
     each tile converts only the part of the frame it reads: the same bytes as resampling whole frames held in

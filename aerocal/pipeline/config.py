@@ -147,12 +147,13 @@ class BlockStepConfig:
 class MosaicStepConfig:
     """DSM and orthomosaic settings (:class:`aerocal.products.dsm.DsmConfig`,
     :class:`aerocal.products.mosaic.MosaicConfig`; ``None`` = their defaults). The dense surface's pairs and the
-    orthomosaic's tiles run on the Dask scheduler given to the run (:class:`aerocal.matching.cluster.ExecutionConfig`)
-    and, without one, on a local cluster only for flights of more than ``serial_max_megapixels`` (100) of frames
-    in all; smaller ones run in this process. There OpenCV's semi-global matcher and GDAL already use every core,
-    each frame is decoded once and nothing is shipped between processes, so a local cluster of worker processes
-    costs more than it gains on a block that size (``benchmarks/RESULTS.md``, "The mosaic step in the calling
-    process"; the earlier 25 MP: ``benchmarks/history/engine_measurements.md``, the mosaic's serial threshold)."""
+    orthomosaic's tiles run on the Dask scheduler given to the run (:class:`aerocal.matching.cluster.ExecutionConfig`).
+    Without one, the dense surface runs on a local cluster only for flights of more than ``serial_max_megapixels``
+    (100) of frames in all, smaller ones in this process: there OpenCV's semi-global matcher already uses every
+    core and nothing is shipped between processes, so a local cluster of worker processes costs more than it gains
+    on a block that size (``benchmarks/RESULTS.md``, "The mosaic step in the calling process"); and the
+    orthomosaic's tiles always run in this process, on one thread per local worker
+    (:func:`aerocal.products.mosaic.build_mosaic`)."""
 
     dsm: DsmConfig | None = None
     mosaic: MosaicConfig | None = None

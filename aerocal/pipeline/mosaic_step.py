@@ -313,11 +313,12 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
         out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured, views), "dsm", temporary=True)
         info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
         if paths:
-            megapixels = len(frames) * cert.camera.width * cert.camera.height / 1e6
-            serial = megapixels <= config.serial_max_megapixels
-            with (execution or ExecutionConfig()).client(serial) as client:
+            run = execution or ExecutionConfig()
+            # on the run's Dask scheduler when it has one; without one, on threads in this process, one per local
+            # worker the run would start (no local cluster: build_mosaic's docstring)
+            with run.client(serial=run.dask_address is None) as client:
                 res = build_mosaic(frames, paths, dsm, work / "orthomosaic.tif", config.mosaic or MosaicConfig(),
-                                   client, step_progress("mosaic"))
+                                   client, step_progress("mosaic"), threads=max(1, run.local_workers))
             out["orthomosaic"] = FileOutput(res.path, "orthomosaic", temporary=True)
             info.update({k: v for k, v in res.to_dict().items() if k != "path"})
             if res.dtype == "uint16":

@@ -40,9 +40,11 @@ that touches it, and only the part of it a tile reads is converted for resamplin
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import dataclasses
 import shutil
 import tempfile
+import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -230,25 +232,33 @@ class FrameCache:
     def __init__(self, max_bytes: int) -> None:
         self.max_bytes = max_bytes
         self._kept: collections.OrderedDict[object, tuple[np.ndarray, ...]] = collections.OrderedDict()
+        self._lock = threading.Lock()
 
     def get(self, key: object, read: Callable[[], tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
-        """The arrays kept under ``key``, else ``read()``'s, kept (read-only) before they are returned."""
-        if key in self._kept:
-            self._kept.move_to_end(key)
-            return self._kept[key]
+        """The arrays kept under ``key``, else ``read()``'s, kept (read-only) before they are returned. Safe to
+        call from several threads: ``read`` runs outside the lock (two threads that miss the same key at once
+        both read it, and the first kept is returned to both)."""
+        with self._lock:
+            if key in self._kept:
+                self._kept.move_to_end(key)
+                return self._kept[key]
         arrays = read()
         for a in arrays:
             a.flags.writeable = False
-        self._kept[key] = arrays
-        while sum(a.nbytes for v in self._kept.values() for a in v) > self.max_bytes and len(self._kept) > 1:
-            self._kept.popitem(last=False)
+        with self._lock:
+            if key in self._kept:
+                return self._kept[key]
+            self._kept[key] = arrays
+            while sum(a.nbytes for v in self._kept.values() for a in v) > self.max_bytes and len(self._kept) > 1:
+                self._kept.popitem(last=False)
         return arrays
 
     def __len__(self) -> int:
         return len(self._kept)
 
     def clear(self) -> None:
-        self._kept.clear()
+        with self._lock:
+            self._kept.clear()
 
 
 #: the decoded frames each process keeps (:func:`frame_pixels`): tiles are rendered in an order that keeps
@@ -504,12 +514,17 @@ def build_mosaic(
     config: MosaicConfig | None = None,
     client=None,
     progress: Progress | None = None,
+    threads: int = 1,
 ) -> MosaicResult:
     """Build the orthomosaic of ``frames`` over ``dsm`` and write it to ``out_path`` (see module docstring).
 
     ``images`` maps image id -> original pixels (array) or a file path (read by :func:`read_frame` where
-    the tile is computed). ``client``: a ``distributed.Client`` (tiles run on its workers), or None
-    (serial). ``progress(done, total)`` is called after each tile is written.
+    the tile is computed). ``client``: a ``distributed.Client`` (tiles run on its workers), or None: the tiles
+    run in this process, on ``threads`` threads (the tile kernels, OpenCV's resampling and JPEG decoding release
+    the GIL; one OpenCV thread each while they run, the process's own count restored after). On one machine,
+    threads beat a local cluster of worker processes: nothing is shipped between processes and each frame is
+    decoded once for all of them (``benchmarks/RESULTS.md``, "Orthomosaic of large visible frames against the
+    decode-and-resample limit"). ``progress(done, total)`` is called after each tile is written.
 
     Raises:
         ValueError: ``images`` has no pixels for a frame; ``frames`` is empty; the output grid is empty; the frames are
@@ -580,11 +595,13 @@ def build_mosaic(
     valid_px = 0
     tmpdir = Path(tempfile.mkdtemp(prefix=".tmp-mosaic.", dir=out_path.parent if out_path.parent.exists()
                                    else None))
+    opencv_threads = cv2.getNumThreads()  # render_tile sets one: this process's own count comes back after
     try:
         work = tmpdir / "work.tif"
         with rasterio.open(work, "w", **work_profile) as dst:
             done = 0
-            for tile, arr in _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client):
+            for tile, arr in _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client,
+                                        threads):
                 dst.write(arr, window=rasterio.windows.Window(tile.col0, tile.row0, tile.cols, tile.rows))
                 n_valid = int(np.count_nonzero(arr[0] != nodata))
                 valid_px += n_valid
@@ -596,6 +613,7 @@ def build_mosaic(
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
         forget_frames()  # this process's frames (the serial tiles, the first frame's sample)
+        cv2.setNumThreads(opencv_threads)
     return MosaicResult(
         path=out_path, crs=dsm.crs, transform=tuple(transform)[:6], width=width, height=height, gsd_m=float(gsd),
         nodata=int(nodata), dtype=dtype, bands=bands, tiles=total, tiles_with_data=with_data,
@@ -603,16 +621,23 @@ def build_mosaic(
     )
 
 
-def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client):
-    """Yield (tile, array) as tiles complete: serially, or on the Dask client (in ``tiles``' order, which the
-    scheduler keeps for tasks submitted one after another). A frame given as a path is decoded where the tile
-    is rendered, once per process while it is in use (:func:`frame_pixels`)."""
+def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client, threads=1):
+    """Yield (tile, array) as tiles complete: in this process (on ``threads`` threads, in ``tiles``' order), or on
+    the Dask client (in ``tiles``' order, which the scheduler keeps for tasks submitted one after another). A frame
+    given as a path is decoded where the tile is rendered, once per process while it is in use
+    (:func:`frame_pixels`)."""
     args = (config.feather_px, nodata, dtype, bands)
     if client is None:
-        for tile in tiles:
+        def one(tile: TileSpec) -> tuple[TileSpec, np.ndarray]:
             idx = members(tile)
-            yield render_tile(tile, [frames[k] for k in idx], [images[frames[k].image_id] for k in idx],
-                              dsm.window(tile.bounds()), *args)
+            return render_tile(tile, [frames[k] for k in idx], [images[frames[k].image_id] for k in idx],
+                               dsm.window(tile.bounds()), *args)
+
+        if threads <= 1:
+            yield from map(one, tiles)
+            return
+        with concurrent.futures.ThreadPoolExecutor(threads) as pool:
+            yield from pool.map(one, tiles)
         return
 
     # lazy: distributed is slow to import; only the Dask path needs it
