@@ -636,8 +636,16 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
         if threads <= 1:
             yield from map(one, tiles)
             return
+        # a few tiles ahead of the writer per thread, not all of them: a finished tile waits in memory until the
+        # tiles before it are written
         with concurrent.futures.ThreadPoolExecutor(threads) as pool:
-            yield from pool.map(one, tiles)
+            pending: collections.deque = collections.deque()
+            for tile in tiles:
+                pending.append(pool.submit(one, tile))
+                if len(pending) >= 4 * threads:
+                    yield pending.popleft().result()
+            while pending:
+                yield pending.popleft().result()
         return
 
     # lazy: distributed is slow to import; only the Dask path needs it
