@@ -106,12 +106,13 @@ def main() -> None:
                   crs="EPSG:32618", distance_m=np.zeros((rows, cols), np.float32))
         n = len(paths)
         # the product's path without a scheduler: the limit and the mosaic on threads of this process
-        cv2.setNumThreads(1)
+        opencv_threads = cv2.getNumThreads()
+        cv2.setNumThreads(1)  # one OpenCV thread per task, as the mosaic's tiles run
         t0 = time.perf_counter()
         with concurrent.futures.ThreadPoolExecutor(args.workers) as pool:
             list(pool.map(decode_and_resample, paths, [w] * n, [h] * n, range(n)))
         thread_limit = time.perf_counter() - t0
-        cv2.setNumThreads(cv2.getNumberOfCPUs())
+        cv2.setNumThreads(opencv_threads)
         t0 = time.perf_counter()
         build_mosaic(frames, dict(enumerate(paths)), dsm, work / "ortho_threads.tif", MosaicConfig(gsd_m=GSD_M),
                      threads=args.workers)

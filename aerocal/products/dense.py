@@ -678,8 +678,9 @@ def smooth_depth(depth: np.ndarray, f_px: float, config: DenseConfig) -> np.ndar
     samples of height, NMAD) passes into the DSM, whose cells take the median of the few frames' points that fall
     in them. Averaging over the neighbours at a similar depth takes much of it out (0.55-0.62) and leaves a roof's
     rim (several ground samples high) where it was; a weighted median with the frame's grey levels as its guide did
-    as well there but took 0.4-0.7 s per thermal frame against about 11 ms (``benchmarks/RESULTS.md``, "Dense
-    surface: the depth maps smoothed").
+    as well there but took 0.4-0.7 s per thermal frame against 11 ms on OpenCV's two threads, 26 ms on the one a
+    worker gives it (``benchmarks/RESULTS.md``, "Dense surface: the depth maps smoothed" and "Dense surface: the
+    cloud's tail on two threads").
     """
     if config.smoothing_radius_px == 0:
         return depth
