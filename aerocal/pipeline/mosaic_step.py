@@ -13,6 +13,7 @@ import functools
 import tempfile
 import time
 from collections.abc import Iterable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -193,11 +194,16 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
     own = own_views(cloud, cells)
     flir, _ = common_camera_info(list(paths.values()))
     temperature = None if flir is None else functools.partial(raw_to_celsius, info=flir)
-    laz = write_laz(cloud, work / "cloud.laz", flight["crs"], temperature)
     stats, gsd, median_views = dict(cloud.stats), cloud.gsd_m, float(np.median(cloud.views))
-    del cloud
-    dsm = filled(cells, config.dense_dsm)
-    del cells
+    # the LAZ is written on a thread while the holes are filled: lazrs's compression and Qhull's triangulation
+    # release the GIL, so the two share the cores (benchmarks/RESULTS.md, "Products step: the LAZ, the DSMs' files
+    # and the DTM side by side"); the thread drops the cloud once it is written
+    with ThreadPoolExecutor(1, thread_name_prefix="aerocal-laz") as pool:
+        laz_job = pool.submit(write_laz, cloud, work / "cloud.laz", flight["crs"], temperature)
+        del cloud
+        dsm = filled(cells, config.dense_dsm)
+        del cells
+        laz = laz_job.result()
     measured = dsm.measured()
     # no height where no frame sees the ground (aerocal.products.coverage): there the filling extrapolates. The
     # plane is the surface's lowest but for a thousandth of its cells: a few points tens of metres below the ground
@@ -212,6 +218,20 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
                      "two_view_fraction": float(np.count_nonzero(views == 2) / max(np.count_nonzero(measured), 1)),
                      "median_views": median_views, "temperature": flir is not None}
     return dsm, measured, views, {"cloud": FileOutput(laz, "cloud", temporary=True)}
+
+
+def dense_files(dsm: Dsm, measured: np.ndarray, views: np.ndarray, sparse: Dsm, reference: Path | None,
+                work: Path) -> tuple[dict[str, FileOutput], dict[str, Any]]:
+    """The dense DSM's file (band 2 its measured cells, band 3 the views that agree on them) and the tie points'
+    DSM beside it (outputs ``dsm`` and ``sparse_dsm``), and, when the flight has a reference surface, both DSMs'
+    differences to it (``sparse_minus_reference_m``, ``dense_minus_reference_m``: :func:`difference_to`)."""
+    out = {"dsm": FileOutput(write_dsm(dsm, work / "dsm.tif", measured, views), "dsm", temporary=True),
+           "sparse_dsm": FileOutput(write_dsm(sparse, work / "sparse_dsm.tif"), "dsm", temporary=True)}
+    info: dict[str, Any] = {}
+    if reference is not None:
+        info["sparse_minus_reference_m"] = difference_to(sparse, reference, sparse.distance_m == 0)
+        info["dense_minus_reference_m"] = difference_to(dsm, reference, measured)
+    return out, info
 
 
 def laser_output(images: pa.Table, frames: list[FrameGeometry], dsm: Dsm, measured: np.ndarray,
@@ -285,32 +305,36 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
             sparse = dsm
             dsm, measured, views, cloud_out = dense
             out.update(cloud_out)
-            terrain = dtm_from_dsm(dsm, measured, config.ground_filter)
-            info["dtm"] = terrain.note
-            if terrain.dtm is not None:
-                # band 2: where the ground itself was measured (a measured cell the filter took for ground); the rest
-                # is interpolated, under buildings and trees and out to the grid's corners
-                out["dtm"] = FileOutput(write_dsm(terrain.dtm, work / "dtm.tif", terrain.ground), "dsm",
-                                        temporary=True)
-            out["sparse_dsm"] = FileOutput(write_dsm(sparse, work / "sparse_dsm.tif"), "dsm", temporary=True)
-            recorded = flight.get("height_agl_m")
-            source = str((flight.get("facts") or {}).get("height_agl_m", ""))
-            # against the ground (a DTM: over a forest the DSM is the canopy); a height measured on this block's tie
-            # points would judge itself
-            if recorded and terrain.dtm is not None and "tie points" not in source:
-                check = flying_height_check(frames, terrain.dtm, float(recorded))
-                if check is not None:
-                    info["flying_height"] = {**check, "ground": "DTM", "source": source or "flight.json"}
-            if reference is not None:
-                info["sparse_minus_reference_m"] = difference_to(sparse, reference, sparse.distance_m == 0)
-                info["dense_minus_reference_m"] = difference_to(dsm, reference, measured)
+            # the DSMs' files and their differences to the reference are made on a thread while the DTM is filtered:
+            # GDAL's writing, numpy's reductions and the filter's triangulation release the GIL, so the two share the
+            # cores (benchmarks/RESULTS.md, "Products step: the LAZ, the DSMs' files and the DTM side by side")
+            with ThreadPoolExecutor(1, thread_name_prefix="aerocal-dsm") as pool:
+                files = pool.submit(dense_files, dsm, measured, views, sparse, reference, work)
+                terrain = dtm_from_dsm(dsm, measured, config.ground_filter)
+                info["dtm"] = terrain.note
+                if terrain.dtm is not None:
+                    # band 2: where the ground itself was measured (a measured cell the filter took for ground); the
+                    # rest is interpolated, under buildings and trees and out to the grid's corners
+                    out["dtm"] = FileOutput(write_dsm(terrain.dtm, work / "dtm.tif", terrain.ground), "dsm",
+                                            temporary=True)
+                recorded = flight.get("height_agl_m")
+                source = str((flight.get("facts") or {}).get("height_agl_m", ""))
+                # against the ground (a DTM: over a forest the DSM is the canopy); a height measured on this block's
+                # tie points would judge itself
+                if recorded and terrain.dtm is not None and "tie points" not in source:
+                    check = flying_height_check(frames, terrain.dtm, float(recorded))
+                    if check is not None:
+                        info["flying_height"] = {**check, "ground": "DTM", "source": source or "flight.json"}
+                files_out, differences = files.result()
+            out.update(files_out)
+            info.update(differences)
         else:
             measured = views = None
+            out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif"), "dsm", temporary=True)
         if paths:
             laser = laser_output(images, frames, dsm, dsm.distance_m == 0 if measured is None else measured, gsd)
             if laser is not None:
                 info["laser_range"] = laser
-        out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif", measured, views), "dsm", temporary=True)
         info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
         if paths:
             run = execution or ExecutionConfig()

@@ -288,7 +288,7 @@ def _cell_medians(points: np.ndarray, west: float, north: float, cell: float, sh
     return heights.reshape(shape), counts.reshape(shape)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _bucket_medians(points: np.ndarray, west: float, north: float, cell: float, rows: int,
                     cols: int) -> tuple[np.ndarray, np.ndarray]:
     """:func:`_cell_medians` flat: per cell, the median height (NaN for none) and the count (int32); the cell
@@ -317,7 +317,7 @@ def _bucket_medians(points: np.ndarray, west: float, north: float, cell: float, 
     return heights, counts
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _cell_of(e: float, n: float, west: float, north: float, cell: float, rows: int, cols: int) -> int:
     """The flat index (row-major) of the cell holding (``e``, ``n``), -1 outside the grid."""
     c = int(np.floor((e - west) / cell))
@@ -325,7 +325,7 @@ def _cell_of(e: float, n: float, west: float, north: float, cell: float, rows: i
     return r * cols + c if 0 <= c < cols and 0 <= r < rows else -1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def median_in_place(values: np.ndarray) -> float:
     """The median of a few values (``values`` is sorted in place: insertion sort, for the handful of points a
     cell holds)."""
@@ -487,7 +487,7 @@ def _fill_pinholes(heights: np.ndarray, has: np.ndarray) -> tuple[np.ndarray, np
     return heights, has
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _pinhole_pass(heights: np.ndarray, has: np.ndarray, after: np.ndarray) -> int:
     """One round of :func:`_fill_pinholes`: each cell not in ``has`` with at least 4 of its 8 neighbours in it takes
     their mean height (zero neighbours beyond the grid) and is set in ``after``; returns how many were. Only cells
@@ -567,7 +567,7 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
 NEAREST_QUERY_CELLS = 45
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _raster_triangles(rows: np.ndarray, values: np.ndarray, out: np.ndarray, filled: np.ndarray) -> None:
     """Fill the cells of ``out`` (not yet ``filled``) that triangles cover, by barycentric interpolation.
 

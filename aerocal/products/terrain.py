@@ -139,7 +139,7 @@ def _block_medians(heights: np.ndarray, measured: np.ndarray, k: int) -> np.ndar
     return _block_medians_kernel(heights, np.ascontiguousarray(measured), k, -(-rows // k), -(-cols // k))
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _block_medians_kernel(heights: np.ndarray, measured: np.ndarray, k: int, out_rows: int,
                           out_cols: int) -> np.ndarray:
     rows, cols = heights.shape
