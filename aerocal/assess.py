@@ -419,9 +419,20 @@ def compare_dems(
         parts.append(diff[ok])
         out[rows][ok] = parts[-1]
     d = np.concatenate(parts) if parts else np.zeros(0)
-    if histogram_range_m is None and d.size:
-        lim = max(4.0 * nmad(d), 1e-3)
-        histogram_range_m = (float(np.median(d) - lim), float(np.median(d) + lim))
+    del parts
+    empty = d.size == 0
+    # the order-free figures first; then the median of d itself, reordered in place, and the NMAD on one array of
+    # deviations (a city's 7 * 10^7 cells: the seven medians of copies before were most of the report's time)
+    mean = float("nan") if empty else float(d.mean())
+    std = float("nan") if d.size < 2 else float(d.std(ddof=1))
+    rmse = float("nan") if empty else float(np.sqrt(np.mean(d * d)))
+    median = spread = float("nan")
+    if not empty:
+        median = float(np.median(d, overwrite_input=True))
+        spread = float(1.4826 * np.median(np.abs(d - median), overwrite_input=True))
+    if histogram_range_m is None and not empty:
+        lim = max(4.0 * spread, 1e-3)
+        histogram_range_m = (median - lim, median + lim)
     counts, edges = np.histogram(d, bins=bins, range=histogram_range_m)
     lines = []
     for (e0, n0), (e1, n1) in transects:
@@ -432,12 +443,8 @@ def compare_dems(
         lines.append({"start": [float(e0), float(n0)], "end": [float(e1), float(n1)],
                       "distance_m": s.tolist(), "height_m": [_f(v) for v in dem.height_at(ee, nn)],
                       "reference_m": [_f(v) for v in ref(ee, nn)]})
-    empty = d.size == 0
     return DemDifference(
-        n=int(d.size), mean=float("nan") if empty else float(d.mean()),
-        std=float("nan") if d.size < 2 else float(d.std(ddof=1)),
-        median=float("nan") if empty else float(np.median(d)), nmad=nmad(d),
-        rmse=float("nan") if empty else float(np.sqrt(np.mean(d * d))),
+        n=int(d.size), mean=mean, std=std, median=median, nmad=spread, rmse=rmse,
         histogram_edges=edges, histogram_counts=counts, difference=out,
         extent=tuple(float(v) for v in dem.bounds()), transects=lines,
         selection=selection or ("all cells with both heights" if mask is None else "masked cells"),
