@@ -861,32 +861,76 @@ def _cells_in_order(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _counting_order(key, max(1, min(numba.get_num_threads(), len(key) // 1_000_000)))
 
 
-@numba.njit(cache=True, parallel=True)
 def _counting_order(key: np.ndarray, threads: int) -> tuple[np.ndarray, np.ndarray]:
     """The points ordered by cell, in their own order within a cell (``np.argsort(key, kind="stable")``), and
     where each occupied cell's run starts in that order, with the count at the end: a counting sort, linear in
     the points and the cells, without the sort's and the comparison's copies of the keys (a city's cloud holds
-    10^8 points).
+    10^8 points). ``key`` (N,) int64, each point's cell (0 or more).
 
     On ``threads`` threads, each counting and placing the points of its own range of cells (ranges of about equal
     points, from a sample of the keys): every thread reads all the keys, but writes only its cells' counts and
-    places, so the threads never write the same element and the order is the serial one."""
-    n = key.shape[0]
-    n_cells = 0
-    for i in range(n):
-        n_cells = max(n_cells, key[i] + 1)
-    edges = np.empty(threads + 1, dtype=np.int64)
-    edges[0], edges[threads] = 0, n_cells
+    places, so the threads never write the same element and the order is the serial one. One thread opens no
+    parallel region: on a Dask worker, beside another busy worker, numba's idle threads waiting at the region's
+    end took a 300,000-point reference's sort from under 1 ms to 16-19 ms (``benchmarks/RESULTS.md``, "Dense
+    surface: a reference's counting sort without a parallel region")."""
+    key = np.asarray(key)
+    n = len(key)
+    n_cells = int(key.max()) + 1 if n else 0
+    edges = np.array([0, n_cells], dtype=np.int64)
     if threads > 1 and n > 0:
         sample = np.sort(key[::max(1, n // 100_000)])
-        for t in range(1, threads):
-            edges[t] = max(edges[t - 1], sample[(t * sample.shape[0]) // threads])
+        inner = sample[(np.arange(1, threads) * len(sample)) // threads]
+        edges = np.concatenate([[0], np.maximum.accumulate(np.maximum(inner, 0)), [n_cells]]).astype(np.int64)
     start = np.zeros(n_cells + 1, dtype=np.int64)
-    for t in numba.prange(threads):
-        lo, hi = edges[t], edges[t + 1]
-        for i in range(n):
-            if lo <= key[i] < hi:
-                start[key[i] + 1] += 1
+    order = np.empty(n, dtype=np.int64)
+    if threads > 1:
+        _count_ranges(key, edges, start)
+    else:
+        _count_range(key, 0, n_cells, start)
+    bounds = _runs_of_cells(start, n)
+    if threads > 1:
+        _place_ranges(key, edges, start, order)
+    else:
+        _place_range(key, 0, n_cells, start, order)
+    return order, bounds
+
+
+@numba.njit(cache=True, nogil=True)
+def _count_range(key: np.ndarray, lo: int, hi: int, start: np.ndarray) -> None:
+    """:func:`_counting_order`'s count of the keys in [``lo``, ``hi``): ``start[k + 1]`` += 1 for each key k."""
+    for i in range(key.shape[0]):
+        if lo <= key[i] < hi:
+            start[key[i] + 1] += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _place_range(key: np.ndarray, lo: int, hi: int, start: np.ndarray, order: np.ndarray) -> None:
+    """:func:`_counting_order`'s placing of the points whose keys lie in [``lo``, ``hi``): each at its cell's next
+    free place ``start[k]``, in the points' order."""
+    for i in range(key.shape[0]):
+        k = key[i]
+        if lo <= k < hi:
+            order[start[k]] = i
+            start[k] += 1
+
+
+@numba.njit(cache=True, parallel=True)
+def _count_ranges(key: np.ndarray, edges: np.ndarray, start: np.ndarray) -> None:
+    for t in numba.prange(edges.shape[0] - 1):
+        _count_range(key, edges[t], edges[t + 1], start)
+
+
+@numba.njit(cache=True, parallel=True)
+def _place_ranges(key: np.ndarray, edges: np.ndarray, start: np.ndarray, order: np.ndarray) -> None:
+    for t in numba.prange(edges.shape[0] - 1):
+        _place_range(key, edges[t], edges[t + 1], start, order)
+
+
+@numba.njit(cache=True, nogil=True)
+def _runs_of_cells(start: np.ndarray, n: int) -> np.ndarray:
+    """The counts ``start[c + 1]`` of :func:`_counting_order` turned in place into each cell's first place
+    (``start[c]``), and where each occupied cell's run starts, with ``n`` at the end."""
+    n_cells = start.shape[0] - 1
     occupied = 0
     for c in range(n_cells):
         if start[c + 1] > 0:
@@ -899,15 +943,7 @@ def _counting_order(key: np.ndarray, threads: int) -> tuple[np.ndarray, np.ndarr
             bounds[j] = start[c]
             j += 1
     bounds[occupied] = n
-    order = np.empty(n, dtype=np.int64)
-    for t in numba.prange(threads):  # start[c] becomes the next free place of cell c
-        lo, hi = edges[t], edges[t + 1]
-        for i in range(n):
-            k = key[i]
-            if lo <= k < hi:
-                order[start[k]] = i
-                start[k] += 1
-    return order, bounds
+    return bounds
 
 
 @numba.njit(cache=True)
