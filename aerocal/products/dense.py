@@ -871,7 +871,7 @@ def _counting_order(key: np.ndarray, threads: int) -> tuple[np.ndarray, np.ndarr
     points, from a sample of the keys): every thread reads all the keys, but writes only its cells' counts and
     places, so the threads never write the same element and the order is the serial one. One thread opens no
     parallel region: on a Dask worker, beside another busy worker, numba's idle threads waiting at the region's
-    end took a 300,000-point reference's sort from under 1 ms to 16-19 ms (``benchmarks/RESULTS.md``, "Dense
+    end took a 300,000-point reference's sort from under 1 ms to 3-19 ms (``benchmarks/RESULTS.md``, "Dense
     surface: a reference's counting sort without a parallel region")."""
     key = np.asarray(key)
     n = len(key)
