@@ -78,7 +78,7 @@ COVERAGE_SAMPLES = 12
 class DenseConfig:
     """How the dense surface is matched and fused. Pixels are those of the matched (possibly reduced) frames.
 
-    Defaults: 4 neighbours give each pixel up to 4 depths, enough for two to agree where one pair is occluded.
+    Defaults: 6 neighbours give each pixel up to 6 depths, enough for two to agree where one pair is occluded.
     The block, the smoothness and the agreement were chosen on rendered thermal frames against their true surface
     (``benchmarks/RESULTS.md``, "Dense surface"): OpenCV's suggested penalties (``smoothness`` 1) pull low-contrast
     roofs and trees towards the ground around them; with a twentieth of them the matching is nearly local and the
