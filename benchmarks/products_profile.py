@@ -4,7 +4,10 @@ products step (dense cloud, its gridding, the LAZ, the filling, the DTM, the DSM
 reference surface, the orthomosaic) timed, with this process's resident memory before, at the peak within and
 after each part, and the largest Dask worker's.
 
-A profile, not a target: the parts' times add up to the step's, and the memory says which part holds the peak.
+A profile, not a target: the memory says which part holds the peak. Each part's span (from its first call's start to
+its last call's end, seconds after the first part started) shows which parts ran side by side: the step writes the
+LAZ while it fills the DSM's holes, and the DSMs' files and differences while it filters the DTM. Those pairs'
+times overlap, and their memory columns come from one sampler, so read a pair's peaks together.
 
 Run: ``python -m benchmarks.products_profile FOLDER`` (the rendered city: ``benchmarks/data/conte-city-images-s0``,
 made by ``python -m benchmarks.city_bench``).
@@ -66,8 +69,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("folder", type=Path, help="a flight folder with images/")
     args = ap.parse_args(argv)
     memory = Memory()
-    rows: list[list] = []  # [part, calls, seconds, before, peak, after] in the order first called
+    rows: list[list] = []  # [part, calls, seconds, before, peak, after, first start, last end] as first called
     index: dict[str, list] = {}
+    origin: list[float] = []  # when the first part started
 
     def wrap(module, name: str) -> None:
         fn = getattr(module, name)
@@ -77,14 +81,18 @@ def main(argv: list[str] | None = None) -> None:
             outer_peak = memory.peak
             before = memory.peak = memory.now()
             t0 = time.perf_counter()
+            if not origin:
+                origin.append(t0)
             try:
                 return fn(*a, **k)
             finally:
-                seconds, peak = time.perf_counter() - t0, memory.peak
+                end = time.perf_counter()
+                seconds, peak = end - t0, memory.peak
                 row = index.get(name)
                 if row is None:
-                    row = index[name] = [name, 0, 0.0, before, 0.0, 0.0]
+                    row = index[name] = [name, 0, 0.0, before, 0.0, 0.0, t0 - origin[0], 0.0]
                     rows.append(row)
+                row[7] = end - origin[0]
                 row[1] += 1
                 row[2] += seconds
                 row[4] = max(row[4], peak)
@@ -112,10 +120,11 @@ def main(argv: list[str] | None = None) -> None:
         f"dense cloud: {dense_doc.get('points', 0):,} points in {dense_doc.get('pairs', 0)} pairs of "
         f"{dense_doc.get('frames', 0)} frames; DSM {mosaic.get('dsm_shape')} cells",
         "",
-        "| part of the products step | calls | seconds | memory before | peak within | after |",
-        "|---|---|---|---|---|---|",
-        *[f"| {name} | {calls} | {seconds:.1f} | {before:.0f} MB | {peak:.0f} MB | {after:.0f} MB |"
-          for name, calls, seconds, before, peak, after in rows],
+        "| part of the products step | calls | seconds | span (s after the first part's start) | memory before | "
+        "peak within | after |",
+        "|---|---|---|---|---|---|---|",
+        *[f"| {name} | {calls} | {seconds:.1f} | {first:.1f}-{last:.1f} | {before:.0f} MB | {peak:.0f} MB | "
+          f"{after:.0f} MB |" for name, calls, seconds, before, peak, after, first, last in rows],
         "",
         f"- peak memory: this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB, the "
         f"largest Dask worker {memory.workers_peak:.0f} MB",
