@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 import rasterio
+from rasterio.enums import Resampling
 
 from aerocal.assess import mosaic_target_residuals
 from aerocal.camera import Camera, LinearThermalModel
@@ -71,6 +72,29 @@ def test_mosaic_opens_with_the_flight_crs_grid_and_radiometry(flight):
     assert not list(res.path.parent.glob(".tmp-*")), "written atomically, nothing left behind"
 
 
+def test_overviews_are_gdals_average_of_the_mosaic_to_the_bit(flight, tmp_path):
+    """The tiles make the overview levels (GDAL made them after the last tile, on one core): as a COG and as a
+    tiled GeoTIFF, each level is what GDAL's own average overviews make of the mosaic's pixels, to the bit, and
+    the grid is a whole number of the coarsest level's pixels (each level halves the one before exactly)."""
+    res = flight["serial"]
+    plain = build_mosaic(flight["frames"], flight["images"], flight["dsm"], tmp_path / "ortho_gtiff.tif",
+                         MosaicConfig(gsd_m=flight["gsd"], cog=False))
+    for made, cog in ((res, True), (plain, False)):
+        with rasterio.open(made.path) as src:
+            full, profile, factors = src.read(), src.profile, src.overviews(1)
+            assert not cog or src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+        assert factors and made.width % factors[-1] == 0 and made.height % factors[-1] == 0, (factors, made)
+        gdal = tmp_path / f"gdal_{cog}.tif"
+        with rasterio.open(gdal, "w", **(profile | {"driver": "GTiff", "compress": "none"})) as dst:
+            dst.write(full)
+        with rasterio.open(gdal, "r+") as dst:
+            dst.build_overviews(factors, Resampling.average)
+        for level, f in enumerate(factors):
+            with rasterio.open(made.path, overview_level=level) as a, rasterio.open(gdal, overview_level=level) as b:
+                assert a.shape == (made.height // f, made.width // f)
+                assert np.array_equal(a.read(), b.read()), f"COG {cog}: overview 1/{f}"
+
+
 def test_mosaic_value_is_the_original_pixel_value(flight):
     """At the nadir of a frame the mosaic samples that frame alone: its DN, bilinearly resampled."""
     from aerocal.products.mosaic import read_frame
@@ -128,6 +152,12 @@ def test_dask_and_serial_mosaics_are_identical(flight, client):
     with rasterio.open(res.path) as a, rasterio.open(flight["serial"].path) as b:
         assert a.transform == b.transform and a.shape == b.shape
         assert np.array_equal(a.read(), b.read())
+        factors = a.overviews(1)
+        assert factors == b.overviews(1)
+    for level in range(len(factors)):  # the levels the tiles made on the workers
+        with rasterio.open(res.path, overview_level=level) as a, \
+                rasterio.open(flight["serial"].path, overview_level=level) as b:
+            assert np.array_equal(a.read(), b.read()), f"overview {level}"
     assert sorted(calls) == list(range(1, res.tiles + 1))
 
 

@@ -208,3 +208,34 @@ def weighted_mean(acc, wsum, lo, hi, nodata, out):
                 if m == nodata:
                     m = nodata - 1 if nodata == hi else nodata + 1
                 out[b, r, c] = m
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def halve(src, nodata, hi, out):
+    """Write into ``out`` (bands, ceil(rows / 2), ceil(cols / 2)) the mean of each 2 x 2 block of ``src`` (bands,
+    rows, cols; an integer dtype) over its valid pixels (band 0 not ``nodata``: a mosaic's pixel is nodata in
+    every band or in none), rounded half up as GDAL's average overviews round; nodata where the block has no valid
+    pixel, and a mean equal to ``nodata`` moved one count inward (as :func:`weighted_mean`, ``hi`` the dtype's
+    maximum). The last row or column
+    of an odd size is a block of its own pixels alone, as GDAL sizes an overview: ``ceil(size / 2)``."""
+    bands, rows, cols = src.shape
+    for r in range(out.shape[1]):
+        for c in range(out.shape[2]):
+            n = 0
+            for rr in range(2 * r, min(2 * r + 2, rows)):
+                for cc in range(2 * c, min(2 * c + 2, cols)):
+                    if src[0, rr, cc] != nodata:
+                        n += 1
+            for b in range(bands):
+                if n == 0:
+                    out[b, r, c] = nodata
+                    continue
+                s = 0.0
+                for rr in range(2 * r, min(2 * r + 2, rows)):
+                    for cc in range(2 * c, min(2 * c + 2, cols)):
+                        if src[0, rr, cc] != nodata:
+                            s += np.float64(src[b, rr, cc])
+                m = np.floor(s / n + 0.5)
+                if m == nodata:
+                    m = nodata - 1 if nodata == hi else nodata + 1
+                out[b, r, c] = m

@@ -41,10 +41,12 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import contextlib
 import dataclasses
 import shutil
 import tempfile
 import threading
+import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -66,6 +68,7 @@ from aerocal.products.kernels import (
     NO_PIXEL,
     blend,
     frame_view,
+    halve,
     score_bounds,
     seam_weight,
     tile_heights,
@@ -557,6 +560,14 @@ def build_mosaic(
     height = int(np.ceil((north - s) / gsd))
     if width <= 0 or height <= 0:
         raise ValueError(f"build_mosaic: empty output grid for bounds {(w, s, e, n)}")
+    # where the tiles make the overviews, the grid grows east and south (nodata) to a multiple of the coarsest
+    # level's factor: each level then halves the one before exactly, as GDAL reads an overview's pixel size
+    while True:
+        factors = overview_factors(width, height, config)
+        step = factors[-1] if factors else 1
+        if width % step == 0 and height % step == 0:
+            break
+        width, height = -(-width // step) * step, -(-height // step) * step
 
     # data type and bands from the first frame (read through the cache, emptied first: a frame rewritten at the
     # same path since an earlier mosaic in this process is read again)
@@ -599,18 +610,30 @@ def build_mosaic(
     opencv_threads = cv2.getNumThreads()  # render_tile sets one: this process's own count comes back after
     try:
         work = tmpdir / "work.tif"
-        with rasterio.open(work, "w", **work_profile) as dst:
+        levels = [tmpdir / f"overview_{f}.tif" for f in factors]
+        with contextlib.ExitStack() as files:
+            dst = files.enter_context(rasterio.open(work, "w", **work_profile))
+            # each level a file of its own, uncompressed (a tile's part of a level is a fraction of a block, and
+            # a block written in parts is compressed once per part): the COG is copied from them and the
+            # working file together (_finalise)
+            plain = {k: v for k, v in profile.items() if k not in ("compress", "predictor")}
+            dst_levels = [files.enter_context(rasterio.open(
+                path, "w", **(plain | {"width": -(-width // f), "height": -(-height // f)})))
+                for f, path in zip(factors, levels, strict=True)]
             done = 0
-            for tile, arr in _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client,
-                                        threads):
+            for tile, arr, pyramid in _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands,
+                                                 client, threads, len(factors)):
                 dst.write(arr, window=rasterio.windows.Window(tile.col0, tile.row0, tile.cols, tile.rows))
+                for f, level, part in zip(factors, dst_levels, pyramid, strict=True):
+                    level.write(part, window=rasterio.windows.Window(tile.col0 // f, tile.row0 // f,
+                                                                      part.shape[2], part.shape[1]))
                 n_valid = int(np.count_nonzero(arr[0] != nodata))
                 valid_px += n_valid
                 with_data += n_valid > 0
                 done += 1
                 if progress:
                     progress(done, total)
-        _finalise(work, out_path, config, profile)
+        _finalise(work, out_path, config, profile, dict(zip(factors, levels, strict=True)))
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
         forget_frames()  # this process's frames (the serial tiles, the first frame's sample)
@@ -622,17 +645,17 @@ def build_mosaic(
     )
 
 
-def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client, threads=1):
-    """Yield (tile, array) as tiles complete: in this process (on ``threads`` threads, in ``tiles``' order), or on
-    the Dask client (in ``tiles``' order, which the scheduler keeps for tasks submitted one after another). A frame
-    given as a path is decoded where the tile is rendered, once per process while it is in use
-    (:func:`frame_pixels`)."""
+def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands, client, threads=1, levels=0):
+    """Yield (tile, array, its first ``levels`` overview levels) as tiles complete (:func:`render_tile_pyramid`):
+    in this process (on ``threads`` threads, in ``tiles``' order), or on the Dask client (in ``tiles``' order, which
+    the scheduler keeps for tasks submitted one after another). A frame given as a path is decoded where the tile
+    is rendered, once per process while it is in use (:func:`frame_pixels`)."""
     args = (config.feather_px, nodata, dtype, bands)
     if client is None:
-        def one(tile: TileSpec) -> tuple[TileSpec, np.ndarray]:
+        def one(tile: TileSpec) -> tuple[TileSpec, np.ndarray, list[np.ndarray]]:
             idx = members(tile)
-            return render_tile(tile, [frames[k] for k in idx], [images[frames[k].image_id] for k in idx],
-                               dsm.window(tile.bounds()), *args)
+            return render_tile_pyramid(levels, tile, [frames[k] for k in idx],
+                                       [images[frames[k].image_id] for k in idx], dsm.window(tile.bounds()), *args)
 
         if threads <= 1:
             yield from map(one, tiles)
@@ -664,7 +687,7 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
         idx = members(tile)
         pix = [scattered[frames[k].image_id] if frames[k].image_id in scattered else str(images[frames[k].image_id])
                for k in idx]
-        futures.append(client.submit(render_tile, tile, [frames[k] for k in idx], pix,
+        futures.append(client.submit(render_tile_pyramid, levels, tile, [frames[k] for k in idx], pix,
                                      dsm.window(tile.bounds()), *args, pure=False, workers=home.get(i),
                                      allow_other_workers=True))
     try:
@@ -680,26 +703,88 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
 DEFLATE_LEVEL = 3
 
 
-def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict) -> None:
-    """Copy the working GeoTIFF to ``out_path`` as a COG (or tiled GeoTIFF with overviews), atomically.
+def overview_factors(width: int, height: int, config: MosaicConfig) -> list[int]:
+    """The overview levels (decimation factors) the tiles compute for a ``width`` x ``height`` mosaic, or none
+    where GDAL is left to make them from the finished mosaic.
+
+    The levels are GDAL's: for a COG, halving until the coarsest level fits in one block (``config.tile_px``); for
+    a tiled GeoTIFF, 2 to 32 while the shorter side keeps at least 64 pixels. The tiles compute them (average of
+    their valid pixels, :func:`aerocal.products.kernels.halve`) when every factor divides ``config.tile_px`` (each
+    tile's part of a level is then made of its own pixels alone) and the resampling is "average"; otherwise none.
+
+    Why: GDAL's COG driver made the overviews of a 9267 x 7352 RGB mosaic after the last tile, on one core, in
+    more than a third of its copy (benchmarks/RESULTS.md, "Orthomosaic: the overview levels made by the tiles")."""
+    factors, f = [], 2
+    while True:
+        if config.cog:
+            if -(-width // (f // 2)) <= config.tile_px and -(-height // (f // 2)) <= config.tile_px:
+                break
+        elif f > 32 or min(width, height) // f < 64:
+            break
+        factors.append(f)
+        f *= 2
+    if config.overview_resampling != "average" or any(config.tile_px % f for f in factors):
+        return []
+    return factors
+
+
+def render_tile_pyramid(levels: int, *args) -> tuple[TileSpec, np.ndarray, list[np.ndarray]]:
+    """:func:`render_tile` (``args`` as it takes them) and the tile's first ``levels`` overview levels, each half
+    the size of the one before (rounded up): the average of its valid pixels (:func:`halve`)."""
+    tile, arr = render_tile(*args)
+    nodata, hi = args[5], np.iinfo(arr.dtype).max
+    pyramid, level = [], arr
+    for _ in range(levels):
+        half = np.empty((level.shape[0], -(-level.shape[1] // 2), -(-level.shape[2] // 2)), dtype=level.dtype)
+        halve(level, nodata, hi, half)
+        pyramid.append(half)
+        level = half
+    return tile, arr, pyramid
+
+
+#: the orthomosaic's deflate level (GDAL's default is 6; see :func:`_finalise`)
+DEFLATE_LEVEL = 3
+
+
+def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict, levels: Mapping[int, Path]) -> None:
+    """Copy the working GeoTIFF to ``out_path`` as a COG (or tiled GeoTIFF with overviews), atomically. ``levels``:
+    the overview levels the tiles made (factor -> file, :func:`overview_factors`); where there are none, GDAL makes
+    them from the working file.
 
     GDAL compresses with every core (``NUM_THREADS``): the workers are done by now. Deflate at level 3, not
     GDAL's 6: the copy takes about 40 % less time for a file a few per cent larger (benchmarks/RESULTS.md,
     "Orthomosaic of large visible frames against the decode-and-resample limit")."""
     resampling = Resampling[config.overview_resampling]
+    source = _with_overviews(work, levels) if levels else work
     with atomic_path(out_path) as tmp:
         if config.cog:
-            rasterio.shutil.copy(work, tmp, driver="COG", COMPRESS="DEFLATE", LEVEL=DEFLATE_LEVEL, PREDICTOR="YES",
+            rasterio.shutil.copy(source, tmp, driver="COG", COMPRESS="DEFLATE", LEVEL=DEFLATE_LEVEL, PREDICTOR="YES",
                                  BLOCKSIZE=config.tile_px, OVERVIEW_RESAMPLING=config.overview_resampling.upper(),
                                  BIGTIFF="IF_SAFER", NUM_THREADS="ALL_CPUS")
         else:
-            with rasterio.open(work, "r+") as src:
-                factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 64]
-                if factors:
-                    src.build_overviews(factors, resampling)
-            rasterio.shutil.copy(work, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", ZLEVEL=DEFLATE_LEVEL,
+            if not levels:
+                with rasterio.open(work, "r+") as src:
+                    factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 64]
+                    if factors:
+                        src.build_overviews(factors, resampling)
+            rasterio.shutil.copy(source, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", ZLEVEL=DEFLATE_LEVEL,
                                  PREDICTOR=2, BLOCKXSIZE=config.tile_px, BLOCKYSIZE=config.tile_px,
                                  COPY_SRC_OVERVIEWS="YES", NUM_THREADS="ALL_CPUS")
+
+
+def _with_overviews(work: Path, levels: Mapping[int, Path]) -> Path:
+    """A GDAL virtual raster (VRT) beside ``work`` that is ``work`` with ``levels`` (factor -> file, finest first) as
+    its overviews, which GDAL's COG and GeoTIFF copies then take instead of making their own."""
+    vrt = work.with_suffix(".vrt")
+    rasterio.shutil.copy(work, vrt, driver="VRT")
+    tree = ET.parse(vrt)
+    for band in tree.getroot().iter("VRTRasterBand"):
+        for path in levels.values():
+            overview = ET.SubElement(band, "Overview")
+            ET.SubElement(overview, "SourceFilename", relativeToVRT="0").text = str(path)
+            ET.SubElement(overview, "SourceBand").text = band.get("band")
+    tree.write(vrt)
+    return vrt
 
 
 def write_temperature_raster(
