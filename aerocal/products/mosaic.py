@@ -5,7 +5,9 @@ Output grid
 North-up, square pixels of ``gsd_m`` metres; pixel ``(row, col)`` is centred on
 ``E = west + (col + 0.5) gsd``, ``N = north - (row + 0.5) gsd`` (GDAL "pixel is area"). Written as a
 Cloud-Optimized GeoTIFF (deflate, internal tiles, overviews) with the flight's CRS, its transform and a
-nodata value; written atomically (:func:`aerocal.io.atomic_path`).
+nodata value; written atomically (:func:`aerocal.io.atomic_path`). The tiles make the overview levels
+(:func:`overview_factors`); the grid then reaches east and south of the bounds, by nodata pixels, to a whole
+number of the coarsest level's pixels.
 
 Per output pixel
 ----------------
