@@ -161,12 +161,17 @@ def test_dask_and_serial_mosaics_are_identical(flight, client):
     assert sorted(calls) == list(range(1, res.tiles + 1))
 
 
-def test_a_mosaic_on_threads_is_the_serial_one_and_leaves_the_process_its_opencv_threads(flight):
+def test_a_mosaic_on_threads_is_the_serial_one_and_leaves_the_process_its_opencv_threads(flight, monkeypatch):
     """The tiles on three threads of this process (the product's path without a Dask scheduler): the same file
-    values as on one, every tile reported once, and OpenCV's thread count afterwards what it was before (each
-    tile runs OpenCV on one thread; a later step's semi-global matching must keep every core)."""
+    values as on one, every tile reported once, each frame decoded once (threads that need a frame another is
+    decoding wait for it), and OpenCV's thread count afterwards what it was before (each tile runs OpenCV on one
+    thread; a later step's semi-global matching must keep every core)."""
     import cv2
 
+    import aerocal.products.mosaic as mosaic
+
+    reads = []
+    monkeypatch.setattr(mosaic, "read_frame", lambda p: reads.append(p) or read_raw(p))
     before = cv2.getNumThreads()
     cv2.setNumThreads(2)
     try:
@@ -181,6 +186,7 @@ def test_a_mosaic_on_threads_is_the_serial_one_and_leaves_the_process_its_opencv
         assert a.transform == b.transform and a.shape == b.shape
         assert np.array_equal(a.read(), b.read())
     assert calls == list(range(1, res.tiles + 1))
+    assert len(reads) == len(set(reads)) == len(flight["frames"]), sorted(reads)
 
 
 def test_a_frame_is_decoded_once_and_the_crop_it_is_resampled_from_changes_no_value(flight, monkeypatch):
@@ -409,3 +415,42 @@ def test_a_mosaic_keeps_no_frame_after_it_and_reads_a_rewritten_frame_again(flig
     again = build_mosaic(flight["frames"], images, flight["dsm"], tmp_path / "c.tif", config)
     with rasterio.open(tmp_path / "a.tif") as a, rasterio.open(again.path) as c:
         assert not np.array_equal(a.read(), c.read())
+
+
+def test_frame_cache_reads_a_key_once_for_threads_that_miss_it_at_once():
+    """Threads that miss the same key while it is being read wait for that read; where it fails, each reads
+    again itself and meets the error."""
+    import threading
+
+    from aerocal.products.mosaic import FrameCache
+
+    cache = FrameCache(1 << 20)
+    started, release = threading.Event(), threading.Event()
+    reads = []
+
+    def slow():
+        reads.append(1)
+        started.set()
+        release.wait(5)
+        return (np.arange(4),)
+
+    got = []
+    first = threading.Thread(target=lambda: got.append(cache.get("a", slow)))
+    first.start()
+    started.wait(5)
+    second = threading.Thread(target=lambda: got.append(cache.get("a", slow)))
+    second.start()
+    release.set()
+    first.join(5)
+    second.join(5)
+    assert len(reads) == 1 and len(got) == 2 and got[0][0] is got[1][0]
+
+    def broken():
+        reads.append(2)
+        raise ValueError("unreadable")
+
+    with pytest.raises(ValueError, match="unreadable"):
+        cache.get("b", broken)
+    with pytest.raises(ValueError, match="unreadable"):  # nothing kept, nothing pending: read again
+        cache.get("b", broken)
+    assert reads.count(2) == 2 and len(cache) == 1

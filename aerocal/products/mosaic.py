@@ -237,25 +237,37 @@ class FrameCache:
     def __init__(self, max_bytes: int) -> None:
         self.max_bytes = max_bytes
         self._kept: collections.OrderedDict[object, tuple[np.ndarray, ...]] = collections.OrderedDict()
+        self._reading: dict[object, threading.Event] = {}
         self._lock = threading.Lock()
 
     def get(self, key: object, read: Callable[[], tuple[np.ndarray, ...]]) -> tuple[np.ndarray, ...]:
         """The arrays kept under ``key``, else ``read()``'s, kept (read-only) before they are returned. Safe to
-        call from several threads: ``read`` runs outside the lock (two threads that miss the same key at once
-        both read it, and the first kept is returned to both)."""
-        with self._lock:
-            if key in self._kept:
-                self._kept.move_to_end(key)
-                return self._kept[key]
-        arrays = read()
-        for a in arrays:
-            a.flags.writeable = False
-        with self._lock:
-            if key in self._kept:
-                return self._kept[key]
-            self._kept[key] = arrays
-            while sum(a.nbytes for v in self._kept.values() for a in v) > self.max_bytes and len(self._kept) > 1:
-                self._kept.popitem(last=False)
+        call from several threads: ``read`` runs outside the lock, once for threads that miss the same key at
+        once (the others wait for it: the threads of a mosaic render neighbouring tiles, which need the same
+        frames at the same moment, and decoded most frames twice); a thread whose reader failed reads again
+        itself (and meets the same error)."""
+        while True:
+            with self._lock:
+                if key in self._kept:
+                    self._kept.move_to_end(key)
+                    return self._kept[key]
+                pending = self._reading.get(key)
+                if pending is None:
+                    pending = self._reading[key] = threading.Event()
+                    break
+            pending.wait()
+        try:
+            arrays = read()
+            for a in arrays:
+                a.flags.writeable = False
+            with self._lock:
+                self._kept[key] = arrays
+                while sum(a.nbytes for v in self._kept.values() for a in v) > self.max_bytes and len(self._kept) > 1:
+                    self._kept.popitem(last=False)
+        finally:
+            with self._lock:
+                del self._reading[key]
+            pending.set()
         return arrays
 
     def __len__(self) -> int:
