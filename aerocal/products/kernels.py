@@ -62,32 +62,31 @@ def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score
     for r in range(rows):
         dn = n[r] - C[1]
         for c in range(cols):
-            score[r, c] = np.inf
-            taper[r, c] = 0.0
-            map_u[r, c] = NO_PIXEL
-            map_v[r, c] = NO_PIXEL
+            # each output written once, at the end (the pixels a frame does not see are most of its candidates')
+            mu = mv = np.float32(NO_PIXEL)
+            sc, tp = np.inf, 0.0
             hh = h[r, c]
-            if not np.isfinite(hh):
-                continue
-            de = e[c] - C[0]
-            dh = hh - C[2]
-            u, v, front = _pixel(de, dn, dh, R, io)
-            if moving:
-                for _ in range(3):  # the readout's shift is a few pixels of a frame's height: converges at once
-                    frac = v / height - 0.5
-                    u, v, front = _pixel(de - frac * motion[0], dn - frac * motion[1], dh - frac * motion[2], R, io)
-            if not front:
-                continue
-            if not (np.isfinite(u) and np.isfinite(v)):
-                continue
-            map_u[r, c] = np.float32(u) - half
-            map_v[r, c] = np.float32(v) - half
-            if not (u >= 0.0 and u <= width and v >= 0.0 and v <= height):
-                continue
-            score[r, c] = np.hypot(u - cx, v - cy)
-            border = min(u, width - u, v, height - v)
-            taper[r, c] = min(max(border / feather, 1e-6), 1.0)
-            seen = True
+            if np.isfinite(hh):
+                de = e[c] - C[0]
+                dh = hh - C[2]
+                u, v, front = _pixel(de, dn, dh, R, io)
+                if moving:
+                    for _ in range(3):  # the readout's shift is a few pixels of a frame's height: converges at once
+                        frac = v / height - 0.5
+                        u, v, front = _pixel(de - frac * motion[0], dn - frac * motion[1], dh - frac * motion[2],
+                                             R, io)
+                if front and np.isfinite(u) and np.isfinite(v):
+                    mu = np.float32(u) - half
+                    mv = np.float32(v) - half
+                    if u >= 0.0 and u <= width and v >= 0.0 and v <= height:
+                        du, dv = u - cx, v - cy
+                        sc = np.sqrt(du * du + dv * dv)
+                        tp = min(max(min(u, width - u, v, height - v) / feather, 1e-6), 1.0)
+                        seen = True
+            map_u[r, c] = mu
+            map_v[r, c] = mv
+            score[r, c] = sc
+            taper[r, c] = tp
     return seen
 
 
