@@ -85,7 +85,9 @@ class MosaicConfig:
     """Orthomosaic settings. Lengths in metres, sizes in output pixels.
 
     ``gsd_m`` None = the block's median GSD (flying height above the DSM's median / focal length).
-    ``bounds`` None = the union of the frames' footprints at the DSM's median height.
+    ``bounds`` None = the union of the frames' footprints at the DSM's median height. The grid covers the bounds
+    (its corner on whole multiples of the pixel size) and reaches beyond them east and south, by nodata pixels
+    fewer than the coarsest overview's factor, to a whole number of that overview's pixels (:func:`overview_factors`).
     ``nodata`` None = the dtype's maximum for uint16 (65535, i.e. 655.35 K, never a thermal value) and 0 for
     uint8 (valid pixels are then clipped to 1..255).
     """
