@@ -215,8 +215,8 @@ def halve(src, nodata, hi, out):
     rows, cols; an integer dtype) over its valid pixels (band 0 not ``nodata``: a mosaic's pixel is nodata in
     every band or in none), rounded half up as GDAL's average overviews round; nodata where the block has no valid
     pixel, and a mean equal to ``nodata`` moved one count inward (as :func:`weighted_mean`, ``hi`` the dtype's
-    maximum). The last row or column
-    of an odd size is a block of its own pixels alone, as GDAL sizes an overview: ``ceil(size / 2)``."""
+    maximum). The last row or column of an odd size is a block of its own pixels alone (a mosaic's tiles are made
+    whole numbers of their coarsest level's pixels, so none is odd there)."""
     bands, rows, cols = src.shape
     for r in range(out.shape[1]):
         for c in range(out.shape[2]):

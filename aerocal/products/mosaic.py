@@ -715,10 +715,6 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
         client.run(forget_frames, on_error="ignore")  # a worker lost on the way has nothing to release
 
 
-#: the orthomosaic's deflate level (GDAL's default is 6; see :func:`_finalise`)
-DEFLATE_LEVEL = 3
-
-
 def overview_factors(width: int, height: int, config: MosaicConfig) -> list[int]:
     """The overview levels (decimation factors) the tiles compute for a ``width`` x ``height`` mosaic, or none
     where GDAL is left to make them from the finished mosaic.
@@ -730,25 +726,32 @@ def overview_factors(width: int, height: int, config: MosaicConfig) -> list[int]
 
     Why: GDAL's COG driver made the overviews of a 9267 x 7352 RGB mosaic after the last tile, on one core, in
     more than a third of its copy (benchmarks/RESULTS.md, "Orthomosaic: the overview levels made by the tiles")."""
-    factors, f = [], 2
-    while True:
-        if config.cog:
-            if -(-width // (f // 2)) <= config.tile_px and -(-height // (f // 2)) <= config.tile_px:
-                break
-        elif f > 32 or min(width, height) // f < 64:
-            break
-        factors.append(f)
-        f *= 2
+    factors = _gdal_factors(width, height, config)
     if config.overview_resampling != "average" or any(config.tile_px % f for f in factors):
         return []
     return factors
 
 
-def render_tile_pyramid(levels: int, *args) -> tuple[TileSpec, np.ndarray, list[np.ndarray]]:
-    """:func:`render_tile` (``args`` as it takes them) and the tile's first ``levels`` overview levels, each half
-    the size of the one before (rounded up): the average of its valid pixels (:func:`halve`)."""
-    tile, arr = render_tile(*args)
-    nodata, hi = args[5], np.iinfo(arr.dtype).max
+def _gdal_factors(width: int, height: int, config: MosaicConfig) -> list[int]:
+    """The overview levels GDAL makes of a ``width`` x ``height`` mosaic (:func:`overview_factors`)."""
+    factors, f = [], 2
+    while True:
+        if config.cog:
+            if -(-width // (f // 2)) <= config.tile_px and -(-height // (f // 2)) <= config.tile_px:
+                return factors
+        elif f > 32 or min(width, height) // f < 64:
+            return factors
+        factors.append(f)
+        f *= 2
+
+
+def render_tile_pyramid(levels: int, tile: TileSpec, frames: Sequence[FrameGeometry],
+                        pixels: Sequence[np.ndarray | str | Path], dsm: Dsm, feather_px: float, nodata: int,
+                        dtype: str, bands: int) -> tuple[TileSpec, np.ndarray, list[np.ndarray]]:
+    """:func:`render_tile` and the tile's first ``levels`` overview levels, each half the size of the one before
+    (rounded up): the average of its valid pixels (:func:`halve`)."""
+    tile, arr = render_tile(tile, frames, pixels, dsm, feather_px, nodata, dtype, bands)
+    hi = np.iinfo(arr.dtype).max
     pyramid, level = [], arr
     for _ in range(levels):
         half = np.empty((level.shape[0], -(-level.shape[1] // 2), -(-level.shape[2] // 2)), dtype=level.dtype)
@@ -780,7 +783,7 @@ def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict, l
         else:
             if not levels:
                 with rasterio.open(work, "r+") as src:
-                    factors = [f for f in (2, 4, 8, 16, 32) if min(src.width, src.height) // f >= 64]
+                    factors = _gdal_factors(src.width, src.height, config)
                     if factors:
                         src.build_overviews(factors, resampling)
             rasterio.shutil.copy(source, tmp, driver="GTiff", TILED="YES", COMPRESS="DEFLATE", ZLEVEL=DEFLATE_LEVEL,
