@@ -95,6 +95,25 @@ def test_overviews_are_gdals_average_of_the_mosaic_to_the_bit(flight, tmp_path):
                 assert np.array_equal(a.read(), b.read()), f"COG {cog}: overview 1/{f}"
 
 
+def test_overviews_the_tiles_cannot_make_are_gdals_and_the_grid_keeps_its_size(flight, tmp_path):
+    """Where a level's factor does not divide the tile (48-pixel tiles: 32 does not), GDAL makes the overviews from
+    the finished mosaic, and the grid is not grown: it ends within a pixel of the bounds."""
+    from aerocal.products.mosaic import overview_factors
+
+    res = flight["serial"]
+    bounds = _bounds(res)
+    config = MosaicConfig(gsd_m=flight["gsd"], tile_px=48, bounds=bounds)
+    assert overview_factors(res.width, res.height, config) == []
+    made = build_mosaic(flight["frames"], flight["images"], flight["dsm"], tmp_path / "ortho_48.tif", config)
+    assert (made.width, made.height) == (res.width, res.height)  # the bounds of a grid already whole
+    odd = MosaicConfig(gsd_m=flight["gsd"], tile_px=48, bounds=(bounds[0], bounds[1] + 0.5 * flight["gsd"],
+                                                                 bounds[2] - 7.5 * flight["gsd"], bounds[3]))
+    made = build_mosaic(flight["frames"], flight["images"], flight["dsm"], tmp_path / "ortho_odd.tif", odd)
+    assert (made.width, made.height) == (res.width - 7, res.height), "not grown beyond the bounds' last pixel"
+    with rasterio.open(made.path) as src:
+        assert src.overviews(1) and src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+
+
 def test_mosaic_value_is_the_original_pixel_value(flight):
     """At the nadir of a frame the mosaic samples that frame alone: its DN, bilinearly resampled."""
     from aerocal.products.mosaic import read_frame
