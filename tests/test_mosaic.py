@@ -473,3 +473,34 @@ def test_frame_cache_reads_a_key_once_for_threads_that_miss_it_at_once():
     with pytest.raises(ValueError, match="unreadable"):  # nothing kept, nothing pending: read again
         cache.get("b", broken)
     assert reads.count(2) == 2 and len(cache) == 1
+
+
+@pytest.mark.parametrize("shape, dtype, nodata", [((3, 9, 7), np.uint8, 0), ((1, 8, 5), np.uint16, 65535),
+                                                   ((1, 6, 6), np.uint8, 100)])
+def test_halve_is_the_rounded_mean_of_each_blocks_valid_pixels(shape, dtype, nodata):
+    """An overview level's pixel: the mean of the valid pixels of its 2 x 2 block (an odd last row or column a
+    block of its own pixels), rounded half up; nodata where none is valid, and a mean equal to nodata moved one
+    count inward."""
+    from aerocal.products.kernels import halve
+
+    rng = np.random.default_rng(SEED)
+    src = rng.integers(0, np.iinfo(dtype).max, shape, dtype=dtype, endpoint=True)
+    src[:, rng.random(shape[1:]) < 0.3] = nodata
+    src[:, src[0] == nodata] = nodata  # a mosaic's pixel is nodata in every band or in none
+    hi = np.iinfo(dtype).max
+    # the first block: two valid pixels either side of nodata where it lies between (their mean is nodata: moved)
+    src[:, 0, 0] = nodata - 1 if nodata > 0 else 1
+    src[:, 1, 1] = nodata + 1 if 0 < nodata < hi else src[0, 0, 0]
+    src[:, 0, 1] = src[:, 1, 0] = nodata
+    out = np.empty((shape[0], -(-shape[1] // 2), -(-shape[2] // 2)), dtype=dtype)
+    halve(src, nodata, hi, out)
+    for r in range(out.shape[1]):
+        for c in range(out.shape[2]):
+            block = src[:, 2 * r:2 * r + 2, 2 * c:2 * c + 2].reshape(shape[0], -1).astype(float)
+            valid = block[0] != nodata
+            if not valid.any():
+                assert np.all(out[:, r, c] == nodata), (r, c)
+                continue
+            mean = np.floor(block[:, valid].mean(axis=1) + 0.5)
+            expect = np.where(mean == nodata, nodata - 1 if nodata == hi else nodata + 1, mean)
+            assert np.array_equal(out[:, r, c], expect), (r, c, out[:, r, c], expect)

@@ -219,21 +219,29 @@ def halve(src, nodata, hi, out):
     whole numbers of their coarsest level's pixels, so none is odd there)."""
     bands, rows, cols = src.shape
     for r in range(out.shape[1]):
+        r0 = 2 * r
+        r1 = min(r0 + 1, rows - 1)  # an odd last row: the same row twice, counted once below
         for c in range(out.shape[2]):
-            n = 0
-            for rr in range(2 * r, min(2 * r + 2, rows)):
-                for cc in range(2 * c, min(2 * c + 2, cols)):
-                    if src[0, rr, cc] != nodata:
-                        n += 1
+            c0 = 2 * c
+            c1 = min(c0 + 1, cols - 1)
+            v00 = src[0, r0, c0] != nodata
+            v01 = c1 != c0 and src[0, r0, c1] != nodata
+            v10 = r1 != r0 and src[0, r1, c0] != nodata
+            v11 = r1 != r0 and c1 != c0 and src[0, r1, c1] != nodata
+            n = int(v00) + int(v01) + int(v10) + int(v11)
             for b in range(bands):
                 if n == 0:
                     out[b, r, c] = nodata
                     continue
                 s = 0.0
-                for rr in range(2 * r, min(2 * r + 2, rows)):
-                    for cc in range(2 * c, min(2 * c + 2, cols)):
-                        if src[0, rr, cc] != nodata:
-                            s += np.float64(src[b, rr, cc])
+                if v00:
+                    s += np.float64(src[b, r0, c0])
+                if v01:
+                    s += np.float64(src[b, r0, c1])
+                if v10:
+                    s += np.float64(src[b, r1, c0])
+                if v11:
+                    s += np.float64(src[b, r1, c1])
                 m = np.floor(s / n + 0.5)
                 if m == nodata:
                     m = nodata - 1 if nodata == hi else nodata + 1
