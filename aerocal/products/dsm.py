@@ -597,9 +597,9 @@ def _raster_triangles(rows: np.ndarray, values: np.ndarray, out: np.ndarray, fil
                     filled[r, c] = True
 
 
-#: the DSM's deflate level (GDAL's default is 6): on a city's 79-million-cell dense DSM level 1 wrote the file in
-#: 55 % of the time for 4 % more bytes (benchmarks/RESULTS.md, "City scale with the dense surface: the flow's
-#: memory")
+#: the products' deflate level, the DSM's and the orthomosaic's (GDAL's default is 6): on a city's
+#: 79-million-cell dense DSM level 1 wrote the file in 55 % of the time for 4 % more bytes (benchmarks/RESULTS.md,
+#: "City scale with the dense surface: the flow's memory"; the orthomosaic: :func:`aerocal.products.mosaic._finalise`)
 DEFLATE_LEVEL = 1
 
 

@@ -52,12 +52,58 @@ def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score
     distance / feather_px, 1), at least 1e-6 inside the frame, 0 outside). Returns whether any pixel is
     inside the frame. ``motion`` (3,): the projection centre's displacement (world metres) per unit of
     ``row / height - 0.5`` of a frame read out row by row (velocity x readout; zeros: a global shutter), found
-    for each pixel by fixed-point iteration on its row as :class:`aerocal.simulate.exposure.Exposure` does."""
+    for each pixel by fixed-point iteration on its row as :class:`aerocal.simulate.exposure.Exposure` does.
+
+    A global shutter's pixels go through a loop without branches, each output chosen by a select, which the
+    compiler turns into vector instructions: the same bits as the pixel-by-pixel loop (:func:`_frame_view_moving`,
+    which the readout's iteration needs) in a quarter of its time on a 256 x 256 tile (AVX2; measured against it
+    in one process, benchmarks/RESULTS.md, "Orthomosaic: a frame's view of a tile in vector instructions")."""
+    if motion[0] != 0.0 or motion[1] != 0.0 or motion[2] != 0.0:
+        return _frame_view_moving(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score, taper, motion)
+    f, cx, cy, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
+    feather = max(feather_px, 1e-9)
+    half = np.float32(0.5)
+    no_pixel = np.float32(NO_PIXEL)
+    seen = 0
+    rows, cols = h.shape
+    for r in range(rows):
+        dn = n[r] - C[1]
+        for c in range(cols):
+            # _pixel's operations in its order; a point behind the camera or without a height is computed too
+            # (any value) and then not chosen
+            hh = h[r, c]
+            de = e[c] - C[0]
+            dh = hh - C[2]
+            px = de * R[0, 0] + dn * R[0, 1] + dh * R[0, 2]
+            py = de * R[1, 0] + dn * R[1, 1] + dh * R[1, 2]
+            pz = de * R[2, 0] + dn * R[2, 1] + dh * R[2, 2]
+            x = px / pz
+            y = py / pz
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
+            yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
+            u = cx + xd * (f + b1) + yd * b2
+            v = cy + yd * f
+            valid = (np.abs(hh) < np.inf) & (pz > 0) & (np.abs(u) < np.inf) & (np.abs(v) < np.inf)
+            inside = valid & (u >= 0.0) & (u <= width) & (v >= 0.0) & (v <= height)
+            du, dv = u - cx, v - cy
+            map_u[r, c] = np.float32(u) - half if valid else no_pixel
+            map_v[r, c] = np.float32(v) - half if valid else no_pixel
+            score[r, c] = np.sqrt(du * du + dv * dv) if inside else np.inf
+            border = min(min(u, width - u), min(v, height - v))
+            taper[r, c] = min(max(border / feather, 1e-6), 1.0) if inside else 0.0
+            seen += inside
+    return seen > 0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _frame_view_moving(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score, taper, motion):
+    """:func:`frame_view` pixel by pixel, for a frame read out row by row (``motion`` not zero)."""
     cx, cy = io[1], io[2]
     feather = max(feather_px, 1e-9)
     half = np.float32(0.5)
     seen = False
-    moving = motion[0] != 0.0 or motion[1] != 0.0 or motion[2] != 0.0
     rows, cols = h.shape
     for r in range(rows):
         dn = n[r] - C[1]
@@ -70,11 +116,10 @@ def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score
                 de = e[c] - C[0]
                 dh = hh - C[2]
                 u, v, front = _pixel(de, dn, dh, R, io)
-                if moving:
-                    for _ in range(3):  # the readout's shift is a few pixels of a frame's height: converges at once
-                        frac = v / height - 0.5
-                        u, v, front = _pixel(de - frac * motion[0], dn - frac * motion[1], dh - frac * motion[2],
-                                             R, io)
+                for _ in range(3):  # the readout's shift is a few pixels of a frame's height: converges at once
+                    frac = v / height - 0.5
+                    u, v, front = _pixel(de - frac * motion[0], dn - frac * motion[1], dh - frac * motion[2],
+                                         R, io)
                 if front and np.isfinite(u) and np.isfinite(v):
                     mu = np.float32(u) - half
                     mv = np.float32(v) - half
@@ -99,14 +144,20 @@ def tile_heights(grid, west, north, cell_m, e, n, out):
     rows_g, cols_g = grid.shape
     dc = 1 if cols_g > 1 else 0
     dr = 1 if rows_g > 1 else 0
+    cols = e.shape[0]
+    col0 = np.empty(cols, np.int64)  # each column's cell and fraction, found once for every row
+    frac = np.empty(cols)
+    for c in range(cols):
+        col = min(max((e[c] - west) / cell_m - 0.5, 0.0), cols_g - 1.0)
+        col0[c] = min(int(col), max(cols_g - 2, 0))
+        frac[c] = col - col0[c]
     for r in range(n.shape[0]):
         row = min(max((north - n[r]) / cell_m - 0.5, 0.0), rows_g - 1.0)
         r0 = min(int(row), max(rows_g - 2, 0))
         fr = row - r0
-        for c in range(e.shape[0]):
-            col = min(max((e[c] - west) / cell_m - 0.5, 0.0), cols_g - 1.0)
-            c0 = min(int(col), max(cols_g - 2, 0))
-            fc = col - c0
+        for c in range(cols):
+            c0 = col0[c]
+            fc = frac[c]
             g00 = np.float64(grid[r0, c0])
             top = g00 + fc * (np.float64(grid[r0, c0 + dc]) - g00)
             g10 = np.float64(grid[r0 + dr, c0])
@@ -115,31 +166,40 @@ def tile_heights(grid, west, north, cell_m, e, n, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def seam_weight(score, best, taper, width, out):
-    """Fill ``out`` with one frame's blending weight over the tile: ``1 - (score - best) / width`` clipped to
+def seam_weight(score, best, taper, width, r, c):
+    """One frame's blending weight at the tile's pixel (``r``, ``c``): ``1 - (score - best) / width`` clipped to
     [0, 1], times its border ``taper``; 0 where the frame does not see the pixel (``score`` inf). ``best``: the
-    smallest score of any frame at each pixel. Returns whether any weight is positive."""
-    positive = False
-    rows, cols = score.shape
-    for r in range(rows):
-        for c in range(cols):
-            s = score[r, c]
-            w = 0.0
-            if np.isfinite(s):
-                w = min(max(1.0 - (s - best[r, c]) / width, 0.0), 1.0) * taper[r, c]
-            out[r, c] = w
-            positive = positive or w > 0.0
-    return positive
+    smallest score of any frame at each pixel."""
+    s = score[r, c]
+    if not s < np.inf:
+        return 0.0
+    return min(max(1.0 - (s - best[r, c]) / width, 0.0), 1.0) * taper[r, c]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def blend(values, weight, acc, wsum):
-    """Add one frame's resampled ``values`` (rows, cols, bands) times its ``weight`` (rows, cols) to ``acc``
-    (bands, rows, cols) and the weight to ``wsum`` (rows, cols), where the weight is positive."""
+def weighed_box(map_u, map_v, score, best, taper, width):
+    """The bounding box (u_min, u_max, v_min, v_max; OpenCV's pixel convention, as the maps) of the positions one
+    frame is sampled at where its :func:`seam_weight` is positive in the tile, and whether it is anywhere (when
+    not, the box is empty and the frame's pixels are not needed)."""
+    u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
+    rows, cols = score.shape
+    for r in range(rows):
+        for c in range(cols):
+            if seam_weight(score, best, taper, width, r, c) > 0.0:
+                u, v = map_u[r, c], map_v[r, c]
+                u_lo, u_hi, v_lo, v_hi = min(u_lo, u), max(u_hi, u), min(v_lo, v), max(v_hi, v)
+    return u_lo <= u_hi, u_lo, u_hi, v_lo, v_hi
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def add_weighted(values, score, best, taper, width, acc, wsum):
+    """Add one frame's resampled ``values`` (rows, cols, bands) times its :func:`seam_weight` to ``acc`` (bands,
+    rows, cols) and the weight to ``wsum`` (rows, cols), where the weight is positive (elsewhere ``values`` may
+    hold anything)."""
     rows, cols, bands = values.shape
     for r in range(rows):
         for c in range(cols):
-            w = weight[r, c]
+            w = seam_weight(score, best, taper, width, r, c)
             if w > 0.0:
                 for b in range(bands):
                     acc[b, r, c] += np.float64(values[r, c, b]) * w

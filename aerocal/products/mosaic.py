@@ -65,15 +65,15 @@ from aerocal.camera import Camera, LinearThermalModel, ThermalModel, correct_mea
 from aerocal.geometry import matrix_from_quat_wxyz
 from aerocal.ingest.pixels import ImageReadError, read_raw
 from aerocal.io import atomic_path
-from aerocal.products.dsm import Dsm
+from aerocal.products.dsm import DEFLATE_LEVEL, Dsm
 from aerocal.products.kernels import (
     NO_PIXEL,
-    blend,
+    add_weighted,
     frame_view,
     halve,
     score_bounds,
-    seam_weight,
     tile_heights,
+    weighed_box,
     weighted_mean,
 )
 
@@ -376,16 +376,17 @@ def render_tile(
         tapers.append(taper)
     if not kept:
         return tile, out
-    best = np.minimum.reduce(scores)
-    seen = np.isfinite(best)
-    if not seen.any():
+    best = scores[0].copy()
+    for score in scores[1:]:
+        np.minimum(best, score, out=best)
+    if not np.isfinite(best).any():
         return tile, out
     acc = np.zeros((bands,) + shape)
     wsum = np.zeros(shape)
-    wk = np.empty(shape)
     for k, (index, fr) in enumerate(kept):
-        if not seam_weight(scores[k], best, tapers[k], width, wk):
-            continue
+        weighed, *box = weighed_box(*maps[k], scores[k], best, tapers[k], width)
+        if not weighed:
+            continue  # never decoded for this tile
         img = pixels[index]
         if not isinstance(img, np.ndarray):
             img = frame_pixels(img)
@@ -393,7 +394,8 @@ def render_tile(
         if img.shape[:2] != (cam.height, cam.width):
             raise ValueError(f"image {fr.image_id}: pixels are {img.shape[1]}x{img.shape[0]}, its camera says "
                              f"{cam.width}x{cam.height}; give the frame's original pixels")
-        blend(_resampled(img, *maps[k], wk > 0).reshape(shape + (-1,)), wk, acc, wsum)
+        values = _resampled(img, *maps[k], *box).reshape(shape + (-1,))
+        add_weighted(values, scores[k], best, tapers[k], width, acc, wsum)
     info = np.iinfo(dtype)  # uint8 or uint16 (build_mosaic)
     weighted_mean(acc, wsum, float(info.min), float(info.max), float(nodata), out)
     return tile, out
@@ -427,22 +429,22 @@ def _may_be_seen(frames: Sequence[FrameGeometry], tile: TileSpec, heights: np.nd
     return [(k, fr) for (k, fr), (low, _, _) in zip(indexed, bounds, strict=True) if not low >= ceiling + width]
 
 
-def _resampled(img: np.ndarray, map_u: np.ndarray, map_v: np.ndarray, used: np.ndarray) -> np.ndarray:
-    """``img`` resampled bilinearly at (``map_u``, ``map_v``) (OpenCV's pixel convention), as float32, exact where
-    ``used``; elsewhere any finite value.
+def _resampled(img: np.ndarray, map_u: np.ndarray, map_v: np.ndarray, u_min: float, u_max: float, v_min: float,
+               v_max: float) -> np.ndarray:
+    """``img`` resampled bilinearly at (``map_u``, ``map_v``) (OpenCV's pixel convention), as float32, exact at the
+    positions within (``u_min``..``u_max``, ``v_min``..``v_max``); elsewhere any finite value.
 
-    Only the part of the frame the used positions reach is converted to float32 (with the pixel beyond each side
+    Only the part of the frame those positions reach is converted to float32 (with the pixel beyond each side
     bilinear interpolation reads): a tile reads a tile-sized part of a frame, and converting the whole frame per
     tile took most of a visible block's mosaic time (benchmarks/RESULTS.md, "Orthomosaic of large visible frames
     against the decode-and-resample limit")."""
-    u, v = map_u[used], map_v[used]
     h, w = img.shape[:2]
-    c0 = int(np.clip(np.floor(u.min()) - 1, 0, w - 1))
-    c1 = int(np.clip(np.floor(u.max()) + 3, c0 + 1, w))
-    r0 = int(np.clip(np.floor(v.min()) - 1, 0, h - 1))
-    r1 = int(np.clip(np.floor(v.max()) + 3, r0 + 1, h))
+    c0 = int(np.clip(np.floor(u_min) - 1, 0, w - 1))
+    c1 = int(np.clip(np.floor(u_max) + 3, c0 + 1, w))
+    r0 = int(np.clip(np.floor(v_min) - 1, 0, h - 1))
+    r1 = int(np.clip(np.floor(v_max) + 3, r0 + 1, h))
     crop = img[r0:r1, c0:c1].astype(np.float32)
-    # BORDER_REPLICATE at the crop's edge is the frame's own edge or a pixel no used position reads
+    # BORDER_REPLICATE at the crop's edge is the frame's own edge or a pixel no position within the box reads
     return cv2.remap(crop, map_u - np.float32(c0), map_v - np.float32(r0), cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
 
@@ -617,8 +619,9 @@ def build_mosaic(
         "blockysize": config.tile_px, "compress": "deflate", "predictor": 2, "BIGTIFF": "IF_SAFER",
     }
     # the working file is written by this process while the workers render, and read once by _finalise:
-    # zstd level 1 instead of the product's deflate, far faster to write for a slightly larger file
-    work_profile = profile | {"compress": "zstd", "zstd_level": 1}
+    # uncompressed, as the levels are (zstd at level 1 took this process 1.3 s of a 9280 x 7360 RGB mosaic's
+    # 11 s on one core; the file on disk is then bands x bytes x pixels, 205 MB there)
+    work_profile = {k: v for k, v in profile.items() if k not in ("compress", "predictor")}
     total = len(tiles)
     with_data = 0
     valid_px = 0
@@ -762,18 +765,15 @@ def render_tile_pyramid(levels: int, tile: TileSpec, frames: Sequence[FrameGeome
     return tile, arr, pyramid
 
 
-#: the orthomosaic's deflate level (GDAL's default is 6; see :func:`_finalise`)
-DEFLATE_LEVEL = 3
-
-
 def _finalise(work: Path, out_path: Path, config: MosaicConfig, profile: dict, levels: Mapping[int, Path]) -> None:
     """Copy the working GeoTIFF to ``out_path`` as a COG (or tiled GeoTIFF with overviews), atomically. ``levels``:
     the overview levels the tiles made (factor -> file, :func:`overview_factors`); where there are none, GDAL makes
     them from the working file.
 
-    GDAL compresses with every core (``NUM_THREADS``): the workers are done by now. Deflate at level 3, not
-    GDAL's 6: the copy takes about 40 % less time for a file a few per cent larger (benchmarks/RESULTS.md,
-    "Orthomosaic of large visible frames against the decode-and-resample limit")."""
+    GDAL compresses with every core (``NUM_THREADS``): the workers are done by now. Deflate at the DSM's level 1,
+    not GDAL's 6: on a 9280 x 7360 RGB mosaic the copy took 1.0 s at level 1, 1.8 s at 3 and 4.3 s at 6, for
+    files of 90, 86 and 84 MB (benchmarks/RESULTS.md, "Orthomosaic: a frame's view of a tile in vector
+    instructions")."""
     resampling = Resampling[config.overview_resampling]
     source = _with_overviews(work, levels) if levels else work
     with atomic_path(out_path) as tmp:
