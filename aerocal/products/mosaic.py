@@ -698,25 +698,41 @@ def _run_tiles(tiles, members, frames, images, dsm, config, nodata, dtype, bands
     arrays = {f.image_id: images[f.image_id] for f in frames if isinstance(images[f.image_id], np.ndarray)}
     scattered = client.scatter(arrays) if arrays else {}
     # each worker renders one run of the curve, so that it decodes the frames of its part of the block and not
-    # every frame the other workers read too; an idle worker still takes tiles from a busy one (loose restriction)
+    # every frame the other workers read too; an idle worker still takes tiles from a busy one (loose restriction).
+    # A task renders TILES_PER_TASK tiles that follow one another on the curve: they share frames, and the
+    # scheduler's and the transfers' cost per task is paid once for them
     workers = sorted(client.scheduler_info()["workers"])
     runs = np.array_split(np.arange(len(tiles)), max(len(workers), 1))
     home = {int(i): [w] for w, run in zip(workers, runs, strict=False) for i in run}
     futures = []
-    for i, tile in enumerate(tiles):
-        idx = members(tile)
-        pix = [scattered[frames[k].image_id] if frames[k].image_id in scattered else str(images[frames[k].image_id])
-               for k in idx]
-        futures.append(client.submit(render_tile_pyramid, levels, tile, [frames[k] for k in idx], pix,
-                                     dsm.window(tile.bounds()), *args, pure=False, workers=home.get(i),
+    for start in range(0, len(tiles), TILES_PER_TASK):
+        jobs = []
+        for tile in tiles[start:start + TILES_PER_TASK]:
+            idx = members(tile)
+            pix = [scattered[frames[k].image_id] if frames[k].image_id in scattered
+                   else str(images[frames[k].image_id]) for k in idx]
+            jobs.append((tile, [frames[k] for k in idx], pix, dsm.window(tile.bounds())))
+        futures.append(client.submit(_render_tiles, levels, jobs, *args, pure=False, workers=home.get(start),
                                      allow_other_workers=True))
     try:
         for fut in as_completed(futures):
-            yield fut.result()
+            yield from fut.result()
     finally:
         for fut in futures:
             fut.release()
         client.run(forget_frames, on_error="ignore")  # a worker lost on the way has nothing to release
+
+
+#: tiles one Dask task renders (:func:`_run_tiles`): a task per tile cost the flow's process (the scheduler, the
+#: submitting, the results) twice the CPU of eight (benchmarks/RESULTS.md, "Orthomosaic: a Dask task for eight tiles")
+TILES_PER_TASK = 8
+
+
+def _render_tiles(levels: int, jobs: Sequence[tuple], feather_px: float, nodata: int, dtype: str, bands: int
+                  ) -> list[tuple[TileSpec, np.ndarray, list[np.ndarray]]]:
+    """:func:`render_tile_pyramid` of each (tile, frames, pixels, DSM window) in ``jobs``, in order."""
+    return [render_tile_pyramid(levels, tile, frames, pixels, dsm, feather_px, nodata, dtype, bands)
+            for tile, frames, pixels, dsm in jobs]
 
 
 def overview_factors(width: int, height: int, config: MosaicConfig) -> list[int]:
