@@ -178,17 +178,22 @@ def seam_weight(score, best, taper, width, r, c):
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def weighed_box(map_u, map_v, score, best, taper, width):
-    """The bounding box (u_min, u_max, v_min, v_max; OpenCV's pixel convention, as the maps) of the positions one
-    frame is sampled at where its :func:`seam_weight` is positive in the tile, and whether it is anywhere (when
-    not, the box is empty and the frame's pixels are not needed)."""
+    """Where one frame's :func:`seam_weight` is positive in the tile: whether anywhere (when not, its pixels are
+    not needed), the bounding box of the positions it is sampled at there (u_min, u_max, v_min, v_max; OpenCV's
+    pixel convention, as the maps), and the tile's rows and columns that hold them (row_start, row_stop,
+    col_start, col_stop; stop exclusive, all 0 when nowhere)."""
     u_lo, u_hi, v_lo, v_hi = np.inf, -np.inf, np.inf, -np.inf
     rows, cols = score.shape
+    r_lo, r_hi, c_lo, c_hi = rows, 0, cols, 0
     for r in range(rows):
         for c in range(cols):
             if seam_weight(score, best, taper, width, r, c) > 0.0:
                 u, v = map_u[r, c], map_v[r, c]
                 u_lo, u_hi, v_lo, v_hi = min(u_lo, u), max(u_hi, u), min(v_lo, v), max(v_hi, v)
-    return u_lo <= u_hi, u_lo, u_hi, v_lo, v_hi
+                r_lo, r_hi, c_lo, c_hi = min(r_lo, r), max(r_hi, r + 1), min(c_lo, c), max(c_hi, c + 1)
+    if not u_lo <= u_hi:
+        return False, u_lo, u_hi, v_lo, v_hi, 0, 0, 0, 0
+    return True, u_lo, u_hi, v_lo, v_hi, r_lo, r_hi, c_lo, c_hi
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

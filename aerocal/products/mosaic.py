@@ -384,7 +384,7 @@ def render_tile(
     acc = np.zeros((bands,) + shape)
     wsum = np.zeros(shape)
     for k, (index, fr) in enumerate(kept):
-        weighed, *box = weighed_box(*maps[k], scores[k], best, tapers[k], width)
+        weighed, u0, u1, v0, v1, r0, r1, c0, c1 = weighed_box(*maps[k], scores[k], best, tapers[k], width)
         if not weighed:
             continue  # never decoded for this tile
         img = pixels[index]
@@ -394,8 +394,11 @@ def render_tile(
         if img.shape[:2] != (cam.height, cam.width):
             raise ValueError(f"image {fr.image_id}: pixels are {img.shape[1]}x{img.shape[0]}, its camera says "
                              f"{cam.width}x{cam.height}; give the frame's original pixels")
-        values = _resampled(img, *maps[k], *box).reshape(shape + (-1,))
-        add_weighted(values, scores[k], best, tapers[k], width, acc, wsum)
+        # resampled and added where the frame weighs only: in a thermal block most frames of a tile weigh on part
+        # of it (benchmarks/RESULTS.md, "Orthomosaic: a frame resampled where it weighs")
+        part = (slice(r0, r1), slice(c0, c1))
+        values = _resampled(img, maps[k][0][part], maps[k][1][part], u0, u1, v0, v1).reshape((r1 - r0, c1 - c0, -1))
+        add_weighted(values, scores[k][part], best[part], tapers[k][part], width, acc[:, r0:r1, c0:c1], wsum[part])
     info = np.iinfo(dtype)  # uint8 or uint16 (build_mosaic)
     weighted_mean(acc, wsum, float(info.min), float(info.max), float(nodata), out)
     return tile, out
