@@ -547,8 +547,8 @@ def build_mosaic(
     run in this process, on ``threads`` threads (the tile kernels, OpenCV's resampling and JPEG decoding release
     the GIL; one OpenCV thread each while they run, the process's own count restored after). Nothing is shipped
     between processes and the threads share one frame cache: on 40 visible frames of 9.5 MP, two threads took
-    6.4 s where a local cluster of two worker processes took 8.4 s in the same run, 10.1 s against 18.1 s on
-    another machine (``benchmarks/RESULTS.md``, "Orthomosaic of large visible frames against the
+    9.5 s and a local cluster of two worker processes 9.6 s in the same run, each within 3x of its
+    decode-and-resample limit (``benchmarks/RESULTS.md``, "Orthomosaic of large visible frames against the
     decode-and-resample limit"; thermal blocks not measured apart).
     ``progress(done, total)`` is called after each tile is written.
 
