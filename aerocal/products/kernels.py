@@ -26,22 +26,31 @@ NO_PIXEL = -10.0
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pixel(de, dn, dh, R, io):
-    """The recorded pixel (u, v) of a ground point ``(de, dn, dh)`` metres from the projection centre, and whether
-    it lies in front of the camera."""
+def _projected(de, dn, dh, R, io):
+    """The recorded pixel (u, v) of a ground point ``(de, dn, dh)`` metres from the projection centre and its depth
+    along the optical axis, computed without a branch whatever the depth (behind the camera, u and v are any
+    value): :func:`frame_view`'s vector loop chooses by the depth afterwards."""
     f, cx, cy, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
     px = de * R[0, 0] + dn * R[0, 1] + dh * R[0, 2]
     py = de * R[1, 0] + dn * R[1, 1] + dh * R[1, 2]
     pz = de * R[2, 0] + dn * R[2, 1] + dh * R[2, 2]
-    if not pz > 0:
-        return 0.0, 0.0, False
     x = px / pz
     y = py / pz
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
     yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
-    return cx + xd * (f + b1) + yd * b2, cy + yd * f, True
+    return cx + xd * (f + b1) + yd * b2, cy + yd * f, pz
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pixel(de, dn, dh, R, io):
+    """The recorded pixel (u, v) of a ground point ``(de, dn, dh)`` metres from the projection centre, and whether
+    it lies in front of the camera ((0, 0) when not)."""
+    u, v, pz = _projected(de, dn, dh, R, io)
+    if not pz > 0:
+        return 0.0, 0.0, False
+    return u, v, True
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -60,7 +69,7 @@ def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score
     in one process, benchmarks/RESULTS.md, "Orthomosaic: a frame's view of a tile in vector instructions")."""
     if motion[0] != 0.0 or motion[1] != 0.0 or motion[2] != 0.0:
         return _frame_view_moving(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score, taper, motion)
-    f, cx, cy, k1, k2, k3, p1, p2, b1, b2 = io[0], io[1], io[2], io[3], io[4], io[5], io[6], io[7], io[8], io[9]
+    cx, cy = io[1], io[2]
     feather = max(feather_px, 1e-9)
     half = np.float32(0.5)
     no_pixel = np.float32(NO_PIXEL)
@@ -69,22 +78,9 @@ def frame_view(e, n, h, R, C, io, width, height, feather_px, map_u, map_v, score
     for r in range(rows):
         dn = n[r] - C[1]
         for c in range(cols):
-            # _pixel's operations in its order; a point behind the camera or without a height is computed too
-            # (any value) and then not chosen
+            # a point behind the camera or without a height is computed too (any value) and then not chosen
             hh = h[r, c]
-            de = e[c] - C[0]
-            dh = hh - C[2]
-            px = de * R[0, 0] + dn * R[0, 1] + dh * R[0, 2]
-            py = de * R[1, 0] + dn * R[1, 1] + dh * R[1, 2]
-            pz = de * R[2, 0] + dn * R[2, 1] + dh * R[2, 2]
-            x = px / pz
-            y = py / pz
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            xd = x * radial + p1 * (r2 + 2 * x * x) + 2 * p2 * x * y
-            yd = y * radial + p2 * (r2 + 2 * y * y) + 2 * p1 * x * y
-            u = cx + xd * (f + b1) + yd * b2
-            v = cy + yd * f
+            u, v, pz = _projected(e[c] - C[0], dn, hh - C[2], R, io)
             valid = (np.abs(hh) < np.inf) & (pz > 0) & (np.abs(u) < np.inf) & (np.abs(v) < np.inf)
             inside = valid & (u >= 0.0) & (u <= width) & (v >= 0.0) & (v <= height)
             du, dv = u - cx, v - cy
