@@ -10,7 +10,7 @@ from aerocal.assess import mosaic_target_residuals
 from aerocal.camera import Camera, LinearThermalModel
 from aerocal.ingest.pixels import read_raw
 from aerocal.products.dsm import Dsm, dsm_from_points
-from aerocal.products.mosaic import MosaicConfig, build_mosaic, frames_from_poses
+from aerocal.products.mosaic import TILES_PER_TASK, MosaicConfig, build_mosaic, frames_from_poses
 
 SEED = 3
 
@@ -178,6 +178,7 @@ def test_dask_and_serial_mosaics_are_identical(flight, client):
                 rasterio.open(flight["serial"].path, overview_level=level) as b:
             assert np.array_equal(a.read(), b.read()), f"overview {level}"
     assert sorted(calls) == list(range(1, res.tiles + 1))
+    assert res.tiles > 2 * TILES_PER_TASK  # several tasks of several tiles each
 
 
 def test_a_mosaic_on_threads_is_the_serial_one_and_leaves_the_process_its_opencv_threads(flight, monkeypatch):
