@@ -140,12 +140,13 @@ def test_a_few_points_intersected_far_off_the_block_do_not_coarsen_the_grid(wild
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_hole_filling_gives_scipy_griddata_values(seed):
-    """Linear on the data cells' Delaunay triangles, nearest outside their hull: scipy's griddata values (an
-    equidistant tie outside the hull may take either cell)."""
+    """Linear on the data cells' Delaunay triangles, nearest outside their hull: scipy's griddata values, but inside
+    a circle through four or more data cells (where either diagonal is Delaunay, so either height is linear on a
+    Delaunay triangulation) and where an equidistant tie outside the hull may take either cell."""
     from scipy.interpolate import griddata
     from scipy.spatial import cKDTree
 
-    from aerocal.products.dsm import fill_holes
+    from aerocal.products.dsm import fill_holes, rim_triangles
 
     rng = np.random.default_rng(seed)
     heights = np.full((120, 90), np.nan)
@@ -153,17 +154,40 @@ def test_hole_filling_gives_scipy_griddata_values(seed):
     heights[r, c] = 100.0 + 0.3 * r - 0.2 * c + rng.normal(0.0, 2.0, 300)
     has = np.isfinite(heights)
     filled = fill_holes(heights, has)
-    known, holes = np.argwhere(has).astype(float), np.argwhere(~has).astype(float)
-    linear = griddata(known, heights[has], holes, method="linear")
+    known, holes = np.argwhere(has), np.argwhere(~has)
+    linear = griddata(known.astype(float), heights[has], holes.astype(float), method="linear")
     inside = np.isfinite(linear)
     got = filled[~has]
     assert np.isfinite(filled).all(), f"seed {seed}"
-    np.testing.assert_allclose(got[inside], linear[inside], atol=1e-9, err_msg=f"seed {seed}")
+    # where the heights differ, the triangle over the cell has a fourth data cell on its circumcircle
+    tri = known[rim_triangles(known[:, 0], known[:, 1])]  # every data cell borders a hole here
+    differ = holes[inside][np.abs(got[inside] - linear[inside]) > 1e-9]
+    for cell in differ:
+        a, b, c_ = (tri[:, k].astype(np.int64) - cell for k in range(3))
+        cross = lambda p, q: p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]  # noqa: E731
+        over = tri[(np.sign(cross(b - a, -a)) * np.sign(cross(c_ - b, -b)) >= 0)
+                   & (np.sign(cross(c_ - b, -b)) * np.sign(cross(a - c_, -c_)) >= 0)
+                   & (np.sign(cross(b - a, -a)) * np.sign(cross(a - c_, -c_)) >= 0)][0].astype(np.int64)
+        on_circle = [_in_circle_det(*over, p) for p in known.astype(np.int64)]
+        assert sum(d == 0 for d in on_circle) >= 4, f"seed {seed}: cell {cell} differs from griddata in a " \
+                                                    "triangle no fourth cell makes ambiguous"
+        turn = int(np.sign(cross((over[1] - over[0])[None], (over[2] - over[0])[None])[0]))
+        assert all(d * turn <= 0 for d in on_circle), f"seed {seed}: a data cell inside {over}'s circle"
+    assert len(differ) < 0.02 * inside.sum(), f"seed {seed}: {len(differ)} cells"
     d, _ = cKDTree(known).query(holes[~inside], k=2)
-    nearest = griddata(known, heights[has], holes[~inside], method="nearest")
+    nearest = griddata(known.astype(float), heights[has], holes[~inside].astype(float), method="nearest")
     differ = got[~inside] != nearest
     assert np.allclose(d[differ, 0], d[differ, 1]), f"seed {seed}: a hole took a data cell that is not nearest"
     assert differ.mean() < 0.05, f"seed {seed}"
+
+
+def _in_circle_det(a, b, c, p) -> int:
+    """The in-circle determinant of p against the circle through a, b, c (integer cells; Python's exact ints):
+    0 on the circle; inside it, the sign of the triangle's orientation."""
+    rows = [(int(q[0]) - int(p[0]), int(q[1]) - int(p[1])) for q in (a, b, c)]
+    (ax, ay), (bx, by), (cx, cy) = rows
+    al, bl, cl = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
+    return ax * (by * cl - cy * bl) - ay * (bx * cl - cx * bl) + al * (bx * cy - cx * by)
 
 
 @pytest.mark.parametrize("seed", [0, 1])

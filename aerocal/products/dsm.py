@@ -22,7 +22,8 @@ Method (what :func:`dsm_from_points` does)
    height range, gave every tile every frame.
 2. **Median per cell** of the remaining points (robust to a residual blunder in a crowded cell).
 3. **Hole filling** by linear interpolation on the Delaunay triangulation of the filled cells
-   (``scipy.interpolate.griddata``'s values, rasterised triangle by triangle), nearest value outside their
+   (``scipy.interpolate.griddata``'s values but where cells are cocircular, rasterised triangle by triangle; the
+   triangulation is :mod:`aerocal.products.delaunay`'s, exact on grid cells), nearest value outside their
    convex hull (everywhere when the data cells lie on one line), optionally limited to
    ``max_fill_distance_m`` from the nearest data cell. :attr:`Dsm.distance_m` keeps, per cell, the distance
    to the nearest cell that held a tie point, so users (and :mod:`aerocal.assess`) can tell measured heights
@@ -51,6 +52,7 @@ from scipy import ndimage
 from scipy.spatial import Delaunay, QhullError, cKDTree
 
 from aerocal.io import atomic_path
+from aerocal.products.delaunay import grid_delaunay
 from aerocal.products.kernels import tile_heights
 
 #: Value written for cells without a height in DSM GeoTIFFs (float32).
@@ -525,8 +527,9 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
     lie on the grid, so each Delaunay triangle is rasterised over the hole cells it covers
     (:func:`_raster_triangles`) instead of locating every hole cell in the triangulation, and the nearest data
     cell outside the hull comes from the distance transform's indices; faster than ``griddata``, with the same
-    heights inside the hull to rounding, and outside it the same but where two data cells are equally near
-    (``benchmarks/history/engine_measurements.md``)."""
+    heights inside the hull to rounding but inside a circle through four or more rim cells (where either
+    diagonal is Delaunay, :mod:`aerocal.products.delaunay`), and outside it the same but where two data cells are
+    equally near (``benchmarks/history/engine_measurements.md``)."""
     if not (~has).any():
         return heights
     if pinholes:
@@ -541,13 +544,10 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
     # is 76 million cells)
     out = heights if pinholes and heights.dtype == np.float64 else heights.astype(np.float64, copy=True)
     filled = has.copy()
-    try:
-        tri = Delaunay(np.column_stack([rr, cc]).astype(float))
-    except QhullError:  # the data cells lie on one line: no triangle, the nearest value everywhere
-        tri = None
-    if tri is not None:
-        corners = np.stack([rr[tri.simplices], cc[tri.simplices]], axis=2).astype(np.int64)
-        _raster_triangles(corners, heights[rr, cc][tri.simplices].astype(np.float64), out, filled)
+    simplices = rim_triangles(rr, cc)
+    if len(simplices):
+        corners = np.stack([rr[simplices], cc[simplices]], axis=2).astype(np.int64)
+        _raster_triangles(corners, heights[rr, cc][simplices].astype(np.float64), out, filled)
     if not filled.all():
         # outside the hull, the nearest data cell. It is always a rim cell (the cell before it on the line from a hole
         # cell is a hole cell, and touches it), so where those cells are few the rim's k-d tree answers; a query
@@ -560,6 +560,19 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
             index = ndimage.distance_transform_edt(~has, return_distances=False, return_indices=True)
             out[hr, hc] = heights[index[0, hr, hc], index[1, hr, hc]]
     return out
+
+
+def rim_triangles(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """The Delaunay triangles of the cells (``rows``, ``cols``): (T, 3) indices into them, none when the cells lie on
+    one line. :func:`aerocal.products.delaunay.grid_delaunay`'s sweep, or Qhull where the sweep declines (a grid
+    :data:`~aerocal.products.delaunay.EXACT_EXTENT` cells wide or more)."""
+    simplices = grid_delaunay(rows, cols)
+    if simplices is not None:
+        return simplices
+    try:
+        return Delaunay(np.column_stack([rows, cols]).astype(float)).simplices
+    except QhullError:  # the cells lie on one line: no triangle
+        return np.empty((0, 3), dtype=np.int64)
 
 
 #: cells of the exact distance transform one k-d tree query costs (:func:`fill_holes`; from seneca's dense DSM, the
