@@ -6,8 +6,9 @@ after each part, and the largest Dask worker's.
 
 A profile, not a target: the memory says which part holds the peak. Each part's span (from its first call's start to
 its last call's end, seconds after the first part started) shows which parts ran side by side: the step writes the
-LAZ while it fills the DSM's holes, and the DSMs' files and differences while it filters the DTM. Those pairs'
-times overlap, and their memory columns come from one sampler, so read a pair's peaks together.
+LAZ while it fills the DSM's holes and goes on, and the DSMs' files and differences while it filters the DTM and
+rectifies the orthomosaic. Parts that ran side by side overlap in time, and their memory columns come from one
+sampler, so read their peaks together.
 
 Run: ``python -m benchmarks.products_profile FOLDER`` (the rendered city: ``benchmarks/data/conte-city-images-s0``,
 made by ``python -m benchmarks.city_bench``).

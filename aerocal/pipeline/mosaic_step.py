@@ -13,7 +13,7 @@ import functools
 import tempfile
 import time
 from collections.abc import Iterable, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -151,14 +151,15 @@ def difference_to(dsm: Dsm, reference: Path, measured: np.ndarray) -> dict[str, 
 
 def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, cert: Certificate,
                   paths: Mapping[int, Path], ground: float, config: MosaicStepConfig,
-                  execution: ExecutionConfig | None, work: Path, info: dict[str, Any]
-                  ) -> tuple[Dsm, np.ndarray, np.ndarray, dict[str, FileOutput]] | None:
+                  execution: ExecutionConfig | None, work: Path, info: dict[str, Any], background: Executor
+                  ) -> tuple[Dsm, np.ndarray, np.ndarray, Future[Path]] | None:
     """The dense cloud of the adjusted frames (:func:`aerocal.products.dense.dense_cloud`), its DSM at about one
     ground sample per cell, where that DSM is measured (:meth:`Dsm.measured`: the cells holding points; the rest
     is filled), the views that agree on each measured cell (:func:`aerocal.products.dense.cell_views`), and the
-    cloud as ``cloud`` (LAZ). ``info["dense"]`` records what was matched. ``None`` when no point
-    survives the fusion (frames without texture): the products then stand on the tie points, and
-    ``info["surface"]`` says why.
+    cloud's LAZ file (``cloud.laz`` in ``work``) being written on ``background``: the future of its path, which
+    the caller awaits before the step ends (nothing else reads the file). ``info["dense"]`` records what was
+    matched. ``None`` when no point survives the fusion (frames without texture): the products then stand on the
+    tie points, and ``info["surface"]`` says why.
 
     ``frames`` are those the orthomosaic rectifies (:func:`frames_of`): the certificate's IO at each frame's
     temperature, its readout and thermal rotation.
@@ -195,15 +196,13 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
     flir, _ = common_camera_info(list(paths.values()))
     temperature = None if flir is None else functools.partial(raw_to_celsius, info=flir)
     stats, gsd, median_views = dict(cloud.stats), cloud.gsd_m, float(np.median(cloud.views))
-    # the LAZ is written on a thread while the holes are filled: lazrs's compression and Qhull's triangulation
-    # release the GIL, so the two share the cores (benchmarks/RESULTS.md, "Products step: the LAZ, the DSMs' files
-    # and the DTM side by side"); the thread drops the cloud once it is written
-    with ThreadPoolExecutor(1, thread_name_prefix="aerocal-laz") as pool:
-        laz_job = pool.submit(write_laz, cloud, work / "cloud.laz", flight["crs"], temperature)
-        del cloud
-        dsm = filled(cells, config.dense_dsm)
-        del cells
-        laz = laz_job.result()
+    # the LAZ is written on a thread while the holes are filled and the rest of the step goes on: lazrs's compression
+    # and the products' compiled loops release the GIL, so they share the cores (benchmarks/RESULTS.md, "Products
+    # step: the LAZ, the DSMs' files and the DTM side by side"); the thread drops the cloud once it is written
+    laz = background.submit(write_laz, cloud, work / "cloud.laz", flight["crs"], temperature)
+    del cloud
+    dsm = filled(cells, config.dense_dsm)
+    del cells
     measured = dsm.measured()
     # no height where no frame sees the ground (aerocal.products.coverage): there the filling extrapolates. The
     # plane is the surface's lowest but for a thousandth of its cells: a few points tens of metres below the ground
@@ -217,7 +216,7 @@ def dense_surface(flight: dict, frames: list[FrameGeometry], points: pa.Table, c
                      "measured_fraction": float(np.count_nonzero(measured) / np.count_nonzero(seen)),
                      "two_view_fraction": float(np.count_nonzero(views == 2) / max(np.count_nonzero(measured), 1)),
                      "median_views": median_views, "temperature": flir is not None}
-    return dsm, measured, views, {"cloud": FileOutput(laz, "cloud", temporary=True)}
+    return dsm, measured, views, laz
 
 
 def dense_files(dsm: Dsm, measured: np.ndarray, views: np.ndarray, sparse: Dsm, reference: Path | None,
@@ -297,19 +296,22 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
         paths = frame_paths(flight, images)
         frames = frames_of(images, poses, cert, paths) if paths else []
         reference = reference_dsm_path(flight)
-        dense = (dense_surface(flight, frames, points, cert, paths, ground, config, execution, work, info)
-                 if paths and config.dense is not None else None)
-        if paths and config.dense is None:
-            info["surface"] = "tie points: the dense surface was not asked for (--surface tie-points)"
-        if dense is not None:
-            sparse = dsm
-            dsm, measured, views, cloud_out = dense
-            out.update(cloud_out)
-            # the DSMs' files and their differences to the reference are made on a thread while the DTM is filtered:
-            # GDAL's writing, numpy's reductions and the filter's triangulation release the GIL, so the two share the
-            # cores (benchmarks/RESULTS.md, "Products step: the LAZ, the DSMs' files and the DTM side by side")
-            with ThreadPoolExecutor(1, thread_name_prefix="aerocal-dsm") as pool:
-                files = pool.submit(dense_files, dsm, measured, views, sparse, reference, work)
+        # the files no later part reads (the LAZ, the DSMs' GeoTIFFs and their differences to the reference) are
+        # written on threads while the DTM is filtered and the orthomosaic rectified: GDAL's and lazrs's writing,
+        # numpy's reductions and the products' compiled loops release the GIL, so they share the cores
+        # (benchmarks/RESULTS.md, "Products step, part by part", 2026-12-07 16:15); leaving
+        # this block waits for them, a failure's too
+        with ThreadPoolExecutor(2, thread_name_prefix="aerocal-products") as background:
+            dense = (dense_surface(flight, frames, points, cert, paths, ground, config, execution, work, info,
+                                   background)
+                     if paths and config.dense is not None else None)
+            if paths and config.dense is None:
+                info["surface"] = "tie points: the dense surface was not asked for (--surface tie-points)"
+            files = laz = None
+            if dense is not None:
+                sparse = dsm
+                dsm, measured, views, laz = dense
+                files = background.submit(dense_files, dsm, measured, views, sparse, reference, work)
                 terrain = dtm_from_dsm(dsm, measured, config.ground_filter)
                 info["dtm"] = terrain.note
                 if terrain.dtm is not None:
@@ -325,29 +327,34 @@ def mosaic_step(runner: Runner, ingest: StepResult, adjusted: StepResult, certif
                     check = flying_height_check(frames, terrain.dtm, float(recorded))
                     if check is not None:
                         info["flying_height"] = {**check, "ground": "DTM", "source": source or "flight.json"}
+                del terrain
+            else:
+                measured = views = None
+                out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif"), "dsm", temporary=True)
+            if paths:
+                laser = laser_output(images, frames, dsm, dsm.distance_m == 0 if measured is None else measured,
+                                     gsd)
+                if laser is not None:
+                    info["laser_range"] = laser
+            info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
+            if paths:
+                run = execution or ExecutionConfig()
+                # on the run's Dask scheduler when it has one; without one, on threads in this process, one per local
+                # worker the run would start (no local cluster: build_mosaic's docstring)
+                with run.client(serial=run.dask_address is None) as client:
+                    res = build_mosaic(frames, paths, dsm, work / "orthomosaic.tif", config.mosaic or MosaicConfig(),
+                                       client, step_progress("mosaic"), threads=max(1, run.local_workers))
+                out["orthomosaic"] = FileOutput(res.path, "orthomosaic", temporary=True)
+                info.update({k: v for k, v in res.to_dict().items() if k != "path"})
+                if res.dtype == "uint16":
+                    out.update(temperature_output(paths.values(), res.path, work, info))
+                info["frames"] = len(frames)
+            if files is not None:
                 files_out, differences = files.result()
-            out.update(files_out)
-            info.update(differences)
-        else:
-            measured = views = None
-            out["dsm"] = FileOutput(write_dsm(dsm, work / "dsm.tif"), "dsm", temporary=True)
-        if paths:
-            laser = laser_output(images, frames, dsm, dsm.distance_m == 0 if measured is None else measured, gsd)
-            if laser is not None:
-                info["laser_range"] = laser
-        info.update({"dsm_cell_m": dsm.cell_m, "dsm_shape": list(dsm.heights.shape)})
-        if paths:
-            run = execution or ExecutionConfig()
-            # on the run's Dask scheduler when it has one; without one, on threads in this process, one per local
-            # worker the run would start (no local cluster: build_mosaic's docstring)
-            with run.client(serial=run.dask_address is None) as client:
-                res = build_mosaic(frames, paths, dsm, work / "orthomosaic.tif", config.mosaic or MosaicConfig(),
-                                   client, step_progress("mosaic"), threads=max(1, run.local_workers))
-            out["orthomosaic"] = FileOutput(res.path, "orthomosaic", temporary=True)
-            info.update({k: v for k, v in res.to_dict().items() if k != "path"})
-            if res.dtype == "uint16":
-                out.update(temperature_output(paths.values(), res.path, work, info))
-            info["frames"] = len(frames)
+                out.update(files_out)
+                info.update(differences)
+            if laz is not None:
+                out["cloud"] = FileOutput(laz.result(), "cloud", temporary=True)
         out["mosaic"] = JsonOutput(info, "mosaic")
         return out
 
