@@ -4,6 +4,8 @@ where no four cells are cocircular."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -39,23 +41,23 @@ def _assert_delaunay(rows: np.ndarray, cols: np.ndarray, tri: np.ndarray, label:
             assert det <= 0, f"{label}: cell {p} inside the circumcircle of {tri[t]}"
 
 
-@pytest.mark.parametrize("seed,share", [(0, 0.8), (1, 0.5)])
-def test_the_rims_of_a_dsms_holes_are_triangulated_delaunay(seed, share):
+def _rims(seed: int, share: float) -> tuple[np.ndarray, np.ndarray]:
     """Cells on the rims of holes, as the filling triangulates them (most of them cocircular with others)."""
     rng = np.random.default_rng(seed)
     noise = ndimage.gaussian_filter(rng.normal(size=(300, 260)), 3)
     has = noise < np.quantile(noise, share)
-    rim = has & ndimage.binary_dilation(~has, structure=np.ones((3, 3), dtype=bool))
-    rows, cols = np.nonzero(rim)
-    tri = grid_delaunay(rows, cols)
-    assert tri is not None, f"seed {seed}"
-    _assert_delaunay(rows, cols, tri, f"seed {seed}")
+    return np.nonzero(has & ndimage.binary_dilation(~has, structure=np.ones((3, 3), dtype=bool)))
 
 
-@pytest.mark.parametrize("seed", range(6))
-def test_sparse_cells_are_triangulated_delaunay(seed):
-    rng = np.random.default_rng(seed)
-    rows, cols = np.divmod(rng.choice(120 * 90, 300, replace=False), 90)
+def _sparse(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """300 cells drawn from a 120 x 90 grid."""
+    return np.divmod(np.random.default_rng(seed).choice(120 * 90, 300, replace=False), 90)
+
+
+@pytest.mark.parametrize("cells,seed", [(functools.partial(_rims, share=0.8), 0),
+                                        (functools.partial(_rims, share=0.5), 1), *((_sparse, s) for s in range(6))])
+def test_grid_cells_are_triangulated_delaunay(cells, seed):
+    rows, cols = cells(seed)
     tri = grid_delaunay(rows, cols)
     assert tri is not None, f"seed {seed}"
     _assert_delaunay(rows, cols, tri, f"seed {seed}")

@@ -188,7 +188,8 @@ def _sweep(x, y):
         area = _cross(x[i0], y[i0], x[i1], y[i1], x[k], y[k])
         if area == 0:
             continue
-        r = _circumradius2(fx[i0], fy[i0], fx[i1], fy[i1], fx[k], fy[k])
+        ux, uy = _circumcentre_from_a(fx[i0], fy[i0], fx[i1], fy[i1], fx[k], fy[k])
+        r = ux * ux + uy * uy
         if r < best:
             best = r
             i2 = k
@@ -196,7 +197,8 @@ def _sweep(x, y):
         return tri, 0, True
     if _cross(x[i0], y[i0], x[i1], y[i1], x[i2], y[i2]) < 0:
         i1, i2 = i2, i1
-    cx, cy = _circumcentre(fx[i0], fy[i0], fx[i1], fy[i1], fx[i2], fy[i2])
+    ux, uy = _circumcentre_from_a(fx[i0], fy[i0], fx[i1], fy[i1], fx[i2], fy[i2])
+    cx, cy = fx[i0] + ux, fy[i0] + uy
     order = np.argsort((fx - cx) ** 2 + (fy - cy) ** 2, kind="mergesort")
 
     hull_next = np.full(n, -1, dtype=np.int64)
@@ -266,22 +268,11 @@ def _sweep(x, y):
 
 
 @numba.njit(cache=True, nogil=True)
-def _circumradius2(ax, ay, bx, by, cx, cy):
+def _circumcentre_from_a(ax, ay, bx, by, cx, cy):
+    """The circumcentre of (a, b, c) less a: (east, north) offsets, so its radius squared is their squared sum."""
     dx, dy = bx - ax, by - ay
     ex, ey = cx - ax, cy - ay
     bl = dx * dx + dy * dy
     cl = ex * ex + ey * ey
     d = 0.5 / (dx * ey - dy * ex)
-    ux = (ey * bl - dy * cl) * d
-    uy = (dx * cl - ex * bl) * d
-    return ux * ux + uy * uy
-
-
-@numba.njit(cache=True, nogil=True)
-def _circumcentre(ax, ay, bx, by, cx, cy):
-    dx, dy = bx - ax, by - ay
-    ex, ey = cx - ax, cy - ay
-    bl = dx * dx + dy * dy
-    cl = ex * ex + ey * ey
-    d = 0.5 / (dx * ey - dy * ex)
-    return ax + (ey * bl - dy * cl) * d, ay + (dx * cl - ex * bl) * d
+    return (ey * bl - dy * cl) * d, (dx * cl - ex * bl) * d
