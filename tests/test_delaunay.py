@@ -11,7 +11,7 @@ import pytest
 from scipy import ndimage
 from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
-from aerocal.products.delaunay import EXACT_EXTENT, grid_delaunay
+from aerocal.products.delaunay import EXACT_EXTENT, MAX_EXTENT, grid_delaunay
 
 
 def _assert_delaunay(rows: np.ndarray, cols: np.ndarray, tri: np.ndarray, label: str) -> None:
@@ -63,11 +63,12 @@ def test_grid_cells_are_triangulated_delaunay(cells, seed):
     _assert_delaunay(rows, cols, tri, f"seed {seed}")
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_cells_with_no_four_on_a_circle_give_qhulls_triangles(seed):
-    """Cells spread over a wide grid (cocircular quadruples rare): the very triangles of Qhull."""
+@pytest.mark.parametrize("seed,extent", [(0, 9000), (1, 9000), (2, 9000), (3, 5 * EXACT_EXTENT)])
+def test_cells_with_no_four_on_a_circle_give_qhulls_triangles(seed, extent):
+    """Cells spread over a wide grid (cocircular quadruples rare): the very triangles of Qhull, on a grid wider than
+    the int64 test's reach too."""
     rng = np.random.default_rng(seed)
-    rows, cols = np.divmod(rng.choice(12000 * 9000, 2000, replace=False), 9000)
+    rows, cols = np.divmod(rng.choice(extent * extent, 2000, replace=False), extent)
     tri = grid_delaunay(rows, cols)
     assert tri is not None, f"seed {seed}"
     ours = {tuple(sorted(t)) for t in tri.tolist()}
@@ -75,8 +76,18 @@ def test_cells_with_no_four_on_a_circle_give_qhulls_triangles(seed):
     assert ours == qhull, f"seed {seed}: {len(ours ^ qhull)} triangles differ"
 
 
-def test_cells_on_one_line_give_no_triangle_and_a_wide_grid_is_left_to_qhull():
+def test_a_grid_wider_than_the_int64_test_is_triangulated_delaunay():
+    """Rims of holes scattered over a grid 2.5 times as wide as the int64 in-circle test reaches: the far points'
+    tests fall to the float64 determinant, which decides every one a grid's cells need here."""
+    rows, cols = _rims(4, 0.7)
+    rows = rows * 137  # the same rims spread out: 300 x 260 cells -> 41,000 x 260
+    tri = grid_delaunay(rows, cols)
+    assert tri is not None
+    _assert_delaunay(rows, cols, tri, "wide grid")
+
+
+def test_cells_on_one_line_give_no_triangle_and_a_grid_too_wide_for_float64_is_left_to_qhull():
     line = np.arange(10)
     assert grid_delaunay(line, 2 * line + 3).shape == (0, 3)
     assert grid_delaunay(np.array([0, 1]), np.array([0, 0])).shape == (0, 3)
-    assert grid_delaunay(np.array([0, 5, EXACT_EXTENT]), np.array([0, 9, 1])) is None
+    assert grid_delaunay(np.array([0, 5, MAX_EXTENT]), np.array([0, 9, 1])) is None

@@ -15,10 +15,12 @@ triangulation of grid cells", where the same triangles' count and the filled hei
 2. a point is joined to every hull edge it sees (found from a hash of the hull's vertices by their angle about
    the centre), and the edges opposite it are flipped while the triangle beyond lies in its circumcircle.
 
-The predicates are exact: the points are integers, so the orientation is an int64 cross product and the in-circle
-test an int64 determinant, exact while the grid is under :data:`EXACT_EXTENT` cells along each axis (a float64
-filter decides first where it can). Where four points are cocircular, either diagonal is a Delaunay
-triangulation and the edge is left as it is; the triangles differ from Qhull's there, and so can the
+The predicates are exact: the points are integers, so the orientation is an int64 cross product, and the in-circle
+test is decided by its float64 determinant where that is farther from zero than its rounding can reach, else by the
+int64 determinant, exact for four points within :data:`EXACT_EXTENT` cells of each other. Four points spread wider
+whose float64 test cannot decide (nearly cocircular on a grid more than 16,384 cells across) keep their edge: the
+triangulation stays valid, and Delaunay but for such an edge. Where four points are cocircular, either diagonal is a
+Delaunay triangulation and the edge is left as it is; the triangles differ from Qhull's there, and so can the
 interpolated values inside such a circle (both are linear on a Delaunay triangulation).
 
 A point no hull edge sees (which the distance order rules out for distinct points, but not for duplicates) makes
@@ -30,9 +32,11 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-#: cells along each axis below which the int64 in-circle determinant cannot overflow (its terms are bounded by
-#: 3 * 2^58 for coordinate differences under 2^14)
+#: coordinate differences (cells) below which the int64 in-circle determinant cannot overflow (its terms are bounded
+#: by 3 * 2^58 for differences under 2^14)
 EXACT_EXTENT = 1 << 14
+#: cells along each axis up to which the sweep triangulates: the float64 test's inputs (squared distances) stay exact
+MAX_EXTENT = 1 << 24
 
 
 def grid_delaunay(rows: np.ndarray, cols: np.ndarray) -> np.ndarray | None:
@@ -44,13 +48,13 @@ def grid_delaunay(rows: np.ndarray, cols: np.ndarray) -> np.ndarray | None:
     Returns:
         (T, 3) int64 indices into the points, each triangle counter-clockwise in (col, row) axes; an empty
         (0, 3) array when the points are fewer than 3 or all on one line; ``None`` when the sweep cannot insert
-        a point or the grid spans :data:`EXACT_EXTENT` cells or more (the caller then triangulates with Qhull).
+        a point or the grid spans :data:`MAX_EXTENT` cells or more (the caller then triangulates with Qhull).
     """
     x = np.ascontiguousarray(cols, dtype=np.int64)
     y = np.ascontiguousarray(rows, dtype=np.int64)
     if len(x) < 3:
         return np.empty((0, 3), dtype=np.int64)
-    if max(int(x.max() - x.min()), int(y.max() - y.min())) >= EXACT_EXTENT:
+    if max(int(x.max() - x.min()), int(y.max() - y.min())) >= MAX_EXTENT:
         return None
     x = x - x.min()
     y = y - y.min()
@@ -84,6 +88,8 @@ def _in_circle(ax, ay, bx, by, cx, cy, px, py) -> bool:
                  + fc * (abs(ga * hb) + abs(ha * gb)))
     if abs(det) > 1e-14 * permanent:
         return det > 0.0
+    if max(abs(adx), abs(ady), abs(bdx), abs(bdy), abs(cdx), abs(cdy)) >= EXACT_EXTENT:
+        return False  # undecided and too wide for int64: the edge stays (module docstring)
     exact = adx * (bdy * cl - cdy * bl) - ady * (bdx * cl - cdx * bl) + al * (bdx * cdy - cdx * bdy)
     return exact > 0
 

@@ -565,7 +565,7 @@ def fill_holes(heights: np.ndarray, has: np.ndarray, pinholes: bool = False) -> 
 def rim_triangles(rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
     """The Delaunay triangles of the cells (``rows``, ``cols``): (T, 3) indices into them, none when the cells lie on
     one line. :func:`aerocal.products.delaunay.grid_delaunay`'s sweep, or Qhull where the sweep declines (a grid
-    :data:`~aerocal.products.delaunay.EXACT_EXTENT` cells wide or more)."""
+    :data:`~aerocal.products.delaunay.MAX_EXTENT` cells wide or more, a repeated cell)."""
     simplices = grid_delaunay(rows, cols)
     if simplices is not None:
         return simplices
