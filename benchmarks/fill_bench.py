@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> None:
     heights, has = grid(args.rows, args.cols)
     grid_delaunay(np.array([0, 1, 0]), np.array([0, 0, 1]))  # compiled (or loaded from numba's cache) first
 
-    holes, has_after = dsm_module._fill_pinholes(heights, has)
+    _, has_after = dsm_module._fill_pinholes(heights, has)
     rim = has_after & ndimage.binary_dilation(~has_after, structure=np.ones((3, 3), dtype=bool))
     rr, cc = np.nonzero(rim)
     t0 = time.perf_counter()
@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> None:
     t0 = time.perf_counter()
     qhull = Delaunay(np.column_stack([rr, cc]).astype(float)).simplices
     t_qhull = time.perf_counter() - t0
-    del holes, has_after, rim
+    del has_after, rim
 
     t0 = time.perf_counter()
     swept = fill_holes(heights, has, pinholes=True)

@@ -2,9 +2,10 @@
 
 Both interpolate linearly on the Delaunay triangles of the data cells around the holes, which lie on the grid:
 millions of integer points, most of them cocircular with others (every square of four cells). Qhull (scipy's
-``Delaunay``) lifts them onto a paraboloid and takes the 3-D convex hull, and on a city-sized grid's 3.7 million rim
-cells it took 17 times as long as this module's sweep (``benchmarks/RESULTS.md``, "Hole filling: a Delaunay
-triangulation of grid cells", where the same triangles' count and the filled heights are compared).
+``Delaunay``) lifts them onto a paraboloid and takes the 3-D convex hull, and on the 3.7 million rim cells of a
+synthetic grid the size of the rendered city's DSM it took 17 times as long as this module's sweep
+(``benchmarks/RESULTS.md``, "Hole filling: a Delaunay triangulation of grid cells", where the same triangles'
+count and the filled heights are compared).
 
 :func:`grid_delaunay` is the sweep-hull algorithm (Sinclair 2010, "S-hull"), with Lawson's edge flips
 (Lawson 1977) after each insertion:
@@ -275,7 +276,7 @@ def _sweep(x, y):
 
 @numba.njit(cache=True, nogil=True)
 def _circumcentre_from_a(ax, ay, bx, by, cx, cy):
-    """The circumcentre of (a, b, c) less a: (east, north) offsets, so its radius squared is their squared sum."""
+    """The circumcentre of (a, b, c) less a: its (x, y) offsets, so the radius squared is their squared sum."""
     dx, dy = bx - ax, by - ay
     ex, ey = cx - ax, cy - ay
     bl = dx * dx + dy * dy
