@@ -313,6 +313,29 @@ def test_rectified_rows_hold_the_same_ground_point(block):
     np.testing.assert_allclose(a[ok, 0] - b[ok, 0], rect.disparity_of(tie[ok], left.C), atol=1e-6)
 
 
+def test_the_maps_between_nodes_are_bilinear_in_either_layout():
+    """The rectification's maps and the reference's rays are interpolated between nodes every ``step`` pixels:
+    each pixel is the bilinear blend of the four nodes around it (the last two nodes extrapolated past the last),
+    as ``scipy``'s regular-grid interpolation gives it, in the planes ``cv2.remap`` takes and channels last."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from aerocal.products.dense import _upsample
+
+    rng = np.random.default_rng(7)
+    coarse = rng.normal(0.0, 300.0, (7, 11, 3))
+    step, h, w = 8, 53, 85  # 6 x 8 node spacings hold 49 x 81 pixels: the last rows and columns lie past the nodes
+    inner = RegularGridInterpolator((np.arange(7) * step, np.arange(11) * step), coarse, bounds_error=False,
+                                    fill_value=None)
+    yy, xx = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    expected = inner(np.column_stack([yy.ravel(), xx.ravel()])).reshape(h, w, 3)
+    planes = _upsample(coarse, step, h, w)
+    assert planes.shape == (3, h, w) and all(p.flags.c_contiguous for p in planes)
+    np.testing.assert_allclose(np.moveaxis(planes, 0, -1), expected, atol=2e-3)  # float32 of values near 1000
+    last = _upsample(coarse, step, h, w, channels_last=True)
+    assert last.shape == (h, w, 3) and last.flags.c_contiguous
+    np.testing.assert_array_equal(last, np.moveaxis(planes, 0, -1))
+
+
 def test_sgbm_matches_every_column_of_the_reference_that_the_other_frame_sees(block):
     """OpenCV's SGBM leaves the reference's first minDisparity + numDisparities columns unmatched; a pair whose
     frames are offset by hundreds of rectified pixels (most of this block's) lost much of the reference that way,

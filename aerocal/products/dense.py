@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import ctypes
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numba
@@ -162,6 +162,8 @@ class PairPlan:
     other: int  #: image id of the neighbour
     min_disparity: int  #: SGBM minDisparity (rectified pixels, may be negative)
     num_disparities: int  #: SGBM numDisparities (a multiple of 16)
+    #: the pair's :func:`rectify` as planned (None: :func:`pair_depth` computes it)
+    rect: Rectification | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True)
@@ -191,6 +193,12 @@ def _border(frame: FrameGeometry, n: int = 12) -> np.ndarray:
     t = np.linspace(0.0, 1.0, n, endpoint=False)
     return np.concatenate([np.column_stack([t * w, 0 * t]), np.column_stack([0 * t + w, t * h]),
                            np.column_stack([w - t * w, 0 * t + h]), np.column_stack([0 * t, h - t * h])])
+
+
+def _border_rays(frame: FrameGeometry) -> np.ndarray:
+    """The world ray directions (48, 3) of points along the frame's border (:func:`rectify` bounds a pair's
+    rectified frames by them)."""
+    return _world_rays(frame, _border(frame))
 
 
 def _world_rays(frame: FrameGeometry, uv: np.ndarray) -> np.ndarray:
@@ -228,18 +236,30 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
                        for s, f in zip(samples, frames, strict=True)])
     reach = min(2.0 * np.max(heights) * max(1.0, config.max_base_to_height), 2.5 * float(np.max(radius)))
     tree = cKDTree(cam_xy)
+    # the pairs within reach and base-to-height, grouped by the frame that sees the other's samples: one projection
+    # per frame of every sample set it is asked about (a projection per pair was 3.5 s of a city's 818 frames)
+    asked: list[list[int]] = [[] for _ in frames]
+    for i, f in enumerate(frames):
+        for j in tree.query_ball_point(cam_xy[i], reach):
+            bh = float(np.linalg.norm(frames[j].C - f.C)) / max(heights[i], 1e-9)
+            if j != i and len(samples[i]) and config.min_base_to_height <= bh <= config.max_base_to_height:
+                asked[j].append(i)
+    seen_by: dict[tuple[int, int], np.ndarray] = {}
+    for j, refs in enumerate(asked):
+        if not refs:
+            continue
+        uv = frames[j].project(np.concatenate([samples[i] for i in refs]))
+        seen = np.all(np.isfinite(uv), axis=1) & frames[j].camera.in_image(uv)
+        bounds = np.cumsum([0] + [len(samples[i]) for i in refs])
+        for i, lo, hi in zip(refs, bounds[:-1], bounds[1:], strict=True):
+            seen_by[i, j] = seen[lo:hi]
     out: dict[int, list[int]] = {}
     for i, f in enumerate(frames):
         cand = []
-        for j in tree.query_ball_point(cam_xy[i], reach):
-            if j == i or not len(samples[i]):
-                continue
-            bh = float(np.linalg.norm(frames[j].C - f.C)) / max(heights[i], 1e-9)
-            if not config.min_base_to_height <= bh <= config.max_base_to_height:
-                continue
-            uv = frames[j].project(samples[i])
-            seen = np.all(np.isfinite(uv), axis=1) & frames[j].camera.in_image(uv)
-            if seen.any():
+        for j in tree.query_ball_point(cam_xy[i], reach):  # the tree's order: the stable sort's ties
+            seen = seen_by.get((i, j))
+            if seen is not None and seen.any():
+                bh = float(np.linalg.norm(frames[j].C - f.C)) / max(heights[i], 1e-9)
                 cand.append((float(np.mean(seen)) * bh, float(np.mean(seen)), j, seen))
         cand.sort(key=lambda t: -t[0])
         chosen = [c for c in cand if c[1] >= config.min_overlap][:config.neighbours]
@@ -284,9 +304,12 @@ class Rectification:
         return self.f * self.baseline_m / z + (self.cx_left - self.cx_right)
 
 
-def rectify(left: FrameGeometry, right: FrameGeometry, scale: float, max_size_factor: float = 2.0) -> Rectification:
+def rectify(left: FrameGeometry, right: FrameGeometry, scale: float, max_size_factor: float = 2.0,
+            border_rays: tuple[np.ndarray, np.ndarray] | None = None) -> Rectification:
     """The rectification of a pair (module docstring, step 2) at ``scale``; rectified frames are at most
     ``max_size_factor`` times the matched frames' size (a strongly oblique pair is cropped, not blown up).
+    ``border_rays``: each frame's :func:`_border_rays`, where the caller holds them (a frame of a block is in
+    several pairs).
 
     Raises:
         ValueError: the projection centres coincide (no baseline).
@@ -302,8 +325,8 @@ def rectify(left: FrameGeometry, right: FrameGeometry, scale: float, max_size_fa
     R = np.stack([e1, e2, np.cross(e1, e2)])
     f = 0.5 * (left.camera.f + right.camera.f) * scale
     ext = []
-    for fr in (left, right):
-        r = _world_rays(fr, _border(fr)) @ R.T
+    for rays in border_rays or (_border_rays(left), _border_rays(right)):
+        r = rays @ R.T
         ok = r[:, 2] > 1e-9
         ext.append(f * r[ok, :2] / r[ok, 2:3])
     w0, h0 = max(left.camera.width, right.camera.width) * scale, max(left.camera.height, right.camera.height) * scale
@@ -324,22 +347,46 @@ def viewing_depth(frame: FrameGeometry, ground_height_m: float) -> float:
     return float((frame.C[2] - ground_height_m) / max(down, 0.2))
 
 
-def _upsample(coarse: np.ndarray, step: int, h: int, w: int) -> np.ndarray:
+def _upsample(coarse: np.ndarray, step: int, h: int, w: int, channels_last: bool = False) -> np.ndarray:
     """Bilinear interpolation of ``coarse`` (hs, ws, C), whose node (i, j) lies at pixel (i step, j step), onto
-    the pixels of an (h, w) grid: (h, w, C) float32, each channel contiguous.
+    the pixels of an (h, w) grid (nodes past the last are extrapolated from the last two): float32 (C, h, w), each
+    plane contiguous as ``cv2.remap`` takes its maps, or (h, w, C) with ``channels_last``.
 
-    Separable, as two products with the interpolation weights (float32: OpenCV's resize and remap quantise the
-    weights to 1/32, and float32 keeps a 4000-pixel coordinate to 0.0005 px); 1.7 times as fast as indexing the
-    nodes and blending them (a 640 x 480 frame, 3 channels)."""
-    def weights(n: int, nodes: int) -> np.ndarray:
-        x = np.arange(n) / step
-        i = np.minimum(np.floor(x).astype(np.int64), nodes - 2)
-        W = np.zeros((n, nodes), dtype=np.float32)
-        W[np.arange(n), i] = 1.0 - (x - i)
-        W[np.arange(n), i + 1] = x - i
-        return W
-    channels = np.moveaxis(coarse.astype(np.float32, copy=False), -1, 0)  # (C, hs, ws)
-    return np.moveaxis(weights(h, coarse.shape[0]) @ channels @ weights(w, coarse.shape[1]).T, 0, -1)
+    Float32 (OpenCV's resize and remap quantise the weights to 1/32, and float32 keeps a 4000-pixel coordinate to
+    0.0005 px), in one compiled pass per plane (:func:`_upsample_into`): 3.4 times as fast as the two products with
+    the interpolation weights it replaced, whose weights were mostly zeros (a 330 x 620 rectified frame, 2 planes;
+    ``benchmarks/RESULTS.md``, "Dense surface: the rectification's maps in one pass")."""
+    c = coarse.shape[2]
+    out = np.empty((h, w, c) if channels_last else (c, h, w), dtype=np.float32)
+    _upsample_into(np.ascontiguousarray(coarse, dtype=np.float32), step,
+                   np.moveaxis(out, -1, 0) if channels_last else out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _upsample_into(coarse: np.ndarray, step: int, out: np.ndarray) -> None:
+    """:func:`_upsample` into ``out`` (C, h, w): per output row, its nodes between the two node rows around it,
+    then each pixel between its two nodes."""
+    hs, ws = coarse.shape[0], coarse.shape[1]
+    h, w = out.shape[1], out.shape[2]
+    one = np.float32(1.0)
+    node = np.empty(w, dtype=np.int64)
+    frac = np.empty(w, dtype=np.float32)
+    for x in range(w):
+        node[x] = min(x // step, ws - 2)
+        frac[x] = np.float32(x / step - node[x])
+    row = np.empty(ws, dtype=np.float32)
+    slope = np.empty(ws, dtype=np.float32)
+    for k in range(out.shape[0]):
+        for y in range(h):
+            i = min(y // step, hs - 2)
+            fy = np.float32(y / step - i)
+            for j in range(ws):
+                row[j] = (one - fy) * coarse[i, j, k] + fy * coarse[i + 1, j, k]
+            for j in range(ws - 1):
+                slope[j] = row[j + 1] - row[j]
+            for x in range(w):
+                out[k, y, x] = row[node[x]] + frac[x] * slope[node[x]]
 
 
 def _rectified(frame: FrameGeometry, rect: Rectification, image: np.ndarray, left: bool,
@@ -365,11 +412,10 @@ def _rectified(frame: FrameGeometry, rect: Rectification, image: np.ndarray, lef
         X = np.asarray(frame.C) + depth * ray_w / np.where(along > 1e-9, along, np.nan)[..., None]
     uv = frame.project(X)  # frame pixels, top-left convention
     coarse = np.nan_to_num(uv * scale - 0.5, nan=-10.0)
-    maps = _upsample(coarse, MAP_STEP, h, w).astype(np.float32)
+    map_x, map_y = _upsample(coarse, MAP_STEP, h, w)  # each plane contiguous
     h_img, w_img = image.shape[:2]
-    inside = (maps[..., 0] >= 0) & (maps[..., 0] <= w_img - 1) & (maps[..., 1] >= 0) & (maps[..., 1] <= h_img - 1)
-    out = cv2.remap(image, maps[..., 0], maps[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                    borderValue=0)
+    inside = (map_x >= 0) & (map_x <= w_img - 1) & (map_y >= 0) & (map_y <= h_img - 1)
+    out = cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return out, inside
 
 
@@ -394,6 +440,7 @@ class _PairPlanner:
         self.scale, self.config = scale, config
         tree = cKDTree(self.tie_xyz[:, :2])
         self.seen = {}
+        self.border_rays = {f.image_id: _border_rays(f) for f in frames}
         typical = float(np.median(self.tie_xyz[:, 2]))
         for f in frames:  # the tie points near the frame's footprint only: a city block holds 10^5 of them
             reach = 1.5 * float(np.max(np.linalg.norm(f.ground_footprint([typical]) - f.C[:2], axis=1), initial=0.0))
@@ -412,7 +459,8 @@ class _PairPlanner:
             pts = self.tie_xyz[both] if both.sum() >= 10 else self.tie_xyz[self.seen[ref]]
             if len(pts) < 3:
                 continue
-            rect = rectify(by_id[ref], by_id[o], self.scale)
+            rect = rectify(by_id[ref], by_id[o], self.scale,
+                           border_rays=(self.border_rays[ref], self.border_rays[o]))
             d = rect.disparity_of(pts, by_id[ref].C)
             d = d[np.isfinite(d)]
             if len(d) < 3:
@@ -427,7 +475,7 @@ class _PairPlanner:
             # give no depth (and OpenCV's 3-way SGBM fails on a window that narrow with a negative allocation)
             if rect.size[0] - max(abs(lo), abs(lo + num)) < MIN_SEARCH_COLUMNS:
                 continue
-            plans.append(PairPlan(other=o, min_disparity=lo, num_disparities=num))
+            plans.append(PairPlan(other=o, min_disparity=lo, num_disparities=num, rect=rect))
         return plans
 
 
@@ -450,7 +498,7 @@ def _reference_grid(frame: FrameGeometry, scale: float, depth: float) -> np.ndar
         frac = uv[..., 1:2] / frame.camera.height - 0.5
         g = frac * np.asarray(frame.motion, dtype=float) + depth * rays
         rays = g / (g @ np.asarray(frame.R_cw)[2])[..., None]
-    return np.ascontiguousarray(_upsample(rays, MAP_STEP, h, w))  # each pair multiplies it: once in memory order
+    return _upsample(rays, MAP_STEP, h, w, channels_last=True)  # (h, w, 3) contiguous: each pair reads it
 
 
 def matching_window(rect: Rectification, plan: PairPlan) -> tuple[Rectification, PairPlan]:
@@ -537,15 +585,15 @@ def pair_depth(ref: FrameGeometry, other: FrameGeometry, ref8: np.ndarray, other
 
     ``ref8`` / ``other8`` are the 8-bit frames at ``scale``; ``rays`` the reference's world rays
     (:func:`_reference_grid`); ``ground_height_m`` the plane at whose depth the frames are rectified."""
-    rect, plan = matching_window(rectify(ref, other, scale), plan)
+    rect, plan = matching_window(plan.rect if plan.rect is not None else rectify(ref, other, scale), plan)
     left, inside = _rectified(ref, rect, ref8, True, scale, viewing_depth(ref, ground_height_m))
     right, inside_right = _rectified(other, rect, other8, False, scale, viewing_depth(other, ground_height_m))
     raw = _sgbm(config, plan).compute(left, right)
     # semi-global matching carries disparities across a region without texture along its paths, and two pairs
     # interpolate it alike, so the fusion would keep it: a pixel whose block holds no texture gets no depth
     win = (2 * config.block_size + 1,) * 2
-    ref = left.astype(np.float32)
-    var = cv2.boxFilter(ref * ref, -1, win) - np.square(cv2.boxFilter(ref, -1, win))
+    mean = cv2.boxFilter(left, cv2.CV_32F, win)  # on the 8-bit frame: a fifth of the time of a float copy's
+    var = cv2.sqrBoxFilter(left, cv2.CV_32F, win) - mean * mean
     usable = inside & (var >= config.min_texture ** 2)
     # back at the reference's pixels, in one compiled pass over them that reads SGBM's sixteenths as
     # sgbm_disparity does (the numpy passes and OpenCV's nearest-pixel remaps it replaces were about a third of a
