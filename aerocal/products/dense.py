@@ -237,13 +237,16 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
     reach = min(2.0 * np.max(heights) * max(1.0, config.max_base_to_height), 2.5 * float(np.max(radius)))
     tree = cKDTree(cam_xy)
     # the pairs within reach and base-to-height, grouped by the frame that sees the other's samples: one projection
-    # per frame of every sample set it is asked about (a projection per pair was 3.5 s of a city's 818 frames)
+    # per frame of every sample set it is asked about (a projection per pair took 3.5-5.0 s of a city's 818 frames)
     asked: list[list[int]] = [[] for _ in frames]
+    usable: list[list[tuple[int, float]]] = []  # per frame, its pairs (j, base-to-height) in the tree's order
     for i, f in enumerate(frames):
+        usable.append([])
         for j in tree.query_ball_point(cam_xy[i], reach):
             bh = float(np.linalg.norm(frames[j].C - f.C)) / max(heights[i], 1e-9)
             if j != i and len(samples[i]) and config.min_base_to_height <= bh <= config.max_base_to_height:
                 asked[j].append(i)
+                usable[i].append((j, bh))
     seen_by: dict[tuple[int, int], np.ndarray] = {}
     for j, refs in enumerate(asked):
         if not refs:
@@ -256,10 +259,9 @@ def select_neighbours(frames: Sequence[FrameGeometry], ground_height_m: float,
     out: dict[int, list[int]] = {}
     for i, f in enumerate(frames):
         cand = []
-        for j in tree.query_ball_point(cam_xy[i], reach):  # the tree's order: the stable sort's ties
-            seen = seen_by.get((i, j))
-            if seen is not None and seen.any():
-                bh = float(np.linalg.norm(frames[j].C - f.C)) / max(heights[i], 1e-9)
+        for j, bh in usable[i]:  # the tree's order: the stable sort's ties
+            seen = seen_by[i, j]
+            if seen.any():
                 cand.append((float(np.mean(seen)) * bh, float(np.mean(seen)), j, seen))
         cand.sort(key=lambda t: -t[0])
         chosen = [c for c in cand if c[1] >= config.min_overlap][:config.neighbours]
