@@ -80,6 +80,26 @@ def test_dem_difference_respects_the_mask_and_holes():
     assert d.n == 5 * 20 and d.mean == pytest.approx(0.0) and d.selection == "southern half"
 
 
+def test_a_dem_difference_within_a_mask_gives_what_comparing_with_that_mask_gives():
+    rng = np.random.default_rng(11)
+    ref = _dem(50 + np.cumsum(rng.normal(0, 0.3, (90, 110)), axis=0))
+    test = ref.heights + rng.normal(0.3, 0.2, ref.shape).astype(np.float32)
+    test[40:50, 20:60] = np.nan
+    inside = np.ones(ref.shape, bool)
+    inside[:, 100:] = False
+    near = rng.random(ref.shape) < 0.3
+    whole = compare_dems(_dem(test), ref, mask=inside)
+    direct = compare_dems(_dem(test), ref, mask=inside & near, selection="near")
+    part = whole.within(near, "near")
+    assert part.n == direct.n and part.selection == "near"
+    for name in ("mean", "std", "median", "nmad", "rmse"):
+        assert getattr(part, name) == pytest.approx(getattr(direct, name), rel=1e-6, abs=1e-6), name
+    np.testing.assert_array_equal(part.histogram_counts, direct.histogram_counts)
+    np.testing.assert_array_equal(np.isfinite(part.difference), np.isfinite(direct.difference))
+    with pytest.raises(ValueError, match="shape"):
+        whole.within(near[:10], "near")
+
+
 def _gcps(xyz, roles):
     n = len(xyz)
     return tables.from_columns("gcps", {

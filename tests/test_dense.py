@@ -428,7 +428,7 @@ def test_a_pair_whose_disparity_search_leaves_no_columns_to_match_is_left_out(bl
 
 
 def test_the_hillshade_lights_the_slope_that_faces_the_light_and_a_tie_point_dsm_has_no_measured_band(tmp_path):
-    from aerocal.products.dsm import Dsm, read_measured
+    from aerocal.products.dsm import Dsm, read_dsm, read_dsm_and_measured, read_measured
     from aerocal.report.figures import hillshade
 
     e = np.arange(40, dtype=float)
@@ -441,6 +441,17 @@ def test_the_hillshade_lights_the_slope_that_faces_the_light_and_a_tie_point_dsm
     assert read_measured(write_dsm(dsm, tmp_path / "tie.tif")) is None
     measured = ridge > 5
     np.testing.assert_array_equal(read_measured(write_dsm(dsm, tmp_path / "dense.tif", measured)), measured)
+    # both bands from one read: the heights (a hole included) and the measured cells, as the two readers give them
+    dsm.heights[3, 4] = np.nan
+    views = np.where(measured, 3, 0).astype(np.uint8)
+    path = write_dsm(dsm, tmp_path / "views.tif", measured, views)
+    both, both_measured = read_dsm_and_measured(path)
+    alone = read_dsm(path)
+    np.testing.assert_array_equal(both.heights, alone.heights)
+    assert np.isnan(both.heights[3, 4]) and both.heights.dtype == np.float32
+    assert (both.west, both.north, both.cell_m, both.crs) == (alone.west, alone.north, alone.cell_m, alone.crs)
+    np.testing.assert_array_equal(both_measured, read_measured(path))
+    assert read_dsm_and_measured(tmp_path / "tie.tif")[1] is None
 
 
 def test_the_dtm_removes_buildings_and_trees_and_lies_on_the_true_ground(block, dense):

@@ -689,7 +689,26 @@ def read_dsm(path: str | Path) -> Dsm:
         ValueError: ``path`` is not a readable GeoTIFF; its transform is not north-up with square cells (warp it first,
             e.g. with gdalwarp); it has no CRS.
     """
-    path = Path(path)
+    return _read_surface(Path(path), with_measured=False)[0]
+
+
+def read_dsm_and_measured(path: str | Path) -> tuple[Dsm, np.ndarray | None]:
+    """:func:`read_dsm` and :func:`read_measured` of one file, from one read of its bands.
+
+    :func:`write_dsm`'s bands are interleaved by pixel, so reading any one of them decompresses them all: a city's
+    dense DSM (82 million cells, three bands) read band by band was decompressed once for the heights and once
+    more for the measured cells (``benchmarks/RESULTS.md``, "Report: the DSM read once, its difference formed
+    once").
+
+    Raises:
+        ValueError: as :func:`read_dsm`.
+    """
+    return _read_surface(Path(path), with_measured=True)
+
+
+def _read_surface(path: Path, with_measured: bool) -> tuple[Dsm, np.ndarray | None]:
+    """The DSM of ``path``'s band 1 and, with ``with_measured``, its band named ``measured`` (``None`` without one);
+    the grid is checked before any pixel is read (:func:`read_dsm`'s errors)."""
     try:
         src = rasterio.open(path)
     except rasterio.errors.RasterioIOError as exc:
@@ -701,6 +720,9 @@ def read_dsm(path: str | Path) -> Dsm:
                              "warp it to a north-up grid first (gdalwarp)")
         if src.crs is None:
             raise ValueError(f"{path}: the raster has no CRS; assign the flight's CRS (gdal_edit.py -a_srs)")
-        data = src.read(1, masked=True).astype(np.float32)
-        heights = np.where(np.ma.getmaskarray(data), np.nan, np.ma.getdata(data)).astype(np.float32)
-        return Dsm(heights=heights, west=t.c, north=t.f, cell_m=t.a, crs=src.crs.to_string())
+        has_measured = with_measured and src.count >= 2 and src.descriptions[1] == "measured"
+        bands = src.read([1, 2] if has_measured else [1], masked=True)
+        crs = src.crs.to_string()
+    heights = np.where(np.ma.getmaskarray(bands[0]), np.float32(np.nan), np.ma.getdata(bands[0]))
+    dsm = Dsm(heights=heights.astype(np.float32, copy=False), west=t.c, north=t.f, cell_m=t.a, crs=crs)
+    return dsm, (np.ma.getdata(bands[1]) == 1.0) if has_measured else None

@@ -204,7 +204,7 @@ def dem_difference_for_flight(
         else:
             near = _near_tie_points(dsm, np.asarray(tie_points_en, dtype=float), measured_within_m)
             sel = f"within {measured_within_m:g} m of a tie point"
-        m = compare_dems(dsm, reference, mask=inside & near, selection=sel)
+        m = diff.within(near, sel)
         fig.numbers["measured_cells"] = {k: v for k, v in m.to_dict().items()
                                          if k in ("n", "mean_m", "std_m", "median_m", "nmad_m", "rmse_m",
                                                   "selection")}

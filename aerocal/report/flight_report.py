@@ -29,7 +29,7 @@ import pyarrow as pa
 
 from aerocal.certificates.document import Certificate
 from aerocal.io import write_json_atomic, write_text_atomic
-from aerocal.products.dsm import read_dsm, read_measured
+from aerocal.products.dsm import read_dsm, read_dsm_and_measured
 from aerocal.products.mosaic import frames_from_poses
 from aerocal.report import wording
 from aerocal.report.figures import Figure, block_figure, laser_range_figure, surface_figure
@@ -138,8 +138,7 @@ def write_flight_report(
     thermal = None if cert.thermal is None else cert.thermal.model
     temps = dict(zip(images.column("image_id").to_pylist(), images.column("temperature_c").to_pylist(),
                      strict=True))
-    dsm_grid = read_dsm(dsm) if dsm is not None else None
-    measured = read_measured(dsm) if dsm is not None else None
+    dsm_grid, measured = read_dsm_and_measured(dsm) if dsm is not None else (None, None)
     summary = flight_summary(flight, cert, adjustment, assessment, diagnosis, mosaic, control_screening)
 
     figures: dict[str, Figure] = {}
