@@ -55,6 +55,35 @@ def test_write_dsm_is_a_georeferenced_float32_cloud_optimized_geotiff(tmp_path):
     assert not list(tmp_path.glob(".tmp-*")), "no temporary file left behind"
 
 
+def test_a_dsm_larger_than_a_block_has_gdals_average_overviews_down_to_one_block(tmp_path):
+    """The overviews a GIS reads when zoomed out: GDAL's average of the heights, nodata left out, at the levels
+    GDAL's COG driver makes (halving until one 256-cell block holds the level), each tiled."""
+    from rasterio.enums import Resampling
+
+    from aerocal.products.dsm import cog_overview_factors
+
+    rng = np.random.default_rng(7)
+    heights = (40.0 + np.cumsum(rng.normal(0, 0.2, (700, 1100)), axis=1)).astype(np.float32)
+    heights[100:160, 300:420] = np.nan
+    dsm = Dsm(heights=heights, west=686000.0, north=4929000.0, cell_m=0.5, crs=CRS)
+    measured = np.isfinite(heights) & (rng.random(heights.shape) < 0.9)
+    path = write_dsm(dsm, tmp_path / "dsm.tif", measured)
+    assert cog_overview_factors(1100, 700) == [2, 4, 8]
+    plain = tmp_path / "plain.tif"
+    with rasterio.open(path) as src:
+        assert src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+        assert src.overviews(1) == src.overviews(2) == [2, 4, 8], src.overviews(1)
+        with rasterio.open(plain, "w", **{**src.profile, "driver": "GTiff", "tiled": False, "compress": None}) as dst:
+            dst.write(src.read())
+            dst.build_overviews([2, 4, 8], Resampling.average)
+    for level in range(3):
+        with rasterio.open(path, overview_level=level) as a, rasterio.open(plain, overview_level=level) as b:
+            assert a.block_shapes[0] == (256, 256) or max(a.shape) <= 256, (level, a.block_shapes)
+            assert np.array_equal(a.read(), b.read()), f"overview 1/{2 ** (level + 1)}"
+            h = a.read(1, masked=True)
+            assert not h.mask.all() and h.min() >= np.nanmin(heights) - 1e-3, "nodata is left out of the averages"
+
+
 def test_read_dsm_names_the_file_it_cannot_read(tmp_path):
     bad = tmp_path / "broken.tif"
     bad.write_text("not a tiff")

@@ -65,7 +65,7 @@ from aerocal.camera import Camera, LinearThermalModel, ThermalModel, correct_mea
 from aerocal.geometry import matrix_from_quat_wxyz
 from aerocal.ingest.pixels import ImageReadError, read_raw
 from aerocal.io import atomic_path
-from aerocal.products.dsm import DEFLATE_LEVEL, Dsm
+from aerocal.products.dsm import DEFLATE_LEVEL, Dsm, cog_overview_factors
 from aerocal.products.kernels import (
     NO_PIXEL,
     add_weighted,
@@ -757,15 +757,13 @@ def overview_factors(width: int, height: int, config: MosaicConfig) -> list[int]
 
 def _gdal_factors(width: int, height: int, config: MosaicConfig) -> list[int]:
     """The overview levels GDAL makes of a ``width`` x ``height`` mosaic (:func:`overview_factors`)."""
+    if config.cog:
+        return cog_overview_factors(width, height, config.tile_px)
     factors, f = [], 2
-    while True:
-        if config.cog:
-            if -(-width // (f // 2)) <= config.tile_px and -(-height // (f // 2)) <= config.tile_px:
-                return factors
-        elif f > 32 or min(width, height) // f < 64:
-            return factors
+    while f <= 32 and min(width, height) // f >= 64:
         factors.append(f)
         f *= 2
+    return factors
 
 
 def render_tile_pyramid(levels: int, tile: TileSpec, frames: Sequence[FrameGeometry],
