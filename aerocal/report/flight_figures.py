@@ -21,7 +21,7 @@ import rasterio
 from pyproj import CRS
 from rasterio.enums import Resampling
 
-from aerocal.assess import BinnedResiduals, compare_dems
+from aerocal.assess import BinnedResiduals, DemDifference, compare_dems
 from aerocal.camera import Camera
 from aerocal.products.dsm import distance_to_data
 from aerocal.products.mosaic import FrameGeometry
@@ -160,6 +160,57 @@ def _same_crs(a: str, b: str) -> bool:
     return CRS.from_user_input(a) == CRS.from_user_input(b)
 
 
+@dataclasses.dataclass(frozen=True)
+class DemComparison:
+    """A flight's DSM against a reference surface (:func:`compare_to_reference`), before it is drawn: the
+    comparison on the DSM's cells inside the reference (``whole``), on its measured cells (``measured``, ``None``
+    without a selection of them), and how the caption names the reference and the measured cells."""
+
+    whole: DemDifference
+    measured: DemDifference | None
+    reference_name: str
+    cell_m: float
+
+
+def compare_to_reference(
+    dsm, reference, tie_points_en: np.ndarray | None = None, measured_within_m: float = MEASURED_WITHIN_M,
+    reference_name: str = "the reference DSM", measured: np.ndarray | None = None,
+) -> DemComparison:
+    """The numbers of :func:`dem_difference_for_flight` without its drawing (arguments and errors the same): no
+    Matplotlib, so it may run on another thread while figures are drawn."""
+    if not _same_crs(dsm.crs, reference.crs):
+        raise FigureSkipped(f"DSM minus reference: not drawn, {reference_name} is in {reference.crs} and the "
+                            f"flight's DSM in {dsm.crs}; warp the reference to the flight's CRS (gdalwarp -t_srs).")
+    inside = _inside(dsm, reference)
+    diff = compare_dems(dsm, reference, mask=inside, selection=f"cells inside {reference_name}")
+    if diff.n == 0:
+        raise FigureSkipped(f"DSM minus reference: not drawn, {reference_name} has no heights under the "
+                            "flight's DSM.")
+    near = None
+    if measured is not None:
+        near, sel = measured, "measured by the dense cloud"
+    elif tie_points_en is not None and len(tie_points_en):
+        near = _near_tie_points(dsm, np.asarray(tie_points_en, dtype=float), measured_within_m)
+        sel = f"within {measured_within_m:g} m of a tie point"
+    return DemComparison(diff, None if near is None else diff.within(near, sel), reference_name, dsm.cell_m)
+
+
+def dem_difference_drawn(comparison: DemComparison) -> Figure:
+    """The figure of a :class:`DemComparison` (:func:`dem_difference_for_flight`'s return)."""
+    diff, m = comparison.whole, comparison.measured
+    fig = dem_difference_figure(diff)
+    caption = (f"The flight's DSM minus {comparison.reference_name} on {diff.n} cells of {comparison.cell_m:.3g} m: "
+               f"mean {diff.mean:.3g} m, median {diff.median:.3g} m, NMAD {diff.nmad:.3g} m.")
+    if m is not None:
+        fig.numbers["measured_cells"] = {k: v for k, v in m.to_dict().items()
+                                         if k in ("n", "mean_m", "std_m", "median_m", "nmad_m", "rmse_m",
+                                                  "selection")}
+        if m.n:
+            caption += (f" On the {m.n} cells {m.selection} (measured heights, the rest is interpolated): mean "
+                        f"{m.mean:.3g} m, NMAD {m.nmad:.3g} m.")
+    return dataclasses.replace(fig, caption=caption)
+
+
 def dem_difference_for_flight(
     dsm, reference, tie_points_en: np.ndarray | None = None, measured_within_m: float = MEASURED_WITHIN_M,
     reference_name: str = "the reference DSM", measured: np.ndarray | None = None,
@@ -187,31 +238,8 @@ def dem_difference_for_flight(
         FigureSkipped: the reference is in another CRS (the message says how to warp it), or it has no heights
             under the flight's DSM.
     """
-    if not _same_crs(dsm.crs, reference.crs):
-        raise FigureSkipped(f"DSM minus reference: not drawn, {reference_name} is in {reference.crs} and the "
-                            f"flight's DSM in {dsm.crs}; warp the reference to the flight's CRS (gdalwarp -t_srs).")
-    inside = _inside(dsm, reference)
-    diff = compare_dems(dsm, reference, mask=inside, selection=f"cells inside {reference_name}")
-    if diff.n == 0:
-        raise FigureSkipped(f"DSM minus reference: not drawn, {reference_name} has no heights under the "
-                            "flight's DSM.")
-    fig = dem_difference_figure(diff)
-    caption = (f"The flight's DSM minus {reference_name} on {diff.n} cells of {dsm.cell_m:.3g} m: mean "
-               f"{diff.mean:.3g} m, median {diff.median:.3g} m, NMAD {diff.nmad:.3g} m.")
-    if measured is not None or (tie_points_en is not None and len(tie_points_en)):
-        if measured is not None:
-            near, sel = measured, "measured by the dense cloud"
-        else:
-            near = _near_tie_points(dsm, np.asarray(tie_points_en, dtype=float), measured_within_m)
-            sel = f"within {measured_within_m:g} m of a tie point"
-        m = diff.within(near, sel)
-        fig.numbers["measured_cells"] = {k: v for k, v in m.to_dict().items()
-                                         if k in ("n", "mean_m", "std_m", "median_m", "nmad_m", "rmse_m",
-                                                  "selection")}
-        if m.n:
-            caption += (f" On the {m.n} cells {sel} (measured heights, the rest is interpolated): mean "
-                        f"{m.mean:.3g} m, NMAD {m.nmad:.3g} m.")
-    return dataclasses.replace(fig, caption=caption)
+    return dem_difference_drawn(compare_to_reference(dsm, reference, tie_points_en, measured_within_m,
+                                                     reference_name, measured))
 
 
 def overlap_counts(

@@ -20,6 +20,7 @@ pixels with the origin at the top-left corner of the frame; temperatures degC; t
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -35,8 +36,10 @@ from aerocal.report import wording
 from aerocal.report.figures import Figure, block_figure, laser_range_figure, surface_figure
 from aerocal.report.flight_figures import (
     MEASURED_WITHIN_M,
+    DemComparison,
     FigureSkipped,
-    dem_difference_for_flight,
+    compare_to_reference,
+    dem_difference_drawn,
     distortion_for_camera,
     image_residuals_from_assessment,
     overview_for_flight,
@@ -138,7 +141,6 @@ def write_flight_report(
     thermal = None if cert.thermal is None else cert.thermal.model
     temps = dict(zip(images.column("image_id").to_pylist(), images.column("temperature_c").to_pylist(),
                      strict=True))
-    dsm_grid, measured = read_dsm_and_measured(dsm) if dsm is not None else (None, None)
     summary = flight_summary(flight, cert, adjustment, assessment, diagnosis, mosaic, control_screening)
 
     figures: dict[str, Figure] = {}
@@ -150,43 +152,53 @@ def write_flight_report(
         except FigureSkipped as why:
             skipped[name] = str(why)
 
-    frames = _frames(poses, cert, temps, thermal)
-    control, check = _ground_points(adjustment, gcps)
-    no_mosaic = ("No orthomosaic: " + (
-        "the flight holds no image pixels (observations only)." if not mosaic.get("frames")
-        else "its file was not given to the report."))
-    attempt("overview", lambda: overview_for_flight(
-        frames, dsm_grid, mosaic.get("ground_height_m"), orthomosaic, control, check, no_mosaic))
-    centres = np.column_stack([poses.column("X").to_numpy(), poses.column("Y").to_numpy()])
-    attempt("tie_points", lambda: tie_points_for_flight(points, centres))
-    attempt("distortion", lambda: distortion_for_camera(cert.camera))
-    attempt("temperature_io", lambda: temperature_io_for_flight(
-        cert.camera, thermal, temps, None if cert.thermal is None else cert.thermal.valid_range))
-    attempt("block", lambda: check_point_block(poses, adjustment, gcps, frames, mosaic.get("ground_height_m")))
-    attempt("image_residuals", lambda: image_residuals_from_assessment(assessment))
+    # the DSM is read and compared with the reference on a thread of its own (numpy and GDAL, which release the
+    # GIL) while this one draws the figures that do not need it: on a city's dense DSM (82 million cells) the two
+    # took 13 of the report's 22 s on one core while the other waited (benchmarks/RESULTS.md, "Report: the DSM
+    # read and compared beside the figures"). Matplotlib stays on this thread.
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="report-dsm") as pool:
+        surface_read = pool.submit(read_dsm_and_measured, dsm) if dsm is not None else None
 
-    def dem_difference() -> Figure:
-        if reference_dsm is None:
-            raise FigureSkipped(f"DSM minus reference: not drawn, the flight folder has no reference DSM "
-                                f"({reference_dsm_name}, a GeoTIFF of surface heights in the flight's CRS).")
-        if dsm_grid is None:
-            raise FigureSkipped("DSM minus reference: not drawn, the flight has no DSM.")
-        try:
-            reference = read_dsm(reference_dsm)
-        except ValueError as exc:  # the user's file: a figure left out with why, not a run lost at its end
-            raise FigureSkipped(f"DSM minus reference: not drawn, {exc}") from exc
-        tie_en = np.column_stack([points.column("X").to_numpy(), points.column("Y").to_numpy()])
-        return dem_difference_for_flight(dsm_grid, reference, tie_en, measured_within_m,
-                                         f"the reference DSM ({reference_dsm_name})", measured)
+        def compared() -> DemComparison:  # on the pool's thread, after the read
+            if reference_dsm is None:
+                raise FigureSkipped(f"DSM minus reference: not drawn, the flight folder has no reference DSM "
+                                    f"({reference_dsm_name}, a GeoTIFF of surface heights in the flight's CRS).")
+            if surface_read is None:
+                raise FigureSkipped("DSM minus reference: not drawn, the flight has no DSM.")
+            try:
+                reference = read_dsm(reference_dsm)
+            except ValueError as exc:  # the user's file: a figure left out with why, not a run lost at its end
+                raise FigureSkipped(f"DSM minus reference: not drawn, {exc}") from exc
+            grid, cells = surface_read.result()
+            tie_en = np.column_stack([points.column("X").to_numpy(), points.column("Y").to_numpy()])
+            return compare_to_reference(grid, reference, tie_en, measured_within_m,
+                                        f"the reference DSM ({reference_dsm_name})", cells)
 
-    def surface() -> Figure:
-        if dsm_grid is None:
-            raise FigureSkipped("Surface model: not drawn, the flight has no DSM.")
-        return surface_figure(dsm_grid, measured)
+        comparison = pool.submit(compared)
+        frames = _frames(poses, cert, temps, thermal)
+        control, check = _ground_points(adjustment, gcps)
+        centres = np.column_stack([poses.column("X").to_numpy(), poses.column("Y").to_numpy()])
+        attempt("tie_points", lambda: tie_points_for_flight(points, centres))
+        attempt("distortion", lambda: distortion_for_camera(cert.camera))
+        attempt("temperature_io", lambda: temperature_io_for_flight(
+            cert.camera, thermal, temps, None if cert.thermal is None else cert.thermal.valid_range))
+        attempt("block", lambda: check_point_block(poses, adjustment, gcps, frames, mosaic.get("ground_height_m")))
+        attempt("image_residuals", lambda: image_residuals_from_assessment(assessment))
 
-    attempt("surface", surface)
+        dsm_grid, measured = surface_read.result() if surface_read is not None else (None, None)
+        no_mosaic = ("No orthomosaic: " + (
+            "the flight holds no image pixels (observations only)." if not mosaic.get("frames")
+            else "its file was not given to the report."))
+        attempt("overview", lambda: overview_for_flight(
+            frames, dsm_grid, mosaic.get("ground_height_m"), orthomosaic, control, check, no_mosaic))
 
-    attempt("dem_difference", dem_difference)
+        def surface() -> Figure:
+            if dsm_grid is None:
+                raise FigureSkipped("Surface model: not drawn, the flight has no DSM.")
+            return surface_figure(dsm_grid, measured)
+
+        attempt("surface", surface)
+        attempt("dem_difference", lambda: dem_difference_drawn(comparison.result()))
     if "dem_difference" in figures:
         dem = figures["dem_difference"].numbers
         summary["dsm_minus_reference_m"] = {k: dem[k] for k in ("n", "mean_m", "median_m", "nmad_m", "rmse_m")}
