@@ -639,9 +639,9 @@ def write_dsm(dsm: Dsm, path: str | Path, measured: np.ndarray | None = None,
     window of a city's DSM without the whole file.
 
     The overviews are GDAL's average (:func:`cog_overview_factors`' levels), made on the uncompressed working
-    file before the COG copy takes them: made by the COG driver itself, a city's dense DSM (10371 x 7944 cells,
-    three bands) took 18.8 CPU-s to write against 11.3 (``benchmarks/RESULTS.md``, "Products: the DSM's
-    overviews made before its COG copy").
+    file before the COG copy takes them: made by the COG driver itself (from a compressed temporary file of its
+    own), they took a city's dense DSM (10371 x 7944 cells, three bands) 16.8 CPU-s to copy against 2.9 + 8.4
+    (``benchmarks/RESULTS.md``, "Products: the DSM's overviews made before its COG copy").
 
     ``measured`` (bool, the DSM's shape), when given, is written as a second band (1: a measured height, 0: a
     filled hole) named ``measured``: a GIS shows where the surface was interpolated; readers of the heights
