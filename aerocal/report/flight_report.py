@@ -154,8 +154,9 @@ def write_flight_report(
 
     # the DSM is read and compared with the reference on a thread of its own (numpy and GDAL, which release the
     # GIL) while this one draws the figures that do not need it: on a city's dense DSM (82 million cells) the two
-    # took 13 of the report's 22 s on one core while the other waited (benchmarks/RESULTS.md, "Report: the DSM
-    # read and compared beside the figures"). Matplotlib stays on this thread.
+    # took 13.2 of the report's 24.3 s under a profiler, on one core while the other waited; the step went from
+    # 22.0 to 12.6 s (benchmarks/RESULTS.md, "Report: the DSM read once, its difference formed once" and "Report:
+    # the DSM read and compared beside the figures"). Matplotlib stays on this thread.
     with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="report-dsm") as pool:
         surface_read = pool.submit(read_dsm_and_measured, dsm) if dsm is not None else None
 
